@@ -1,0 +1,523 @@
+"""The Python API: `load_model`, `simulate` and `fit`, the one path the CLI also takes."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from hamid import __version__
+from hamid.design import Block, Records
+from hamid.errors import DataError, ModelError, UsageError
+from hamid.model import BUILTINS, Model, builtin_model, model_from_expression, model_from_spec
+from hamid.result import EnergyLevel, FitResult, ParameterEstimate
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+__all__ = ["fit", "load_model", "simulate"]
+
+_MODEL_FILE_KEYS = ("model", "parameters", "initial", "simulate", "noise", "damping")
+
+
+def load_model(name_or_path: str | os.PathLike[str]) -> Model:
+    """A built-in model by name (``duffing``, ``poly:2:3``, ...) or the model of a TOML file.
+
+    Examples
+    --------
+    >>> hamid.load_model("duffing").parameters
+    ('k', 'k3')
+    """
+    text = os.fspath(name_or_path)
+    if not text.endswith(".toml"):
+        return builtin_model(text)
+    from hamid import io
+
+    document = io.read_toml(text)
+    if "model" not in document:
+        raise ModelError(f"{text}: no [model] table")
+    from hamid.config import check_keys
+
+    check_keys(document, _MODEL_FILE_KEYS, where=text)
+    return model_from_spec(document["model"], where=f"{text}: [model]")
+
+
+def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | None = None,
+             max_samples: int | None = None,
+             progress: Callable[[float], None] | None = None) -> pd.DataFrame:
+    """Simulate the system of a TOML file (or its dict) and return the sampled record.
+
+    The returned frame has columns ``trajectory``, ``t``, the coordinates and the
+    velocities; ``frame.attrs["hamid"]`` holds its provenance (model, true parameters,
+    initial states, energy drift, noise, seed, integrator, version).
+    """
+    import dataclasses
+
+    import pandas as pd
+
+    from hamid.simulation import parse_system, run
+
+    if isinstance(system, Mapping):
+        document, where = system, "system"
+    else:
+        from hamid import io
+
+        where = os.fspath(system)
+        document = io.read_toml(where)
+    parsed = parse_system(document, where=where)
+    if max_samples is not None:
+        parsed = dataclasses.replace(parsed, max_samples=max_samples)
+    columns, provenance = run(parsed, seed=seed, progress=progress)
+    frame = pd.DataFrame(columns)
+    frame.attrs["hamid"] = {**provenance, "hamid_version": __version__}
+    return frame
+
+
+COVARIANCE_KINDS = ("classical", "hc", "hac", "bootstrap")
+METHODS = ("energy", "auto")
+
+
+def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
+        columns: Mapping[str, str] | None = None, time: str | None = None,
+        trajectory: str | None = None, fix: Mapping[str, float] | None = None,
+        method: str = "auto", cov: str = "hac", level: float = 0.95,
+        bootstrap: int = 200, seed: int | None = None,
+        format: str | None = None) -> FitResult:
+    """Fit the energy of recorded free oscillations.
+
+    Parameters
+    ----------
+    data : path, list of paths, or pandas.DataFrame
+        Recorded positions and velocities (CSV, TSV, Parquet, or ``"-"`` for stdin).
+    model : str, path or Model, optional
+        A built-in name, a TOML model file or a Model; by default the model recorded in
+        the data's metadata, else ``poly:N:3`` over the coordinates found.
+    columns : dict, optional
+        Model name -> file column, for columns named otherwise.
+    time, trajectory : str, optional
+        Names of the time and trajectory columns (default ``t``/``time``, ``trajectory``).
+    fix : dict, optional
+        Parameters held at known values.
+    method : {"auto", "energy"}
+        Which rows to fit; ``auto`` chooses and the result says why.
+    cov : {"hac", "classical", "hc", "bootstrap"}
+        How standard errors are computed.
+    level : float
+        Confidence level of the bounds.
+    bootstrap, seed : int
+        Replicates and seed of the block bootstrap (``cov="bootstrap"``).
+    format : str, optional
+        Input format when it cannot be told from the file name.
+
+    Returns
+    -------
+    FitResult
+
+    Examples
+    --------
+    >>> result = hamid.fit("sample_data/duffing.csv")
+    >>> result.estimates
+    {'k': 1.0..., 'k3': 0.5...}
+    """
+    import numpy as np
+
+    from hamid import design, solve, uncertainty
+
+    _check_choice(method, METHODS, "method")
+    _check_choice(cov, COVARIANCE_KINDS, "cov")
+    if not 0 < level < 1:
+        raise UsageError(f"level must be between 0 and 1, found {level!r}")
+    if cov == "bootstrap" and bootstrap < 10:
+        raise UsageError(f"bootstrap needs at least 10 replicates, found {bootstrap}")
+
+    loaded = _load_data(data, model, columns=columns, time=time, trajectory=trajectory,
+                        format=format)
+    m, records = loaded.model, loaded.records
+    fixed = _check_fixed(fix or {}, m.parameters)
+    kind, kind_reason = "energy", _energy_reason(method)
+
+    blocks = [design.energy_block(m, records)]
+    names = list(m.parameters)
+    free = [k for k, name in enumerate(names) if name not in fixed]
+    if not free:
+        raise UsageError("every parameter is fixed; nothing is left to fit")
+    fixed_values = np.array([fixed.get(name, 0.0) for name in names])
+    blocks = [_hold_fixed(b, free, fixed_values) for b in blocks]
+    free_names = [names[k] for k in free]
+
+    J = records.n_trajectories
+    centred = solve.centre(blocks, J)
+    solution = solve.solve(centred, free_names, n_levels=J)
+    theta = solution.theta
+    h = centred.level_means_A @ theta - centred.level_means_b
+    residual = np.concatenate([b.A @ theta - b.b - (h[b.group] if b.has_level else 0.0)
+                               for b in blocks])
+    weight = np.concatenate([b.weight for b in blocks])
+    group = np.concatenate([b.group for b in blocks])
+    n_rows = len(residual)
+    df_resid = n_rows - len(free) - J
+
+    if cov == "bootstrap":
+        theta_cov, h_var, cov_text = _bootstrap_covariance(blocks, free_names, J, group,
+                                                           bootstrap, seed)
+        df = df_resid
+    else:
+        c = uncertainty.covariance(cov, solution.G, centred.level_weight, residual, weight,
+                                   group, df_resid=df_resid)
+        theta_cov, cov_text, df = c.theta, c.description, c.df
+        Abar = centred.level_means_A
+        h_var = (c.level - 2 * np.einsum("jp,jp->j", Abar, c.theta_level)
+                 + np.einsum("jp,pq,jq->j", Abar, c.theta, Abar))
+    stderr = np.sqrt(np.clip(np.diag(theta_cov), 0, None))
+    low, high = uncertainty.confidence_bounds(theta, stderr, df, level)
+
+    truth = loaded.truth
+    estimates = dict(fixed)
+    parameters = []
+    for k, name in enumerate(names):
+        if name in fixed:
+            parameters.append(ParameterEstimate(name, "energy", fixed[name], None, None, None,
+                                                truth.get(name), True))
+            continue
+        i = free.index(k)
+        estimates[name] = float(theta[i])
+        parameters.append(ParameterEstimate(
+            name, "energy", float(theta[i]), _finite_or_none(stderr[i]),
+            _finite_or_none(low[i]), _finite_or_none(high[i]), truth.get(name), False))
+
+    bounds = records.bounds()
+    levels = tuple(EnergyLevel(label, float(h[j]), _finite_or_none(np.sqrt(max(h_var[j], 0))),
+                               stop - start)
+                   for j, (label, (start, stop)) in enumerate(zip(records.labels, bounds,
+                                                                  strict=True)))
+    energy_rows = blocks[0]
+    stats = _residual_stats(residual[:energy_rows.n_rows], energy_rows, h, bounds,
+                            records.labels)
+    cond = solve.conditioning(blocks, free_names, records.labels)
+    warnings = [*loaded.notes,
+                *_warnings(parameters, stats, cond, df, level, cov)]
+    method_info = {
+        "kind": kind, "kind_reason": kind_reason, "weak_window": None, "damping": [],
+        "weighting": "none", "noise": None, "bias_correction": False, "covariance": cov,
+        "covariance_description": cov_text, "level": level, "fixed": dict(fixed),
+    }
+    conditioning_info = {"condition_number": cond.condition_number,
+                         "singular_values": list(cond.singular_values),
+                         "weakest_direction": cond.weakest_direction, "status": cond.status}
+    from hamid.result import _finite
+
+    labels = np.asarray(records.labels, dtype=object)
+    samples = {"trajectory": labels[energy_rows.group], "t": energy_rows.time,
+               "energy": m.total_energy(records.X, [estimates[n]
+                                                    for n in names]),
+               "residual": residual[:energy_rows.n_rows], "weight": energy_rows.weight}
+    return FitResult(
+        hamid_version=__version__,
+        model=m.info(),
+        data=_finite(loaded.data_info),
+        method=_finite(method_info),
+        parameters=tuple(parameters),
+        energy_levels=levels,
+        residuals=_finite(stats),
+        conditioning=_finite(conditioning_info),
+        warnings=tuple(warnings),
+        samples=samples,
+    )
+
+
+@dataclass(frozen=True)
+class _Loaded:
+    """Records ready to fit, the model, and what the report says about the data."""
+
+    model: Model
+    records: Records
+    truth: dict[str, float]
+    data_info: dict[str, Any]
+    notes: tuple[str, ...]
+
+
+def _check_choice(value: str, choices: tuple[str, ...], option: str) -> None:
+    if value not in choices:
+        raise UsageError(f"{option} must be one of {', '.join(choices)}, found {value!r}")
+
+
+def _energy_reason(method: str) -> str:
+    if method == "energy":
+        return "asked for with --method energy"
+    return "the energy rows are the only kind of row this version fits"
+
+
+def _check_fixed(fix: Mapping[str, float], parameters: tuple[str, ...]) -> dict[str, float]:
+    import math
+
+    for name, value in fix.items():
+        if name not in parameters:
+            raise UsageError(f"--fix: {name!r} is not a parameter of the model "
+                             f"({', '.join(parameters)})")
+        if not isinstance(value, int | float) or not math.isfinite(value):
+            raise UsageError(f"--fix: {name}={value!r} is not a finite number")
+    return {name: float(value) for name, value in fix.items()}
+
+
+def _hold_fixed(block: Block, free: list[int], values: Any) -> Block:
+    """Move the terms of fixed parameters into the known side of the rows."""
+    import dataclasses
+
+    return dataclasses.replace(block, A=block.A[:, free], b=block.b - block.A @ values)
+
+
+def _finite_or_none(x: float) -> float | None:
+    import math
+
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _bootstrap_covariance(blocks: list[Block], names: list[str], J: int, group: Any,
+                          n_boot: int, seed: int | None) -> tuple[Any, Any, str]:
+    """Covariance of theta and the levels from refits on block resamples."""
+    import dataclasses
+
+    import numpy as np
+
+    from hamid import solve, uncertainty
+
+    (block,) = blocks
+    p = len(names)
+
+    def refit(index: Any) -> Any:
+        sample = dataclasses.replace(block, A=block.A[index], b=block.b[index],
+                                     group=block.group[index], time=block.time[index],
+                                     weight=block.weight[index])
+        centred = solve.centre([sample], J)
+        theta = solve.solve(centred, names, n_levels=J).theta
+        return np.concatenate([theta, centred.level_means_A @ theta - centred.level_means_b])
+
+    cov, _, description = uncertainty.bootstrap(refit, group, n_boot=n_boot, seed=seed)
+    return cov[:p, :p], np.diag(cov)[p:], description
+
+
+def _residual_stats(residual: Any, block: Block, h: Any, bounds: list[tuple[int, int]],
+                    labels: tuple[str | int, ...]) -> dict[str, Any]:
+    """Residual summary of the energy rows (SPEC section 4, residuals)."""
+    import numpy as np
+
+    rms = float(np.sqrt(np.mean(residual**2)))
+    mean_level = float(np.mean(np.abs(h)))
+    centred_b = np.concatenate([block.b[a:b] - block.b[a:b].mean() for a, b in bounds])
+    total = float(np.sum(centred_b**2))
+    lagged = sum(float(residual[a:b - 1] @ residual[a + 1:b]) for a, b in bounds)
+    drift = []
+    for (a, b), label, level in zip(bounds, labels, h, strict=True):
+        t, r = block.time[a:b], residual[a:b]
+        span = t[-1] - t[0]
+        slope = np.polyfit(t - t.mean(), r, 1)[0] if b - a > 2 and span > 0 else 0.0
+        explained = (slope**2 * np.sum((t - t.mean())**2) / np.sum((r - r.mean())**2)
+                     if np.any(r != r.mean()) else 0.0)
+        drift.append({"trajectory": label,
+                      "relative_change": float(slope * span / abs(level)) if level else None,
+                      "trend_share": float(explained)})
+    return {
+        "rms": rms,
+        "max_abs": float(np.max(np.abs(residual))),
+        "relative_rms": rms / mean_level if mean_level > 0 else None,
+        "r_squared": 1 - float(np.sum(residual**2)) / total if total > 0 else None,
+        "lag1_autocorrelation": lagged / float(residual @ residual) if rms > 0 else None,
+        "drift": drift,
+    }
+
+
+# A drift is reported when the energy changes by more than this fraction over the record
+# and a straight line in time explains this share of the residual variance.
+_DRIFT_CHANGE, _DRIFT_SHARE = 0.01, 0.2
+
+
+def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: Any,
+              df: int, level: float, cov: str) -> list[str]:
+    """Plain-words warnings about the fit."""
+    from scipy import stats as distributions
+
+    notes = []
+    for d in stats["drift"]:
+        change = d["relative_change"]
+        if change is not None and abs(change) > _DRIFT_CHANGE and d["trend_share"] > _DRIFT_SHARE:
+            notes.append(f"trajectory {d['trajectory']}: the energy drifts by {change:+.1%} "
+                         "over the record; the system may be damped or forced "
+                         "(try --damping viscous)")
+    if cond.status != "ok":
+        combination = " ".join(f"{w:+.2f}*{n}" for n, w in
+                               sorted(cond.weakest_direction.items(), key=lambda x: -abs(x[1]))
+                               if abs(w) >= 0.05)
+        notes.append(f"the problem is {'severely' if cond.status == 'severe' else 'moderately'}"
+                     f" ill-conditioned (condition number {cond.condition_number:.3g}); the "
+                     f"data determine {combination} worst: record larger amplitudes or add a "
+                     "trajectory at another energy")
+    critical = distributions.t.ppf((1 + level) / 2, df)
+    for p in parameters:
+        if p.stderr is not None and abs(p.estimate) < critical * p.stderr:
+            notes.append(f"{p.name} is not significantly different from zero "
+                         f"(its {level:.0%} interval contains 0)")
+    autocorrelation = stats["lag1_autocorrelation"]
+    if cov in ("classical", "hc") and autocorrelation is not None and autocorrelation > 0.5:
+        notes.append(f"residuals are strongly autocorrelated (lag-1 {autocorrelation:.2f}); "
+                     f"--cov {cov} understates the errors, use --cov hac")
+    return notes
+
+
+def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
+               columns: Mapping[str, str] | None, time: str | None,
+               trajectory: str | None, format: str | None) -> _Loaded:
+    """Read the sources, settle the model and arrange the rows by trajectory."""
+    import numpy as np
+    import pandas as pd
+
+    from hamid import io
+
+    if isinstance(data, pd.DataFrame):
+        tables = [("<DataFrame>", data, data.attrs.get("hamid"))]
+    else:
+        paths = [data] if isinstance(data, str | os.PathLike) else list(data)
+        if not paths:
+            raise UsageError("no data given")
+        tables = [(os.fspath(p) if os.fspath(p) != "-" else "<stdin>",
+                   *io.read_table(p, format=format)) for p in paths]
+    first_name, first_table, metadata = tables[0]
+    notes = []
+    if isinstance(model, Model):
+        m = model
+    elif model is not None:
+        m = load_model(model)
+    elif metadata and isinstance(metadata.get("model"), Mapping):
+        m = _model_from_metadata(metadata["model"], first_name)
+    else:
+        m = _assumed_model(first_table, first_name, columns, time, trajectory)
+        notes.append(f"no model given: assumed {m.name} over the coordinates "
+                     f"{', '.join(m.coordinates)} (pick one with --model)")
+
+    X_parts, t_parts, group_parts, labels, mapping = [], [], [], [], {}
+    has_time = True
+    for source, frame, _ in tables:
+        names = [str(c) for c in frame.columns]
+        mapping = io.resolve_columns(names, m.coordinates, m.velocities, mapping=columns,
+                                     source=source)
+        time_col = _optional_column(names, time, io.default_time_column(names), "--time",
+                                    source)
+        traj_col = _optional_column(names, trajectory, io.default_trajectory_column(names),
+                                    "--trajectory", source)
+        X = np.column_stack([io.numeric_column(frame, mapping[v], source=source)
+                             for v in m.variables])
+        t = io.numeric_column(frame, time_col, source=source) if time_col else None
+        has_time = has_time and t is not None
+        if traj_col is None:
+            keys = np.zeros(len(frame), dtype=np.int64)
+            traj_labels = [source if len(tables) > 1 else 1]
+        else:
+            keys, traj_labels = _trajectory_keys(frame[traj_col], traj_col, source)
+            if len(tables) > 1:
+                traj_labels = [f"{source}:{label}" for label in traj_labels]
+        _check_order(keys, t, source, traj_col, time_col)
+        X_parts.append(X)
+        t_parts.append(t)
+        group_parts.append(keys + len(labels))
+        labels.extend(traj_labels)
+    records = Records(np.vstack(X_parts),
+                      np.concatenate(t_parts) if has_time else None,
+                      np.concatenate(group_parts), tuple(labels))
+    truth = {}
+    if metadata and isinstance(metadata.get("model"), Mapping) \
+            and metadata["model"].get("energy") == m.energy:
+        values = {**(metadata.get("parameters") or {}), **(metadata.get("damping") or {})}
+        truth = {k: float(v) for k, v in values.items() if isinstance(v, int | float)}
+    data_info = {
+        "sources": [name for name, _, _ in tables],
+        "n_samples": int(len(records.group)),
+        "n_trajectories": records.n_trajectories,
+        "columns": dict(mapping),
+        "velocity_source": "measured",
+    }
+    return _Loaded(m, records, truth, data_info, tuple(notes))
+
+
+def _model_from_metadata(info: Mapping[str, Any], source: str) -> Model:
+    """The model a simulated file records (built-in by name, else from its energy)."""
+    name = info.get("name")
+    if isinstance(name, str) and (name in BUILTINS or name.startswith("poly:")):
+        candidate = builtin_model(name)
+        if candidate.energy == info.get("energy"):
+            return candidate
+    try:
+        return model_from_expression(str(name or "custom"), info["energy"],
+                                     info["coordinates"], info["velocities"],
+                                     info.get("parameters"), where=f"{source}: metadata model")
+    except (KeyError, TypeError) as exc:
+        raise DataError(f"{source}: the hamid metadata has no usable model ({exc}); "
+                        "give one with --model") from exc
+
+
+def _assumed_model(frame: Any, source: str, columns: Mapping[str, str] | None,
+                   time: str | None, trajectory: str | None) -> Model:
+    """poly:N:3 over every column that has a velocity column (SPEC section 3, fit)."""
+    from hamid import io
+    from hamid.model import poly_model_over
+
+    names = [str(c) for c in frame.columns]
+    exclude = {c for c in (time or io.default_time_column(names),
+                           trajectory or io.default_trajectory_column(names)) if c}
+    pairs = io.find_coordinates(names, exclude=exclude)
+    if not pairs:
+        raise DataError(f"{source}: no model given and no coordinate with a velocity column "
+                        f"found (columns: {', '.join(names)}); give --model, or name "
+                        "velocities vx, x_dot, xdot or dx")
+    if columns:
+        raise UsageError("--columns needs --model (the assumed model takes the file's names)")
+    return poly_model_over([q for q, _ in pairs], [v for _, v in pairs])
+
+
+def _optional_column(names: list[str], asked: str | None, default: str | None, option: str,
+                     source: str) -> str | None:
+    if asked is None:
+        return default
+    if asked not in names:
+        raise DataError(f"{source}: no column {asked!r} for {option} "
+                        f"(columns: {', '.join(names)})")
+    return asked
+
+
+def _trajectory_keys(values: Any, column: str, source: str) -> tuple[Any, list[Any]]:
+    """Index 0..J-1 of each row's trajectory, in order of first appearance, and the labels."""
+    import numpy as np
+    import pandas as pd
+
+    if values.isna().any():
+        row = int(np.flatnonzero(values.isna().to_numpy())[0]) + 1
+        raise DataError(f"{source}: column {column!r}, row {row}: missing trajectory label")
+    codes, uniques = pd.factorize(values, sort=False)
+    labels = [u.item() if hasattr(u, "item") else u for u in uniques]
+    labels = [int(u) if isinstance(u, float) and u.is_integer() else u for u in labels]
+    return codes.astype(np.int64), labels
+
+
+def _check_order(keys: Any, t: Any, source: str, traj_col: str | None,
+                 time_col: str | None) -> None:
+    """Each trajectory's rows must be contiguous and, with a time column, increasing."""
+    import numpy as np
+
+    changes = np.flatnonzero(np.diff(keys)) + 1
+    if len(np.unique(keys[np.concatenate([[0], changes])])) != len(changes) + 1:
+        seen, row = set(), 0
+        for start in np.concatenate([[0], changes]):
+            if keys[start] in seen:
+                row = int(start) + 1
+                break
+            seen.add(keys[start])
+        raise DataError(f"{source}: column {traj_col!r}, row {row}: a trajectory resumes "
+                        "after rows of another; sort the file by trajectory then time")
+    if t is not None:
+        step = np.diff(t)
+        same = np.diff(keys) == 0
+        bad = np.flatnonzero(same & ~(step > 0))
+        if bad.size:
+            row = int(bad[0]) + 2
+            raise DataError(f"{source}: column {time_col!r}, row {row}: time does not increase "
+                            f"({t[row - 2]:g} then {t[row - 1]:g})")

@@ -1,0 +1,234 @@
+"""The `hamid` command: a thin layer over the Python API.
+
+The only module that knows exit codes: 0 success, 1 a data, model or numerical error
+(one message naming the file, column, row or term), 2 a usage error. Data go to standard
+output; messages, warnings and progress to standard error. Heavy modules are imported
+inside the commands so that `hamid --help` starts fast.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from typing import Any
+
+import click
+
+from hamid import __version__
+from hamid.errors import HamidError, UsageError
+
+_debug = False
+
+
+class _HamidGroup(click.Group):
+    """Turns library errors into click's exit codes, and bugs into one line."""
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except UsageError as exc:
+            raise click.UsageError(str(exc), ctx) from exc
+        except HamidError as exc:
+            raise click.ClickException(str(exc)) from exc
+        except (click.ClickException, click.exceptions.Exit, click.Abort):
+            raise
+        except BrokenPipeError:
+            _quiet_broken_pipe()
+        except KeyboardInterrupt:
+            click.echo("interrupted; no output was written", err=True)
+            sys.exit(130)
+        except Exception as exc:
+            if _debug:
+                raise
+            raise click.ClickException(
+                f"internal error ({type(exc).__name__}: {exc}); this is a bug in hamid. "
+                "Rerun with --debug for the traceback") from exc
+
+
+def _quiet_broken_pipe() -> None:
+    """The reader of our output went away (e.g. `| head`): stop quietly, as cat does."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    sys.exit(0)
+
+
+@click.group(cls=_HamidGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="hamid")
+@click.option("--debug", is_flag=True, help="Show the traceback of an internal error.")
+def cli(debug: bool) -> None:
+    """Identify nonlinear vibrating systems by fitting their energy."""
+    global _debug
+    _debug = debug
+
+
+def _stderr_console() -> Any:
+    from rich.console import Console
+
+    return Console(stderr=True, highlight=False)
+
+
+@cli.command()
+@click.option("--config", "config", required=True, metavar="SYSTEM.toml",
+              help="System file: model, true parameters, initial states, settings.")
+@click.option("-o", "--output", default="-", show_default=True, metavar="OUT",
+              help="Output file (.csv, .tsv, .parquet); '-' for standard output.")
+@click.option("--format", "fmt", type=click.Choice(["csv", "tsv", "parquet"]),
+              help="Output format (default: from the file name, csv for '-').")
+@click.option("--seed", type=click.IntRange(min=0), help="Seed of the measurement noise.")
+@click.option("--no-meta", is_flag=True, help="Write no provenance metadata line.")
+@click.option("--max-samples", type=click.IntRange(min=1),
+              help="Allow runs larger than the safety cap (default 20,000,000 samples).")
+def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_meta: bool,
+             max_samples: int | None) -> None:
+    """Integrate a system from its initial states and write the sampled record."""
+    from hamid import io
+    from hamid.api import simulate as run_simulation
+
+    console = _stderr_console()
+    with _progress(console, "simulating") as progress:
+        frame = run_simulation(config, seed=seed, max_samples=max_samples, progress=progress)
+    meta = frame.attrs["hamid"]
+    io.write_table(frame, output, format=fmt, metadata=None if no_meta else meta)
+    drift = max(t["energy_drift"] for t in meta["trajectories"])
+    console.print(f"simulated {len(meta['trajectories'])} trajectories, {len(frame)} samples "
+                  f"(t = 0..{frame['t'].iloc[-1]:g}, dt = {meta['dt']:g}); "
+                  f"largest relative energy drift {drift:.2g}"
+                  + ("" if not meta["damping"] else " (energy plus dissipated work)"))
+
+
+class _progress:
+    """A progress bar on standard error, shown only when it is a terminal."""
+
+    def __init__(self, console: Any, label: str):
+        self.console, self.label, self.bar = console, label, None
+
+    def __enter__(self) -> Any:
+        if not self.console.is_terminal:
+            return None
+        from rich.progress import Progress
+
+        self.bar = Progress(console=self.console, transient=True)
+        self.bar.start()
+        task = self.bar.add_task(self.label, total=1.0)
+        return lambda fraction: self.bar.update(task, completed=fraction)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+
+def _parse_floats(text: str | None, option: str) -> dict[str, float] | None:
+    from hamid import io
+
+    return None if text is None else io.parse_float_mapping(text, option=option)
+
+
+@cli.command()
+@click.argument("data", nargs=-1, required=True)
+@click.option("--model", metavar="NAME|MODEL.toml", help="Built-in model or model file.")
+@click.option("--columns", metavar="NAME=COL,...", help="Map model names to file columns.")
+@click.option("--time", "time_column", metavar="COL", help="Time column (default t or time).")
+@click.option("--trajectory", metavar="COL", help="Trajectory column (default trajectory).")
+@click.option("--format-in", type=click.Choice(["csv", "tsv", "parquet"]),
+              help="Input format, when the file name does not tell it.")
+@click.option("--method", default="auto", show_default=True,
+              type=click.Choice(["auto", "energy"]), help="Which rows to fit.")
+@click.option("--fix", metavar="NAME=VALUE,...", help="Hold parameters at known values.")
+@click.option("--cov", default="hac", show_default=True,
+              type=click.Choice(["hac", "classical", "hc", "bootstrap"]),
+              help="How standard errors are computed.")
+@click.option("--level", default=0.95, show_default=True, type=click.FloatRange(0, 1,
+              min_open=True, max_open=True), help="Confidence level of the bounds.")
+@click.option("--bootstrap", "n_boot", default=200, show_default=True,
+              type=click.IntRange(min=10), help="Replicates for --cov bootstrap.")
+@click.option("--seed", type=click.IntRange(min=0), help="Seed for --cov bootstrap.")
+@click.option("--format", "fmt", type=click.Choice(["table", "json", "csv"]),
+              help="Report format (default: from -o's extension, else table).")
+@click.option("-o", "--output", default="-", metavar="FILE", help="Write the report here.")
+@click.option("--residuals", metavar="FILE", help="Write per-sample residuals (CSV/Parquet).")
+def fit(data: tuple[str, ...], model: str | None, columns: str | None,
+        time_column: str | None, trajectory: str | None, format_in: str | None, method: str,
+        fix: str | None, cov: str, level: float, n_boot: int, seed: int | None,
+        fmt: str | None, output: str, residuals: str | None) -> None:
+    """Fit the energy of the recorded motion in DATA (CSV, TSV, Parquet; '-' for stdin)."""
+    from hamid import io
+    from hamid.api import fit as run_fit
+
+    if seed is not None and cov != "bootstrap":
+        raise click.UsageError("--seed applies only to --cov bootstrap")
+    fmt = fmt or _format_from_name(output, {".json": "json", ".csv": "csv"}, "table")
+    result = run_fit(list(data), model,
+                     columns=None if columns is None else io.parse_mapping(columns,
+                                                                           option="--columns"),
+                     time=time_column, trajectory=trajectory, fix=_parse_floats(fix, "--fix"),
+                     method=method, cov=cov, level=level, bootstrap=n_boot, seed=seed,
+                     format=format_in)
+    if residuals is not None:
+        import pandas as pd
+
+        io.write_table(pd.DataFrame(result.samples), residuals)
+    _emit(result.to_dict(), fmt, output)
+
+
+@cli.command()
+@click.argument("result_file", metavar="RESULT.json")
+@click.option("--format", "fmt", type=click.Choice(["table", "json", "markdown"]),
+              help="Output format (default: from -o's extension, else table).")
+@click.option("-o", "--output", default="-", metavar="OUT", help="Write the report here.")
+def report(result_file: str, fmt: str | None, output: str) -> None:
+    """Render a saved fit result (JSON) as a table, JSON or markdown."""
+    from hamid import io
+    from hamid.report import validate_result
+
+    result = validate_result(io.read_json(result_file), source=result_file)
+    fmt = fmt or _format_from_name(output, {".json": "json", ".md": "markdown"}, "table")
+    _emit(result, fmt, output)
+
+
+def _format_from_name(output: str, by_suffix: dict[str, str], default: str) -> str:
+    return by_suffix.get(os.path.splitext(output)[1].lower(), default)
+
+
+def _emit(result: dict[str, Any], fmt: str, output: str) -> None:
+    """Render a result and write it; warnings also go to stderr unless a terminal shows them."""
+    from hamid import io
+    from hamid.report import render
+
+    to_terminal = output == "-" and sys.stdout.isatty()
+    color = to_terminal and "NO_COLOR" not in os.environ
+    text = render(result, fmt, color=color)
+    io.write_text(text, output)
+    if not (fmt == "table" and output == "-"):
+        for warning in result["warnings"]:
+            click.echo(f"warning: {warning}", err=True)
+
+
+@cli.command()
+@click.argument("name", required=False)
+def models(name: str | None) -> None:
+    """List the built-in models, or show one in full (NAME may also be a model file)."""
+    from hamid.api import load_model
+    from hamid.model import BUILTINS, POLY_HELP
+
+    if name is None:
+        for key, spec in BUILTINS.items():
+            click.echo(f"{key:16s} {len(spec['coordinates'])} DOF  "
+                       f"parameters: {' '.join(spec['parameters'])}")
+            click.echo(f"{'':16s} E = {spec['energy']}")
+        click.echo(f"{POLY_HELP:16s} N DOF  kinetic energy plus one parameter c_<exponents> per "
+                   "monomial of degree 2..D (e.g. poly:2:3)")
+        return
+    m = load_model(name)
+    lines = [f"name:        {m.name}",
+             *([f"about:       {m.description}"] if m.description else []),
+             f"coordinates: {' '.join(m.coordinates)}",
+             f"velocities:  {' '.join(m.velocities)}",
+             f"parameters:  {' '.join(m.parameters)}",
+             f"energy:      E = {m.energy}",
+             f"natural:     {'yes (E = T + V)' if m.is_natural else 'no'}"]
+    click.echo("\n".join(lines))
+
+
+def main() -> None:
+    """Console-script entry point."""
+    cli(prog_name="hamid")

@@ -1,0 +1,296 @@
+"""Models: coordinates, velocities, parameters and an energy linear in the parameters.
+
+A model is built once from its energy text; everything the fit and the simulator need
+(the energy basis, the Lagrangian split E = T + V and its gradients) is derived from that
+one expression, never written by hand per model.
+"""
+
+from __future__ import annotations
+
+import itertools
+import keyword
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from functools import cached_property, lru_cache
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from hamid import expr
+from hamid.config import check_keys
+from hamid.errors import ModelError
+
+__all__ = ["BUILTINS", "Lagrangian", "Model", "builtin_model", "model_from_spec"]
+
+BUILTINS: dict[str, dict[str, Any]] = {
+    "peng-quadratic": {
+        "description": "Peng & Peng (2007): two coupled oscillators with quadratic forces",
+        "coordinates": ("u1", "u2"),
+        "velocities": ("v1", "v2"),
+        "energy": "(v1**2 + v2**2)/2 + w1sq*u1**2/2 + w2sq*u2**2/2 - a1*u1**3/3"
+                  " - a2*u1**2*u2/2 - a3*u1*u2**2 - a6*u2**3/3",
+        "parameters": ("w1sq", "w2sq", "a1", "a2", "a3", "a6"),
+    },
+    "duffing": {
+        "description": "Duffing oscillator with cubic stiffness",
+        "coordinates": ("x",),
+        "velocities": ("v",),
+        "energy": "v**2/2 + k*x**2/2 + k3*x**4/4",
+        "parameters": ("k", "k3"),
+    },
+    "henon-heiles": {
+        "description": "Henon-Heiles system (classic values a=b=c=1, d=-1/3)",
+        "coordinates": ("x", "y"),
+        "velocities": ("vx", "vy"),
+        "energy": "(vx**2 + vy**2)/2 + a*x**2/2 + b*y**2/2 + c*x**2*y + d*y**3",
+        "parameters": ("a", "b", "c", "d"),
+    },
+}
+POLY_HELP = "poly:N:D"
+_POLY_LIMIT = 200  # monomials; beyond this a fit would need more data than anyone records
+
+
+@dataclass(frozen=True, eq=False)
+class Lagrangian:
+    """L = T - V of a natural energy, split like the energy: L = L0 + sum_k theta_k L_k."""
+
+    L0: expr.Func
+    L: tuple[expr.Func, ...]
+    coordinates: tuple[str, ...]
+    velocities: tuple[str, ...]
+
+    @cached_property
+    def _gradients(self) -> tuple[list[list[expr.Func]], list[list[expr.Func]]]:
+        parts = (self.L0, *self.L)
+        dv = [[f.diff(v) for v in self.velocities] for f in parts]
+        dq = [[f.diff(q) for q in self.coordinates] for f in parts]
+        return dv, dq
+
+    def gradients(self, X: npt.NDArray[np.float64]) -> tuple[np.ndarray, np.ndarray]:
+        """dL/dv and dL/dq of each part at the states X.
+
+        Returns
+        -------
+        dLdv, dLdq : ndarray, shape (n_samples, n_coordinates, 1 + n_parameters)
+            Index 0 of the last axis is the parameter-free part L0, then one per parameter.
+        """
+        dv, dq = self._gradients
+        return (np.stack([np.stack([f(X) for f in row], axis=-1) for row in dv], axis=-1),
+                np.stack([np.stack([f(X) for f in row], axis=-1) for row in dq], axis=-1))
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    """An energy E(x; theta) = E0(x) + sum_k theta_k phi_k(x), x = (coordinates, velocities)."""
+
+    name: str
+    energy: str
+    coordinates: tuple[str, ...]
+    velocities: tuple[str, ...]
+    parameters: tuple[str, ...]
+    E0: expr.Func
+    phi: tuple[expr.Func, ...]
+    description: str = ""
+
+    @property
+    def variables(self) -> tuple[str, ...]:
+        return self.coordinates + self.velocities
+
+    @property
+    def is_polynomial(self) -> bool:
+        return isinstance(self.E0, expr.Polynomial)
+
+    def energy_basis(self, X: npt.NDArray[np.float64]) -> tuple[np.ndarray, np.ndarray]:
+        """E0 and the basis functions at the states X, shape (n, 2N).
+
+        Returns
+        -------
+        E0 : ndarray, shape (n,)
+        Phi : ndarray, shape (n, n_parameters)
+        """
+        Phi = np.empty((X.shape[0], len(self.phi)))
+        for k, f in enumerate(self.phi):
+            Phi[:, k] = f(X)
+        return self.E0(X), Phi
+
+    def total_energy(self, X: npt.NDArray[np.float64], theta: Sequence[float]) -> np.ndarray:
+        """E(x; theta) at the states X."""
+        E0, Phi = self.energy_basis(X)
+        return E0 + Phi @ np.asarray(theta, dtype=np.float64)
+
+    @cached_property
+    def _natural(self) -> Lagrangian | str:
+        parts = (self.E0, *self.phi)
+        labels = ("the parameter-free part", *(f"the term of {p!r}" for p in self.parameters))
+        lagrangians = []
+        for f, label in zip(parts, labels, strict=True):
+            degrees = f.velocity_degrees(self.velocities)
+            if degrees is None or set(degrees) - {0, 2}:
+                return (f"{label} of the energy is not a kinetic energy quadratic in the "
+                        "velocities plus a potential energy")
+            T, V = degrees.get(2), degrees.get(0)
+            present = [(g, w) for g, w in ((T, 1.0), (V, -1.0)) if g is not None]
+            lagrangians.append(expr.Func.combine([g for g, _ in present],
+                                                 [w for _, w in present]))
+        return Lagrangian(lagrangians[0], tuple(lagrangians[1:]), self.coordinates,
+                          self.velocities)
+
+    @property
+    def is_natural(self) -> bool:
+        """Whether E = T + V with T quadratic in the velocities (Lagrange's equations apply)."""
+        return isinstance(self._natural, Lagrangian)
+
+    @property
+    def lagrangian(self) -> Lagrangian:
+        """The Lagrangian split; raises ModelError for an energy that is not natural."""
+        if isinstance(self._natural, str):
+            raise ModelError(f"model {self.name!r}: {self._natural}")
+        return self._natural
+
+    def info(self) -> dict[str, Any]:
+        """The plain description stored in result files and data provenance."""
+        return {"name": self.name, "energy": self.energy, "coordinates": list(self.coordinates),
+                "velocities": list(self.velocities), "parameters": list(self.parameters)}
+
+
+def _check_names(coordinates: Sequence[str], velocities: Sequence[str],
+                 parameters: Sequence[str] | None, where: str) -> None:
+    if not coordinates:
+        raise ModelError(f"{where}: 'coordinates' must list at least one name")
+    if len(velocities) != len(coordinates):
+        raise ModelError(f"{where}: {len(coordinates)} coordinates but {len(velocities)} "
+                         "velocities; give one velocity per coordinate")
+    names = [*coordinates, *velocities, *(parameters or ())]
+    for name in names:
+        if (not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name)
+                or name in expr.FUNCTIONS or name in expr.CONSTANTS):
+            raise ModelError(f"{where}: {name!r} cannot be used as a name")
+    for name, count in _counts(names).items():
+        if count > 1:
+            raise ModelError(f"{where}: the name {name!r} is declared more than once")
+
+
+def _counts(names: Sequence[str]) -> dict[str, int]:
+    counts: dict[str, int] = {}
+    for name in names:
+        counts[name] = counts.get(name, 0) + 1
+    return counts
+
+
+def model_from_expression(name: str, energy: str, coordinates: Sequence[str],
+                          velocities: Sequence[str], parameters: Sequence[str] | None = None,
+                          *, description: str = "", where: str = "model") -> Model:
+    """Build a model from its energy text; parameters default to every other symbol."""
+    coordinates, velocities = tuple(coordinates), tuple(velocities)
+    _check_names(coordinates, velocities, parameters, where)
+    allowed = None if parameters is None else [*coordinates, *velocities, *parameters]
+    tree = expr.parse(energy, allowed, where=f"{where}: energy")
+    if parameters is None:
+        parameters = [s for s in expr.symbols_in_order(tree)
+                      if s not in coordinates and s not in velocities]
+        _check_names(coordinates, velocities, parameters, where)
+    if not parameters:
+        raise ModelError(f"{where}: the energy has no parameters to fit")
+    E0, phi = expr.split_linear(tree, coordinates + velocities, tuple(parameters),
+                                where=f"{where}: energy")
+    return Model(name, energy, coordinates, velocities, tuple(parameters), E0, phi,
+                 description)
+
+
+@lru_cache(maxsize=32)
+def builtin_model(name: str) -> Model:
+    """A built-in model by name, or the polynomial family ``poly:N:D``."""
+    if name.startswith("poly:"):
+        return _poly_model(name)
+    if name not in BUILTINS:
+        raise ModelError(f"unknown model {name!r}; built-in models: "
+                         f"{', '.join([*BUILTINS, POLY_HELP])}, or a TOML model file")
+    spec = BUILTINS[name]
+    return model_from_expression(name, spec["energy"], spec["coordinates"],
+                                 spec["velocities"], spec["parameters"],
+                                 description=spec["description"], where=f"model {name!r}")
+
+
+def poly_spec(n_coordinates: int, degree: int,
+              coordinates: Sequence[str] | None = None,
+              velocities: Sequence[str] | None = None) -> dict[str, Any]:
+    """The energy of ``poly:N:D``: unit kinetic energy, one parameter per monomial."""
+    coordinates = list(coordinates or [f"q{i + 1}" for i in range(n_coordinates)])
+    velocities = list(velocities or [f"v{i + 1}" for i in range(n_coordinates)])
+    monomials = [e for d in range(2, degree + 1) for e in _exponents(n_coordinates, d)]
+    if len(monomials) > _POLY_LIMIT:
+        raise ModelError(f"poly:{n_coordinates}:{degree} has {len(monomials)} terms "
+                         f"(at most {_POLY_LIMIT}); use a lower degree or a model file")
+    parameters = ["c_" + "_".join(map(str, e)) for e in monomials]
+    kinetic = " + ".join(f"{v}**2/2" for v in velocities)
+    potential = " + ".join(
+        "*".join([p, *(f"{q}**{k}" for q, k in zip(coordinates, e, strict=True) if k)])
+        for p, e in zip(parameters, monomials, strict=True))
+    return {"description": f"polynomial potential of degree {degree} in {n_coordinates} "
+                           "coordinates, unit masses",
+            "coordinates": tuple(coordinates), "velocities": tuple(velocities),
+            "energy": f"{kinetic} + {potential}", "parameters": tuple(parameters)}
+
+
+def _exponents(n: int, degree: int) -> list[tuple[int, ...]]:
+    """Exponent tuples of total `degree` in n variables, highest power of q1 first."""
+    combos = itertools.combinations_with_replacement(range(n), degree)
+    return sorted({tuple(c.count(i) for i in range(n)) for c in combos}, reverse=True)
+
+
+def parse_poly_name(name: str) -> tuple[int, int]:
+    """N and D of a ``poly:N:D`` name."""
+    parts = name.split(":")
+    try:
+        n, d = int(parts[1]), int(parts[2])
+        if len(parts) != 3 or n < 1 or d < 2:
+            raise ValueError
+    except (ValueError, IndexError) as exc:
+        raise ModelError(f"model {name!r}: expected poly:N:D with N >= 1 coordinates and "
+                         "degree D >= 2, e.g. poly:2:3") from exc
+    return n, d
+
+
+def _poly_model(name: str, coordinates: Sequence[str] | None = None,
+                velocities: Sequence[str] | None = None) -> Model:
+    n, d = parse_poly_name(name)
+    spec = poly_spec(n, d, coordinates, velocities)
+    return model_from_expression(name, spec["energy"], spec["coordinates"],
+                                 spec["velocities"], spec["parameters"],
+                                 description=spec["description"], where=f"model {name!r}")
+
+
+def poly_model_over(coordinates: Sequence[str], velocities: Sequence[str],
+                    degree: int = 3) -> Model:
+    """``poly:N:D`` over named columns, for data that come without a model."""
+    return _poly_model(f"poly:{len(coordinates)}:{degree}", coordinates, velocities)
+
+
+_MODEL_KEYS = ("builtin", "name", "coordinates", "velocities", "energy", "parameters")
+
+
+def model_from_spec(spec: Mapping[str, Any], *, where: str = "[model]") -> Model:
+    """A model from the ``[model]`` table of a TOML file (builtin name or expression)."""
+    check_keys(spec, _MODEL_KEYS, where=where)
+    if "builtin" in spec:
+        extra = [k for k in spec if k not in ("builtin",)]
+        if extra:
+            raise ModelError(f"{where}: 'builtin' cannot be combined with {', '.join(extra)}")
+        if not isinstance(spec["builtin"], str):
+            raise ModelError(f"{where}: 'builtin' must be a model name")
+        return builtin_model(spec["builtin"])
+    for key in ("coordinates", "velocities", "energy"):
+        if key not in spec:
+            raise ModelError(f"{where}: missing key {key!r} (or give 'builtin')")
+    for key in ("coordinates", "velocities", "parameters"):
+        if key in spec and not (isinstance(spec[key], list)
+                                and all(isinstance(v, str) for v in spec[key])):
+            raise ModelError(f"{where}: {key!r} must be a list of names")
+    if not isinstance(spec["energy"], str):
+        raise ModelError(f"{where}: 'energy' must be a string")
+    name = spec.get("name", "custom")
+    if not isinstance(name, str):
+        raise ModelError(f"{where}: 'name' must be a string")
+    return model_from_expression(name, spec["energy"], spec["coordinates"],
+                                 spec["velocities"], spec.get("parameters"), where=where)

@@ -1,0 +1,626 @@
+"""Render a fit result as a table, JSON, markdown or CSV.
+
+Presentation only: every number shown is already in the result dict (schema "hamid.fit/1",
+SPEC section 4); the only arithmetic here is the relative error against a known truth.
+No file access: the caller reads and writes.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from hamid.errors import DataError, UsageError
+
+__all__ = ["FORMATS", "SCHEMA", "render", "validate_result"]
+
+SCHEMA = "hamid.fit/1"
+
+ReportFormat = Literal["table", "json", "markdown", "csv"]
+
+_NULL = "—"
+_MINUS = "−"
+_WEIGHT_SHOWN = 0.05
+_CSV_HEADER = (
+    "name",
+    "role",
+    "estimate",
+    "stderr",
+    "ci_low",
+    "ci_high",
+    "truth",
+    "relative_error",
+    "fixed",
+)
+
+
+# --- validation ---------------------------------------------------------------------------
+
+
+def _is_number(value: object) -> bool:
+    """Helper: a finite JSON number (bool is not a number here)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+# Each kind is named by the words the error message uses for it.
+_KINDS: dict[str, Callable[[object], bool]] = {
+    "a string": lambda v: isinstance(v, str),
+    "a number": _is_number,
+    "a number or null": lambda v: v is None or _is_number(v),
+    "true or false": lambda v: isinstance(v, bool),
+    "a list": lambda v: isinstance(v, list),
+    "a list of strings": lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v),
+    "an object": lambda v: isinstance(v, dict),
+    "an object of numbers": lambda v: (
+        isinstance(v, dict) and all(_is_number(x) for x in v.values())
+    ),
+    "an object of numbers, or null": lambda v: (
+        v is None or (isinstance(v, dict) and all(_is_number(x) for x in v.values()))
+    ),
+    "anything": lambda v: True,
+}
+
+# SPEC section 4, key by key; more keys may be present, none of these may be missing.
+_TOP_KEYS = {
+    "schema": "a string",
+    "hamid_version": "a string",
+    "model": "an object",
+    "data": "an object",
+    "method": "an object",
+    "parameters": "a list",
+    "energy_levels": "a list",
+    "residuals": "an object",
+    "conditioning": "an object",
+    "warnings": "a list of strings",
+}
+_OBJECT_KEYS = {
+    "model": {
+        "name": "a string",
+        "energy": "a string",
+        "coordinates": "a list",
+        "velocities": "a list",
+        "parameters": "a list",
+    },
+    "data": {
+        "sources": "a list",
+        "n_samples": "a number",
+        "n_trajectories": "a number",
+        "columns": "an object",
+        "velocity_source": "a string",
+    },
+    "method": {
+        "kind": "a string",
+        "kind_reason": "a string",
+        "weak_window": "a number or null",
+        "damping": "a list of strings",
+        "weighting": "a string",
+        "noise": "an object of numbers, or null",
+        "bias_correction": "true or false",
+        "covariance": "a string",
+        "level": "a number",
+        "fixed": "an object of numbers",
+    },
+    "residuals": {
+        "rms": "a number or null",
+        "max_abs": "a number or null",
+        "relative_rms": "a number or null",
+        "r_squared": "a number or null",
+        "lag1_autocorrelation": "a number or null",
+        "drift": "a list",
+    },
+    "conditioning": {
+        "condition_number": "a number or null",
+        "singular_values": "a list",
+        "weakest_direction": "an object of numbers",
+        "status": "a string",
+    },
+}
+_ENTRY_KEYS = {
+    ("parameters",): {
+        "name": "a string",
+        "role": "a string",
+        "estimate": "a number",
+        "stderr": "a number or null",
+        "ci_low": "a number or null",
+        "ci_high": "a number or null",
+        "truth": "a number or null",
+        "fixed": "true or false",
+    },
+    ("energy_levels",): {
+        "trajectory": "anything",
+        "h": "a number",
+        "stderr": "a number or null",
+        "n_samples": "a number",
+    },
+    ("residuals", "drift"): {
+        "trajectory": "anything",
+        "relative_change": "a number or null",
+    },
+}
+
+
+def _describe(value: object) -> str:
+    """Helper: a short description of a JSON value for an error message."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return repr(value if len(value) <= 40 else value[:37] + "...")
+    if isinstance(value, int | float):
+        return repr(value)
+    return "a list" if isinstance(value, list) else "an object"
+
+
+def _check_keys(obj: dict, keys: Mapping[str, str], path: str) -> str | None:
+    """Helper: what is wrong with one object's keys, or None."""
+    for key, kind in keys.items():
+        where = f"{path}.{key}" if path else key
+        if key not in obj:
+            return f"missing key '{where}'"
+        if not _KINDS[kind](obj[key]):
+            return f"key '{where}' is {_describe(obj[key])}, expected {kind}"
+    return None
+
+
+def _problem(result: object) -> str | None:
+    """Helper: what keeps a loaded JSON value from being a fit result, or None."""
+    if not isinstance(result, dict):
+        return f"top level is {_describe(result)}, expected an object"
+    if "schema" not in result:
+        return "missing key 'schema'"
+    if result["schema"] != SCHEMA:
+        return f"schema is {_describe(result['schema'])}, expected '{SCHEMA}'"
+    problem = _check_keys(result, _TOP_KEYS, "")
+    for name, keys in _OBJECT_KEYS.items():
+        problem = problem or _check_keys(result[name], keys, name)
+    if problem:
+        return problem
+    for (*parents, name), keys in _ENTRY_KEYS.items():
+        container = result
+        for parent in parents:
+            container = container[parent]
+        path = ".".join([*parents, name])
+        for i, entry in enumerate(container[name]):
+            if not isinstance(entry, dict):
+                return f"{path}[{i}] is {_describe(entry)}, expected an object"
+            problem = _check_keys(entry, keys, f"{path}[{i}]")
+            if problem:
+                return problem
+    return None
+
+
+def validate_result(result: object, *, source: str) -> dict:
+    """Check that a loaded JSON value is a hamid fit result.
+
+    Parameters
+    ----------
+    result : object
+        The value decoded from the JSON file.
+    source : str
+        The file name, used in the error message.
+
+    Returns
+    -------
+    dict
+        `result` itself, unchanged.
+
+    Raises
+    ------
+    DataError
+        If `result` lacks the schema "hamid.fit/1" or a key of SPEC section 4, or a value
+        has the wrong type; the message names `source` and the key.
+    """
+    problem = _problem(result)
+    if problem:
+        raise DataError(f"{source}: not a hamid fit result ({problem})")
+    assert isinstance(result, dict)  # narrowed by _problem, for type checkers
+    return result
+
+
+# --- formatting of single values ----------------------------------------------------------
+
+
+def _num(value: float | None, spec: str = ".6g") -> str:
+    """Helper: a number in the given format, null as an em dash."""
+    return _NULL if value is None else format(value, spec)
+
+
+def _percent(value: float | None) -> str:
+    """Helper: a fraction as a signed percentage with 3 significant digits."""
+    return _NULL if value is None else f"{100 * value:+.3g}%"
+
+
+def _count(value: float) -> str:
+    """Helper: a count without a spurious decimal point."""
+    return str(int(value)) if float(value).is_integer() else str(value)
+
+
+def _level(level: float) -> str:
+    """Helper: a confidence level as a percentage, e.g. 95%."""
+    return f"{100 * level:g}%"
+
+
+def _relative_error(parameter: Mapping[str, Any]) -> float | None:
+    """Helper: (estimate - truth) / truth, or None when the truth is unknown or zero."""
+    truth = parameter["truth"]
+    if truth is None or truth == 0:
+        return None
+    return (parameter["estimate"] - truth) / truth
+
+
+def _direction(weights: Mapping[str, float]) -> str:
+    """Helper: a weighted sum of parameter names, largest weights first."""
+    shown = sorted(
+        ((w, name) for name, w in weights.items() if abs(w) >= _WEIGHT_SHOWN),
+        key=lambda item: -abs(item[0]),
+    )
+    if not shown:
+        return _NULL
+    terms = []
+    for i, (w, name) in enumerate(shown):
+        sign = _MINUS if w < 0 else ("" if i == 0 else "+")
+        term = f"{abs(w):.2f}·{name}"
+        terms.append(f"{sign}{term}" if i == 0 else f"{sign} {term}")
+    return " ".join(terms)
+
+
+def _plural(n: float, one: str, many: str) -> str:
+    """Helper: a count with its noun."""
+    return f"{_count(n)} {one if n == 1 else many}"
+
+
+def _sources(sources: Sequence[object], shown: int = 3) -> str:
+    """Helper: the input files, shortened when there are many."""
+    names = ["standard input" if s == "-" else str(s) for s in sources]
+    if len(names) > shown:
+        return ", ".join(names[:shown]) + f" and {len(names) - shown} more"
+    return ", ".join(names)
+
+
+# --- the report as plain text blocks, shared by the table and markdown renderers -------------
+
+
+@dataclass(frozen=True, slots=True)
+class _Table:
+    """Rows of cells under a header; each group after the first starts a new section."""
+
+    header: tuple[str, ...]
+    groups: tuple[tuple[str, tuple[tuple[str, ...], ...]], ...]
+    grid: bool = False  # key-value pairs: shown without header where the format allows
+
+
+@dataclass(frozen=True, slots=True)
+class _Section:
+    """A heading (may be empty), then lines of text, then tables."""
+
+    heading: str
+    lines: tuple[str, ...] = ()
+    tables: tuple[_Table, ...] = ()
+    style: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class _View:
+    """Everything a report shows, as text."""
+
+    title: str
+    intro: tuple[str, ...]
+    sections: tuple[_Section, ...]
+
+
+def _parameter_row(parameter: Mapping[str, Any], with_truth: bool) -> tuple[str, ...]:
+    """Helper: the cells of one parameter."""
+    if parameter["fixed"]:
+        name = f"{parameter['name']} (fixed)"
+        spread = ("", "", "")
+    else:
+        name = parameter["name"]
+        spread = tuple(_num(parameter[k]) for k in ("stderr", "ci_low", "ci_high"))
+    row = (name, _num(parameter["estimate"]), *spread)
+    if with_truth:
+        row += (_num(parameter["truth"]), _percent(_relative_error(parameter)))
+    return row
+
+
+def _parameters_section(result: Mapping[str, Any]) -> _Section:
+    """Helper: the parameters table, energy parameters first, then damping."""
+    parameters = result["parameters"]
+    with_truth = any(p["truth"] is not None for p in parameters)
+    level = _level(result["method"]["level"])
+    header = ("name", "estimate", "std. error", f"{level} CI low", f"{level} CI high")
+    if with_truth:
+        header += ("truth", "rel. error")
+    groups = []
+    for label, keep in (("", lambda r: r != "damping"), ("damping", lambda r: r == "damping")):
+        rows = tuple(_parameter_row(p, with_truth) for p in parameters if keep(p["role"]))
+        if rows:
+            groups.append((label, rows))
+    return _Section("Parameters", tables=(_Table(header, tuple(groups)),))
+
+
+def _energy_levels_section(result: Mapping[str, Any]) -> _Section:
+    """Helper: one row per trajectory's fitted energy level."""
+    rows = tuple(
+        (
+            str(level["trajectory"]),
+            _num(level["h"]),
+            _num(level["stderr"]),
+            _count(level["n_samples"]),
+        )
+        for level in result["energy_levels"]
+    )
+    header = ("trajectory", "h", "std. error", "samples")
+    return _Section("Energy levels", tables=(_Table(header, (("", rows),)),))
+
+
+def _residuals_section(result: Mapping[str, Any]) -> _Section:
+    """Helper: residual statistics, then the energy drift of each trajectory."""
+    residuals = result["residuals"]
+    stats = (
+        ("rms", _num(residuals["rms"], ".4g")),
+        ("max |r|", _num(residuals["max_abs"], ".4g")),
+        ("relative rms", _num(residuals["relative_rms"], ".4g")),
+        ("R²", _num(residuals["r_squared"], ".6g")),
+        ("lag-1 autocorrelation", _num(residuals["lag1_autocorrelation"], ".3g")),
+    )
+    tables = [_Table(("statistic", "value"), (("", stats),), grid=True)]
+    drift = tuple(
+        (str(d["trajectory"]), _percent(d["relative_change"])) for d in residuals["drift"]
+    )
+    if drift:
+        tables.append(_Table(("trajectory", "energy drift"), (("", drift),)))
+    return _Section("Residuals", tables=tuple(tables))
+
+
+def _conditioning_section(result: Mapping[str, Any]) -> _Section:
+    """Helper: condition number, its verdict and the worst-determined combination."""
+    conditioning = result["conditioning"]
+    rows = (
+        ("condition number", _num(conditioning["condition_number"], ".4g")),
+        ("status", conditioning["status"]),
+        ("weakest direction", _direction(conditioning["weakest_direction"])),
+    )
+    return _Section("Conditioning", tables=(_Table(("quantity", "value"), (("", rows),), True),))
+
+
+def _method_section(result: Mapping[str, Any]) -> _Section:
+    """Helper: how the fit was made."""
+    method = result["method"]
+    rows = [
+        ("covariance", f"{method['covariance']}, {_level(method['level'])} intervals"),
+        ("weighting", method["weighting"]),
+    ]
+    if method["noise"]:
+        noise = ", ".join(f"{col} {_num(sigma)}" for col, sigma in method["noise"].items())
+        rows.append(("noise σ", noise))
+    rows.append(("bias correction", "yes" if method["bias_correction"] else "no"))
+    if method["weak_window"] is not None:
+        rows.append(("weak window", f"{_num(method['weak_window'])} s"))
+    rows.append(("damping", ", ".join(method["damping"]) or "none"))
+    fixed = ", ".join(f"{name} = {_num(value)}" for name, value in method["fixed"].items())
+    rows.append(("fixed", fixed or "none"))
+    rows.append(("hamid version", result["hamid_version"]))
+    return _Section("Method", tables=(_Table(("setting", "value"), (("", tuple(rows)),), True),))
+
+
+def _data_line(data: Mapping[str, Any]) -> str:
+    """Helper: one line on the samples, their files and where velocities came from."""
+    text = (
+        f"data: {_plural(data['n_samples'], 'sample', 'samples')} in "
+        f"{_plural(data['n_trajectories'], 'trajectory', 'trajectories')}"
+    )
+    if data["sources"]:
+        text += f" from {_sources(data['sources'])}"
+    if data["velocity_source"] == "savgol":
+        text += "; velocities derived from positions (Savitzky-Golay)"
+    else:
+        text += f"; velocities {data['velocity_source']}"
+    renamed = [f"{name}={col}" for name, col in data["columns"].items() if name != col]
+    if renamed:
+        text += f"; columns {', '.join(renamed)}"
+    return text
+
+
+def _view(result: Mapping[str, Any]) -> _View:
+    """Helper: the report's content, in order, as text."""
+    method = result["method"]
+    title = f"hamid fit — {result['model']['name']}, method {method['kind']}"
+    if method["kind_reason"]:
+        title += f" ({method['kind_reason']})"
+    warnings = tuple(f"warning: {w}" for w in result["warnings"])
+    sections = (
+        _parameters_section(result),
+        _energy_levels_section(result),
+        _residuals_section(result),
+        _conditioning_section(result),
+        _method_section(result),
+    )
+    if warnings:
+        sections += (_Section("", lines=warnings, style="yellow"),)
+    return _View(title, (_data_line(result["data"]),), sections)
+
+
+# --- renderers ---------------------------------------------------------------------------
+
+
+def _render_json(result: Mapping[str, Any], *, color: bool, width: int | None) -> str:
+    """Helper: the result as indented JSON, keys in the dict's order."""
+    return json.dumps(result, indent=2, allow_nan=False) + "\n"
+
+
+def _csv_cell(value: object) -> str:
+    """Helper: a CSV cell: full-precision repr for numbers, empty for null."""
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return repr(value) if isinstance(value, int | float) else str(value)
+
+
+def _render_csv(result: Mapping[str, Any], *, color: bool, width: int | None) -> str:
+    """Helper: one CSV row per parameter."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(_CSV_HEADER)
+    for p in result["parameters"]:
+        values = {**p, "relative_error": _relative_error(p)}
+        writer.writerow(_csv_cell(values[key]) for key in _CSV_HEADER)
+    return buffer.getvalue()
+
+
+def _markdown_cell(text: str) -> str:
+    """Helper: text safe inside a markdown table cell."""
+    return text.replace("|", "\\|").replace("\n", " ")
+
+
+def _markdown_table(table: _Table) -> list[str]:
+    """Helper: a GitHub markdown table; later groups start with an italic label row."""
+    width = len(table.header)
+    lines = [
+        "| " + " | ".join(_markdown_cell(h) for h in table.header) + " |",
+        "|" + "---|" * width,
+    ]
+    for label, rows in table.groups:
+        if label:
+            lines.append("| " + " | ".join([f"*{label}*"] + [""] * (width - 1)) + " |")
+        lines.extend("| " + " | ".join(_markdown_cell(c) for c in row) + " |" for row in rows)
+    return lines
+
+
+def _render_markdown(result: Mapping[str, Any], *, color: bool, width: int | None) -> str:
+    """Helper: the report as GitHub markdown."""
+    view = _view(result)
+    blocks = [f"**{view.title}**", *view.intro]
+    for section in view.sections:
+        if section.heading:
+            blocks.append(f"## {section.heading}")
+        if section.lines:
+            blocks.append("\n".join(f"- {line}" for line in section.lines))
+        blocks.extend("\n".join(_markdown_table(t)) for t in section.tables)
+    return "\n\n".join(blocks) + "\n"
+
+
+def _rich_table(spec: _Table, width: int) -> Any:
+    """Helper: a rich Table of the given text table, header wrapped by hand when narrow."""
+    from rich import box
+    from rich.table import Table
+    from rich.text import Text
+
+    if spec.grid:
+        table = Table.grid(padding=(0, 3))
+        for _ in spec.header:
+            table.add_column(overflow="fold")
+    else:
+        header = spec.header
+        rows = [row for _, group in spec.groups for row in group]
+        columns = [[len(name), *(len(row[i]) for row in rows)] for i, name in enumerate(header)]
+        # Rich shrinks the widest columns first and would fold numbers before it wraps a
+        # header; splitting the headers over two lines keeps whole numbers on one line.
+        if sum(max(c) for c in columns) + 2 * (len(header) - 1) > width:
+            header = tuple("\n".join(name.rsplit(" ", 1)) for name in header)
+        table = Table(
+            box=box.SIMPLE_HEAD,
+            show_edge=False,
+            pad_edge=False,
+            collapse_padding=True,
+            header_style="bold",
+        )
+        for i, name in enumerate(header):
+            table.add_column(name, justify="left" if i == 0 else "right", overflow="fold")
+    for label, group in spec.groups:
+        if label:
+            table.add_section()
+            table.add_row(Text(label, style="italic"))
+        for row in group:
+            table.add_row(*(Text(cell) for cell in row))
+    return table
+
+
+def _render_table(result: Mapping[str, Any], *, color: bool, width: int | None) -> str:
+    """Helper: the report as text tables drawn by rich."""
+    from rich.console import Console
+    from rich.text import Text
+
+    view = _view(result)
+    buffer = io.StringIO()
+    # Text objects throughout and markup/emoji off: names like "k[1]" are not rich markup.
+    console = Console(
+        file=buffer,
+        width=width or 100,
+        color_system="standard" if color else None,
+        force_terminal=color,
+        highlight=False,
+        markup=False,
+        emoji=False,
+    )
+    console.print(Text(view.title, style="bold"))
+    for line in view.intro:
+        console.print(Text(line))
+    for section in view.sections:
+        console.print()
+        if section.heading:
+            console.print(Text(section.heading, style="bold underline"))
+        for line in section.lines:
+            console.print(Text(line, style=section.style))
+        for i, spec in enumerate(section.tables):
+            if i:
+                console.print()
+            console.print(_rich_table(spec, console.width))
+    # Rich pads lines to the table width; trailing blanks only get in the way of diffs.
+    return "\n".join(line.rstrip() for line in buffer.getvalue().splitlines()) + "\n"
+
+
+_RENDERERS: dict[str, Callable[..., str]] = {
+    "table": _render_table,
+    "json": _render_json,
+    "markdown": _render_markdown,
+    "csv": _render_csv,
+}
+
+FORMATS: tuple[str, ...] = tuple(_RENDERERS)
+
+
+def render(
+    result: dict,
+    format: ReportFormat,
+    *,
+    color: bool = False,
+    width: int | None = None,
+) -> str:
+    """Render a fit result as text.
+
+    Parameters
+    ----------
+    result : dict
+        A fit result of schema "hamid.fit/1" (`FitResult.to_dict()`, or a loaded JSON
+        checked by `validate_result`).
+    format : {"table", "json", "markdown", "csv"}
+        "table" is for a terminal; "json" is the result itself; "markdown" for notes and
+        issues; "csv" has one row per parameter.
+    color : bool, optional
+        Use terminal colors (table only).
+    width : int, optional
+        Line width of the table; 100 when not given.
+
+    Returns
+    -------
+    str
+        The rendered text, ending with a newline.
+
+    Examples
+    --------
+    >>> text = render(result, "markdown")  # doctest: +SKIP
+    """
+    try:
+        renderer = _RENDERERS[format]
+    except KeyError:
+        raise UsageError(
+            f"unknown report format {format!r} (choose from {', '.join(FORMATS)})"
+        ) from None
+    return renderer(result, color=color, width=width)

@@ -1,0 +1,290 @@
+"""Simulate a system: Lagrange's equations from the model's energy, integrated and sampled.
+
+The equations of motion are derived from L = T - V of the model (with the true
+parameters substituted) and the dissipative forces of SPEC section 1:
+
+    M(q) a = dL/dq - (d/dq (dL/dv)) v + F,      M = d2L/dv2,
+
+so nothing is written per model. All trajectories are integrated together as one
+vectorised system.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from hamid.config import check_keys, number, table
+from hamid.errors import ModelError
+from hamid.expr import Func
+from hamid.model import Model, model_from_spec
+
+__all__ = ["DAMPING_KINDS", "INTEGRATORS", "System", "parse_system", "run"]
+
+INTEGRATORS = {"dop853": "DOP853", "rk45": "RK45", "rk23": "RK23", "radau": "Radau",
+               "bdf": "BDF", "lsoda": "LSODA"}
+# Dissipative force of each kind on coordinate i (SPEC section 1), and the power it drains.
+DAMPING_KINDS: dict[str, tuple[str, Callable[[np.ndarray], np.ndarray]]] = {
+    "viscous": ("c", lambda v: v),
+    "coulomb": ("mu", np.sign),
+    "quadratic": ("d", lambda v: np.abs(v) * v),
+}
+DEFAULT_MAX_SAMPLES = 20_000_000
+_TOP_KEYS = ("model", "parameters", "initial", "simulate", "noise", "damping")
+_SIMULATE_KEYS = ("t_end", "dt", "method", "rtol", "atol", "seed", "max_samples")
+_ESCAPE_BOUND = 1e8
+
+
+@dataclass(frozen=True)
+class System:
+    """A checked system file: model, true parameters, initial states and settings."""
+
+    model: Model
+    theta: dict[str, float]
+    initial: tuple[dict[str, float], ...]
+    t_end: float
+    dt: float
+    method: str
+    rtol: float
+    atol: float
+    seed: int | None
+    noise: dict[str, float]
+    relative_noise: float
+    damping: dict[str, float]
+    max_samples: int
+
+
+def damping_names(coordinates: Sequence[str]) -> dict[str, tuple[str, int]]:
+    """Every damping coefficient name a model allows -> (kind, coordinate index)."""
+    return {f"{prefix}_{q}": (kind, i) for kind, (prefix, _) in DAMPING_KINDS.items()
+            for i, q in enumerate(coordinates)}
+
+
+def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:
+    """Check a system dict (a parsed TOML file) and return it in typed form."""
+    system = table(system, where=where)
+    check_keys(system, _TOP_KEYS, where=where)
+    if "model" not in system:
+        raise ModelError(f"{where}: missing table [model]")
+    model = model_from_spec(table(system["model"], where=f"{where}: [model]"),
+                            where=f"{where}: [model]")
+
+    params = table(system.get("parameters", {}), where=f"{where}: [parameters]")
+    check_keys(params, model.parameters, where=f"{where}: [parameters]")
+    missing = [p for p in model.parameters if p not in params]
+    if missing:
+        raise ModelError(f"{where}: [parameters] has no value for {', '.join(missing)}")
+    theta = {p: number(params[p], where=f"{where}: [parameters] {p}") for p in model.parameters}
+
+    initial_list = system.get("initial")
+    if not isinstance(initial_list, list) or not initial_list:
+        raise ModelError(f"{where}: give at least one [[initial]] table (one per trajectory)")
+    initial = []
+    for j, state in enumerate(initial_list, start=1):
+        label = f"{where}: [[initial]] #{j}"
+        state = table(state, where=label)
+        check_keys(state, model.variables, where=label)
+        absent = [v for v in model.variables if v not in state]
+        if absent:
+            raise ModelError(f"{label}: missing {', '.join(absent)}")
+        initial.append({v: number(state[v], where=f"{label} {v}") for v in model.variables})
+
+    settings = table(system.get("simulate", {}), where=f"{where}: [simulate]")
+    check_keys(settings, _SIMULATE_KEYS, where=f"{where}: [simulate]")
+    for key in ("t_end", "dt"):
+        if key not in settings:
+            raise ModelError(f"{where}: [simulate] needs {key!r}")
+    t_end = number(settings["t_end"], where=f"{where}: [simulate] t_end", positive=True)
+    dt = number(settings["dt"], where=f"{where}: [simulate] dt", positive=True)
+    method = settings.get("method", "dop853")
+    if not isinstance(method, str) or method.lower() not in INTEGRATORS:
+        raise ModelError(f"{where}: [simulate] method {method!r} is not one of "
+                         f"{', '.join(INTEGRATORS)}")
+    rtol = number(settings.get("rtol", 1e-11), where=f"{where}: [simulate] rtol", positive=True)
+    atol = number(settings.get("atol", 1e-12), where=f"{where}: [simulate] atol", positive=True)
+    seed = settings.get("seed")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0):
+        raise ModelError(f"{where}: [simulate] seed must be a non-negative integer")
+    max_samples = settings.get("max_samples", DEFAULT_MAX_SAMPLES)
+    if isinstance(max_samples, bool) or not isinstance(max_samples, int) or max_samples < 1:
+        raise ModelError(f"{where}: [simulate] max_samples must be a positive integer")
+
+    noise_table = table(system.get("noise", {}), where=f"{where}: [noise]")
+    check_keys(noise_table, ("relative", *model.variables), where=f"{where}: [noise]")
+    noise = {c: number(v, where=f"{where}: [noise] {c}", non_negative=True)
+             for c, v in noise_table.items() if c != "relative"}
+    relative = number(noise_table.get("relative", 0.0), where=f"{where}: [noise] relative",
+                      non_negative=True)
+
+    damping_table = table(system.get("damping", {}), where=f"{where}: [damping]")
+    check_keys(damping_table, damping_names(model.coordinates), where=f"{where}: [damping]")
+    damping = {k: number(v, where=f"{where}: [damping] {k}", non_negative=True)
+               for k, v in damping_table.items()}
+
+    return System(model, theta, tuple(initial), t_end, dt, method.lower(), rtol, atol, seed,
+                  noise, relative, damping, max_samples)
+
+
+def sample_times(t_end: float, dt: float) -> npt.NDArray[np.float64]:
+    """t = k*dt for k = 0, 1, ... up to t_end, including t_end when it is a multiple of dt."""
+    steps = t_end / dt
+    n = round(steps) if math.isclose(steps, round(steps), rel_tol=1e-9) else math.floor(steps)
+    return np.arange(n + 1) * dt
+
+
+class _Dynamics:
+    """Vectorised right-hand side for all trajectories at once."""
+
+    def __init__(self, model: Model, theta: Sequence[float], damping: Mapping[str, float]):
+        lag = model.lagrangian
+        L = Func.combine([lag.L0, *lag.L], [1.0, *theta])
+        q, v = model.coordinates, model.velocities
+        self.n = len(q)
+        dLdv = [L.diff(vi) for vi in v]
+        self.mass = [[f.diff(vj) for vj in v] for f in dLdv]
+        self.mixed = [[f.diff(qk) for qk in q] for f in dLdv]
+        self.force = [L.diff(qi) for qi in q]
+        names = damping_names(q)
+        self.damping = [(DAMPING_KINDS[kind][1], i, value)
+                        for key, value in damping.items() if value
+                        for kind, i in [names[key]]]
+
+    def mass_matrix(self, X: np.ndarray) -> np.ndarray:
+        return np.stack([np.stack([f(X) for f in row], axis=-1) for row in self.mass], axis=-2)
+
+    def dissipation(self, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Dissipative forces (n_traj, N) and the power they drain (n_traj,)."""
+        forces = np.zeros_like(V)
+        for law, i, coefficient in self.damping:
+            forces[:, i] -= coefficient * law(V[:, i])
+        return forces, -np.einsum("ij,ij->i", forces, V)
+
+    def __call__(self, t: float, y: np.ndarray) -> np.ndarray:
+        n = self.n
+        Y = y.reshape(-1, 2 * n + 1)
+        X, V = Y[:, :2 * n], Y[:, n:2 * n]
+        rhs = np.stack([f(X) for f in self.force], axis=-1)
+        for i, row in enumerate(self.mixed):
+            rhs[:, i] -= sum(f(X) * V[:, k] for k, f in enumerate(row))
+        forces, power = self.dissipation(V)
+        with np.errstate(all="ignore"):
+            acceleration = np.linalg.solve(self.mass_matrix(X), (rhs + forces)[..., None])[..., 0]
+        return np.concatenate([V, acceleration, power[:, None]], axis=1).ravel()
+
+
+def run(system: System, *, seed: int | None = None,
+        progress: Callable[[float], None] | None = None) -> tuple[dict[str, np.ndarray],
+                                                                   dict[str, Any]]:
+    """Integrate every trajectory, sample it at t = k*dt and add the requested noise.
+
+    Returns
+    -------
+    columns : dict of name -> ndarray
+        ``trajectory``, ``t``, the coordinates, then the velocities.
+    provenance : dict
+        What the metadata of the output records (SPEC section 3, simulate).
+    """
+    from scipy.integrate import solve_ivp
+
+    model = system.model
+    theta = [system.theta[p] for p in model.parameters]
+    n, n_traj = len(model.coordinates), len(system.initial)
+    times = sample_times(system.t_end, system.dt)
+    if len(times) * n_traj > system.max_samples:
+        raise ModelError(f"the run would write {len(times) * n_traj:,} samples, more than "
+                         f"max_samples = {system.max_samples:,}; raise it with --max-samples "
+                         "or [simulate] max_samples if this is intended")
+    start = np.array([[s[v] for v in model.variables] + [0.0] for s in system.initial])
+    dynamics = _Dynamics(model, theta, system.damping)
+    _check_mass(dynamics, start[:, :2 * n], "initial state of trajectory")
+
+    def escape(t: float, y: np.ndarray) -> float:
+        if progress is not None:
+            progress(min(t / times[-1], 1.0) if times[-1] > 0 else 1.0)
+        return _ESCAPE_BOUND - np.max(np.abs(y.reshape(n_traj, -1)[:, :2 * n]), initial=0.0)
+
+    escape.terminal = True  # type: ignore[attr-defined]
+    with np.errstate(all="ignore"):
+        solution = solve_ivp(dynamics, (0.0, float(times[-1])), start.ravel(),
+                             method=INTEGRATORS[system.method], t_eval=times,
+                             rtol=system.rtol, atol=system.atol, events=escape)
+    states = solution.y.T.reshape(len(solution.t), n_traj, 2 * n + 1)
+    if solution.status != 0 or len(solution.t) < len(times) or not np.all(np.isfinite(states)):
+        _raise_escape(solution, n_traj, n)
+    if progress is not None:
+        progress(1.0)
+    X = states[:, :, :2 * n]
+    if any(f for row in dynamics.mass for f in row if not _is_constant(f, model)):
+        _check_mass(dynamics, X.reshape(-1, 2 * n), "simulated state of the run, sample")
+
+    energy = model.total_energy(X.reshape(-1, 2 * n), theta).reshape(len(times), n_traj)
+    balance = energy + states[:, :, -1]
+    scale = np.maximum(np.abs(energy[0]), np.finfo(float).tiny)
+    drift = np.max(np.abs(balance - balance[0]), axis=0) / scale
+    lost = states[-1, :, -1] / scale
+
+    clean = X.transpose(1, 0, 2).reshape(-1, 2 * n)
+    sigma = {v: system.noise.get(v, system.relative_noise * float(np.std(clean[:, i])))
+             for i, v in enumerate(model.variables)}
+    seed = system.seed if seed is None else seed
+    if seed is None:
+        seed = int(np.random.SeedSequence().entropy % 2**32)
+    rng = np.random.default_rng(seed)
+    noisy = clean + rng.standard_normal(clean.shape) * np.array([sigma[v] for v in
+                                                                  model.variables])
+    columns = {"trajectory": np.repeat(np.arange(1, n_traj + 1), len(times)),
+               "t": np.tile(times, n_traj)}
+    columns.update({v: noisy[:, i] for i, v in enumerate(model.variables)})
+    provenance = {
+        "model": model.info(),
+        "parameters": dict(system.theta),
+        "damping": dict(system.damping),
+        "initial": [dict(s) for s in system.initial],
+        "trajectories": [
+            {"trajectory": j + 1, "energy": float(energy[0, j]),
+             "energy_drift": float(drift[j]), "energy_dissipated": float(lost[j])}
+            for j in range(n_traj)],
+        "noise": {v: s for v, s in sigma.items() if s > 0} or None,
+        "seed": seed,
+        "integrator": {"method": system.method, "rtol": system.rtol, "atol": system.atol},
+        "t_end": system.t_end,
+        "dt": system.dt,
+    }
+    return columns, provenance
+
+
+def _is_constant(f: Func, model: Model) -> bool:
+    return all(f.diff(q).is_zero() for q in model.coordinates)
+
+
+def _check_mass(dynamics: _Dynamics, X: np.ndarray, label: str) -> None:
+    """The mass matrix must be positive definite, or the motion is not defined."""
+    eigenvalues = np.linalg.eigvalsh(dynamics.mass_matrix(X))
+    bad = np.flatnonzero(~(eigenvalues.min(axis=-1) > 0))
+    if bad.size:
+        raise ModelError(f"the kinetic energy is not positive definite at the {label} "
+                         f"{bad[0] + 1} (mass matrix eigenvalue {eigenvalues[bad[0]].min():g});"
+                         " check the parameters and the velocity terms of the energy")
+
+
+def _raise_escape(solution: Any, n_traj: int, n: int) -> None:
+    last = solution.y[:, -1].reshape(n_traj, -1)[:, :2 * n] if solution.y.size else None
+    t_fail = float(solution.t[-1]) if len(solution.t) else 0.0
+    if solution.t_events and len(solution.t_events[0]):
+        t_fail = float(solution.t_events[0][0])
+        last = solution.y_events[0][0].reshape(n_traj, -1)[:, :2 * n]
+    size = np.where(np.isfinite(last), np.abs(last), np.inf).max(axis=1) if last is not None \
+        else np.zeros(n_traj)
+    j = int(np.argmax(size)) + 1
+    raise ModelError(f"trajectory {j} escapes (the state grows without bound) near "
+                     f"t = {t_fail:.6g}; no output was written. Check its initial state and "
+                     f"the parameters ({solution.message.rstrip('.')})"
+                     if solution.status != 1 else
+                     f"trajectory {j} escapes (|state| > {_ESCAPE_BOUND:g}) near "
+                     f"t = {t_fail:.6g}; no output was written. Check its initial state and "
+                     "the parameters")

@@ -1,0 +1,168 @@
+"""Linear least squares by SVD of the column-scaled design, never the normal equations.
+
+Energy levels are eliminated by weighted centring within each trajectory (Frisch-Waugh-
+Lovell), so a fit with a thousand trajectories still solves for the parameters alone, and
+the levels are recovered afterwards.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from hamid.design import Block
+from hamid.errors import FitError
+
+__all__ = ["Centred", "Conditioning", "Solution", "centre", "conditioning", "solve"]
+
+# A scaled singular value below this (a condition number above 1e10) leaves a direction
+# undetermined at double precision for any data with noise in them.
+_RANK_TOLERANCE = 1e-10
+# A term whose variation within trajectories is below this fraction of its size is
+# constant up to rounding.
+_VARIES = 1e-9
+
+
+@dataclass(frozen=True)
+class Centred:
+    """Weighted, level-free rows: sqrt(w) (A - mean_j A) and sqrt(w) (b - mean_j b)."""
+
+    A: npt.NDArray[np.float64]
+    b: npt.NDArray[np.float64]
+    sqrt_w: npt.NDArray[np.float64]
+    level_means_A: npt.NDArray[np.float64]  # (J, p) weighted mean of A per trajectory
+    level_means_b: npt.NDArray[np.float64]  # (J,)
+    level_weight: npt.NDArray[np.float64]   # (n,) w_i / W_j on level rows, else 0
+    raw_norms: npt.NDArray[np.float64]      # (p,) column norms before centring
+
+
+def centre(blocks: Sequence[Block], n_groups: int) -> Centred:
+    """Stack the blocks, centring rows that carry a level within their trajectory."""
+    A_parts, b_parts, sw_parts, lam_parts = [], [], [], []
+    p = blocks[0].A.shape[1]
+    raw_sq = np.zeros(p)
+    means_A, means_b = np.zeros((n_groups, p)), np.zeros(n_groups)
+    for block in blocks:
+        w = block.weight
+        A, b = block.A, block.b
+        lam = np.zeros(block.n_rows)
+        raw_sq += np.einsum("ij,ij,i->j", A, A, w)
+        if block.has_level:
+            W = np.bincount(block.group, weights=w, minlength=n_groups)
+            means_b = np.bincount(block.group, weights=w * b, minlength=n_groups) / W
+            means_A = np.stack([np.bincount(block.group, weights=w * A[:, k],
+                                            minlength=n_groups) for k in range(p)],
+                               axis=-1).reshape(n_groups, p) / W[:, None]
+            A = A - means_A[block.group]
+            b = b - means_b[block.group]
+            lam = w / W[block.group]
+        sw = np.sqrt(w)
+        A_parts.append(A * sw[:, None])
+        b_parts.append(b * sw)
+        sw_parts.append(sw)
+        lam_parts.append(lam)
+    return Centred(np.concatenate(A_parts), np.concatenate(b_parts),
+                   np.concatenate(sw_parts), means_A, means_b, np.concatenate(lam_parts),
+                   np.sqrt(raw_sq))
+
+
+@dataclass(frozen=True)
+class Solution:
+    """Parameters of the centred problem and the linear map from row errors to them.
+
+    theta - theta_true = G.T @ e  for row errors e (unweighted), so every covariance
+    estimator works from G and the residuals.
+    """
+
+    theta: npt.NDArray[np.float64]
+    G: npt.NDArray[np.float64]                 # (n_rows, p)
+    singular_values: npt.NDArray[np.float64]   # of the column-scaled centred design
+
+
+def solve(centred: Centred, names: Sequence[str], *, n_levels: int = 0) -> Solution:
+    """Least squares of the centred rows; a FitError names undetermined parameters."""
+    A, b = centred.A, centred.b
+    n, p = A.shape
+    if n < p + n_levels:
+        raise FitError(f"cannot determine {', '.join(names)}: {n} rows for {p + n_levels} "
+                       f"unknowns ({p} parameters"
+                       + (f" and {n_levels} energy levels)" if n_levels else ")"))
+    scale = np.linalg.norm(A, axis=0)
+    varies = scale > _VARIES * centred.raw_norms
+    still = [name for name, v in zip(names, varies, strict=True) if not v]
+    if still:
+        subject = "its term does" if len(still) == 1 else "their terms do"
+        raise FitError(f"cannot determine {', '.join(still)}: {subject} not vary along any "
+                       "trajectory, so the energy level absorbs it")
+    U, s, Vt = np.linalg.svd(A / scale, full_matrices=False)
+    tolerance = _RANK_TOLERANCE * s[0]
+    if s[-1] <= tolerance or not np.all(np.isfinite(s)):
+        _raise_rank_deficient(s, Vt, names, tolerance)
+    theta = (Vt.T @ ((U.T @ b) / s)) / scale
+    G = (centred.sqrt_w[:, None] * U) @ ((Vt.T / s).T / scale)
+    return Solution(theta, G, s)
+
+
+def _raise_rank_deficient(s: np.ndarray, Vt: np.ndarray, names: Sequence[str],
+                          tolerance: float) -> None:
+    null = Vt[s <= tolerance]
+    weight = np.sqrt(np.sum(null**2, axis=0))
+    involved = [n for n, w in zip(names, weight, strict=True) if w > 1e-3]
+    rank = int(np.sum(s > tolerance))
+    raise FitError(f"cannot determine {', '.join(involved)}: their terms are collinear in "
+                   f"these data (rank {rank} of {len(names)}); record larger or more varied "
+                   "motion, fix one of them with --fix, or drop a term from the model")
+
+
+@dataclass(frozen=True)
+class Conditioning:
+    """Conditioning of the column-scaled design with the energy-level columns included."""
+
+    condition_number: float
+    singular_values: tuple[float, ...]
+    weakest_direction: dict[str, float]
+    status: str
+
+
+STATUS_LIMITS = (("ok", 30.0), ("moderate", 1000.0))
+
+
+def conditioning(blocks: Sequence[Block], names: Sequence[str],
+                 labels: Sequence[str | int]) -> Conditioning:
+    """Singular values of [A, level columns], scaled to unit column norms.
+
+    Each trajectory's rows are first reduced to a small triangular factor (QR), so the
+    level columns never have to be formed densely for all samples.
+    """
+    J, p = len(labels), len(names)
+    pieces = []
+    for block in blocks:
+        sw = np.sqrt(block.weight)
+        for j in range(J):
+            rows = block.group == j
+            if not np.any(rows):
+                continue
+            local = block.A[rows] * sw[rows, None]
+            if block.has_level:
+                local = np.hstack([local, sw[rows, None]])
+            R = np.linalg.qr(local, mode="r")
+            full = np.zeros((R.shape[0], p + J))
+            full[:, :p] = R[:, :p]
+            if block.has_level:
+                full[:, p + j] = R[:, p]
+            pieces.append(full)
+    stacked = np.vstack(pieces)
+    norms = np.linalg.norm(stacked, axis=0)
+    used = norms > 0
+    _, s, Vt = np.linalg.svd(stacked[:, used] / norms[used], full_matrices=False)
+    condition = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+    labelled = [*names, *(f"h[{label}]" for label in labels)]
+    labelled = [name for name, u in zip(labelled, used, strict=True) if u]
+    weakest = Vt[-1] * np.sign(Vt[-1][np.argmax(np.abs(Vt[-1]))])
+    direction = {name: float(w) for name, w in zip(labelled, weakest, strict=True)
+                 if name in names or abs(w) >= 0.05}
+    status = next((label for label, limit in STATUS_LIMITS if condition < limit), "severe")
+    return Conditioning(condition, tuple(float(x) for x in s), direction, status)

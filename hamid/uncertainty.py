@@ -1,0 +1,594 @@
+"""Covariance of the fitted parameters and energy levels, and confidence bounds.
+
+The fit eliminates the energy levels by weighted centring within each trajectory, so both
+estimates are linear in the row errors e:
+
+    theta_hat - theta = sum_i G_i e_i
+    h_hat_j - h_j     = m_j - Abar_j (theta_hat - theta),   m_j = sum_{i in j} lam_i e_i
+
+The solver hands over G (n, p) and lam (n,); this module estimates Cov(theta_hat),
+Cov(m_j, theta_hat) and Var(m_j) from the residuals. Every estimator is a sandwich whose meat
+is built from the augmented scores s_i = [G_i, lam_i] r_i. Rows of different trajectories are
+never paired, so the meat is block-diagonal across trajectories and is computed one
+trajectory at a time: nothing of size (n, p + J) is ever formed. The caller gets the
+level's covariance from
+
+    Var(h_j)          = level_j - 2 Abar_j . theta_level_j + Abar_j theta Abar_j^T
+    Cov(h_j, theta)   = theta_level_j - Abar_j theta
+    Cov(h_j, h_k)     = - Abar_j . theta_level_k - Abar_k . theta_level_j + Abar_j theta Abar_k^T
+
+with Abar_j the weighted mean of the design rows of trajectory j.
+
+Small-sample conventions (each checked against statsmodels' WLS on the full design with one
+dummy column per trajectory, k = p + J columns, ``df_resid = n - k``):
+
+- ``classical``: s^2 = sum w r^2 / df_resid (``cov_type="nonrobust"``);
+- ``hc``: HC1, n / df_resid (``cov_type="HC1"``);
+- ``hac``: Bartlett weights 1 - l / (L + 1), lags only within a trajectory, times
+  n / df_resid (``cov_type="HAC"`` with ``use_correction=True`` for one trajectory,
+  ``cov_type="hac-panel"`` with ``use_correction="hac"`` for several);
+- ``cluster``: CRV1, C / (C - 1) * (n - 1) / df_resid with C clusters, and C - 1 degrees of
+  freedom (``cov_type="cluster"``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+from scipy import stats
+
+from hamid.errors import FitError
+
+__all__ = [
+    "DESCRIPTIONS",
+    "ESTIMATORS",
+    "Covariance",
+    "bartlett_bandwidth",
+    "bootstrap",
+    "confidence_bounds",
+    "covariance",
+]
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.intp]
+Kind = Literal["classical", "hc", "hac", "cluster"]
+# An estimator's (J, p+1, p+1) meat blocks (scaled), its description and its t degrees of freedom.
+_Estimate = tuple[FloatArray, str, int]
+
+DESCRIPTIONS: dict[str, str] = {
+    "classical": "classical (independent errors, variance proportional to 1/weight)",
+    "hc": "heteroscedasticity robust (HC1)",
+    "hac": "Newey-West (Bartlett kernel, bandwidth {bandwidth}{how}) within each trajectory",
+    "cluster": "cluster robust (CRV1, {n_clusters} clusters within trajectories)",
+    "bootstrap": (
+        "moving-block bootstrap within each trajectory ({n_boot} replicates, "
+        "block length {block}{failed})"
+    ),
+}
+
+# Andrews (1991), eq. (6.2): Bartlett-kernel constant of the AR(1) plug-in bandwidth.
+_ANDREWS_BARTLETT = 1.1447
+# An AR(1) coefficient of exactly 1 makes the plug-in infinite; the cap on the bandwidth
+# takes over well before this bound.
+_RHO_MAX = 0.99
+
+
+@dataclass(frozen=True)
+class Covariance:
+    """Covariance of the parameters and of the level errors m_j, with how it was made.
+
+    Attributes
+    ----------
+    theta : ndarray, shape (p, p)
+        Cov(theta_hat).
+    theta_level : ndarray, shape (J, p)
+        Cov(m_j, theta_hat), row j for trajectory j.
+    level : ndarray, shape (J,)
+        Var(m_j).
+    kind : str
+        The estimator's name, a key of `ESTIMATORS`.
+    description : str
+        One line for the report.
+    df : int
+        Degrees of freedom for t intervals.
+    """
+
+    theta: FloatArray
+    theta_level: FloatArray
+    level: FloatArray
+    kind: str
+    description: str
+    df: int
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """Checked inputs, with each trajectory's row range."""
+
+    G: FloatArray
+    lam: FloatArray
+    r: FloatArray
+    w: FloatArray
+    labels: IntArray
+    starts: IntArray
+    stops: IntArray
+    df_resid: int
+
+    @property
+    def n(self) -> int:
+        return self.G.shape[0]
+
+    @property
+    def p(self) -> int:
+        return self.G.shape[1]
+
+    @property
+    def n_groups(self) -> int:
+        return len(self.labels)
+
+    def groups(self) -> Iterator[tuple[int, slice]]:
+        """Helper yielding each trajectory's label and row slice."""
+        for j, lo, hi in zip(self.labels, self.starts, self.stops, strict=True):
+            yield int(j), slice(int(lo), int(hi))
+
+    def z(self, rows: slice) -> FloatArray:
+        """Helper returning the augmented influence rows [G_i, lam_i]."""
+        return np.column_stack((self.G[rows], self.lam[rows]))
+
+    def scores(self, rows: slice) -> FloatArray:
+        """Helper returning the augmented scores [G_i, lam_i] r_i."""
+        return self.z(rows) * self.r[rows, None]
+
+
+def _group_runs(groups: npt.ArrayLike, n: int) -> tuple[IntArray, IntArray, IntArray]:
+    """Helper checking `groups` and returning each run's label, start and stop."""
+    g = np.asarray(groups)
+    if g.shape != (n,):
+        raise ValueError(f"`groups` must have shape ({n},), got {g.shape}")
+    if n == 0:
+        raise ValueError("`groups` is empty: there are no rows")
+    if not np.issubdtype(g.dtype, np.integer):
+        raise ValueError(f"`groups` must hold integers, got dtype {g.dtype}")
+    change = np.flatnonzero(g[1:] != g[:-1]) + 1
+    starts = np.concatenate(([0], change)).astype(np.intp)
+    stops = np.concatenate((change, [n])).astype(np.intp)
+    labels = g[starts].astype(np.intp)
+    if len(np.unique(labels)) != len(labels):
+        raise ValueError("`groups` must be contiguous: a trajectory's rows appear in two runs")
+    if labels.min() != 0 or labels.max() != len(labels) - 1:
+        raise ValueError(
+            f"`groups` must number the trajectories 0..{len(labels) - 1}, "
+            f"got labels {labels.min()}..{labels.max()}"
+        )
+    return labels, starts, stops
+
+
+def _float_vector(name: str, value: npt.ArrayLike, n: int) -> FloatArray:
+    """Helper checking one row vector: shape (n,) and finite."""
+    a = np.asarray(value, dtype=np.float64)
+    if a.shape != (n,):
+        raise ValueError(f"`{name}` must have shape ({n},), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"`{name}` has non-finite values (first at row {_first_bad(a)})")
+    return a
+
+
+def _first_bad(a: FloatArray) -> int:
+    """Helper returning the first row holding a non-finite value."""
+    return int(np.flatnonzero(~np.isfinite(a.reshape(len(a), -1)).all(axis=1))[0])
+
+
+def _problem(
+    G: npt.ArrayLike,
+    lam: npt.ArrayLike,
+    residuals: npt.ArrayLike,
+    weights: npt.ArrayLike | None,
+    groups: npt.ArrayLike,
+    df_resid: int,
+) -> _Problem:
+    """Helper checking the arguments common to every estimator."""
+    G = np.asarray(G, dtype=np.float64)
+    if G.ndim != 2 or G.shape[1] == 0:
+        raise ValueError(f"`G` must have shape (n, p) with p >= 1, got {G.shape}")
+    n = G.shape[0]
+    if not np.all(np.isfinite(G)):
+        raise ValueError(f"`G` has non-finite values (first at row {_first_bad(G)})")
+    lam = _float_vector("lam", lam, n)
+    if np.any(lam < 0):
+        raise ValueError(f"`lam` must be >= 0, got {lam.min()}")
+    r = _float_vector("residuals", residuals, n)
+    w = np.ones(n) if weights is None else _float_vector("weights", weights, n)
+    if np.any(w <= 0):
+        raise ValueError(f"`weights` must be positive, row {int(np.argmin(w))} is {w.min()}")
+    labels, starts, stops = _group_runs(groups, n)
+    if isinstance(df_resid, bool) or not isinstance(df_resid, int | np.integer) or df_resid < 1:
+        raise ValueError(f"`df_resid` must be a positive integer, got {df_resid!r}")
+    return _Problem(G, lam, r, w, labels, starts, stops, int(df_resid))
+
+
+def _blocks(prob: _Problem, meat: Callable[[slice], FloatArray]) -> FloatArray:
+    """Helper stacking one (p+1, p+1) meat block per trajectory, indexed by label."""
+    out = np.zeros((prob.n_groups, prob.p + 1, prob.p + 1))
+    for j, rows in prob.groups():
+        out[j] = meat(rows)
+    return out
+
+
+def _classical(prob: _Problem, bandwidth: int | None, clusters: IntArray | None) -> _Estimate:
+    """Errors independent with variance s^2 / w_i."""
+    s2 = float(np.sum(prob.w * prob.r**2)) / prob.df_resid
+
+    def meat(rows: slice) -> FloatArray:
+        z = prob.z(rows)
+        return (z / prob.w[rows, None]).T @ z
+
+    return s2 * _blocks(prob, meat), DESCRIPTIONS["classical"], prob.df_resid
+
+
+def _hc(prob: _Problem, bandwidth: int | None, clusters: IntArray | None) -> _Estimate:
+    """White's sandwich with the HC1 factor n / df_resid."""
+
+    def meat(rows: slice) -> FloatArray:
+        s = prob.scores(rows)
+        return s.T @ s
+
+    factor = prob.n / prob.df_resid
+    return factor * _blocks(prob, meat), DESCRIPTIONS["hc"], prob.df_resid
+
+
+def _bartlett_meat(s: FloatArray, bandwidth: int) -> FloatArray:
+    """Helper: sum_{t,u} (1 - |t-u|/(L+1))_+ s_t s_u^T of one trajectory.
+
+    The Bartlett kernel is the self-convolution of a box of L + 1 samples, so the sum equals
+    sum_k B_k B_k^T / (L + 1) over all (also partial) windows B_k of L + 1 consecutive scores:
+    one pass over the rows, whatever the bandwidth.
+    """
+    n_rows = s.shape[0]
+    cum = np.zeros((n_rows + 1, s.shape[1]))
+    np.cumsum(s, axis=0, out=cum[1:])
+    first = np.arange(-bandwidth, n_rows)
+    box = cum[np.minimum(first + bandwidth + 1, n_rows)] - cum[np.maximum(first, 0)]
+    return box.T @ box / (bandwidth + 1)
+
+
+def _andrews_bandwidth(prob: _Problem) -> int:
+    """Helper computing Andrews' AR(1) plug-in bandwidth (see `bartlett_bandwidth`)."""
+    k = prob.p + 1
+    lagged = np.zeros(k)
+    square = np.zeros(k)
+    for _, rows in prob.groups():
+        s = prob.scores(rows)
+        lagged += np.einsum("ij,ij->j", s[1:], s[:-1])
+        square += np.einsum("ij,ij->j", s[:-1], s[:-1])
+    usable = square > 0
+    if not np.any(usable):
+        return 0
+    rho = np.clip(lagged[usable] / square[usable], -_RHO_MAX, _RHO_MAX)
+    # Andrews' weights w_a = sigma_a^-4 make every score column count alike, so that the
+    # bandwidth does not depend on the units of the parameters or of the energy.
+    alpha = np.sum(4 * rho**2 / ((1 - rho) ** 6 * (1 + rho) ** 2)) / np.sum(1 / (1 - rho) ** 4)
+    sizes = prob.stops - prob.starts
+    n_eff = float(np.median(sizes))
+    bandwidth = math.ceil(_ANDREWS_BARTLETT * (alpha * n_eff) ** (1 / 3))
+    return int(min(max(bandwidth, 0), int(sizes.max()) - 1))
+
+
+def _hac(prob: _Problem, bandwidth: int | None, clusters: IntArray | None) -> _Estimate:
+    """Newey-West sandwich with lags inside each trajectory, times n / df_resid."""
+    automatic = bandwidth is None
+    lags = _andrews_bandwidth(prob) if automatic else int(bandwidth)
+    blocks = _blocks(prob, lambda rows: _bartlett_meat(prob.scores(rows), lags))
+    how = ", automatic" if automatic else ""
+    description = DESCRIPTIONS["hac"].format(bandwidth=lags, how=how)
+    return prob.n / prob.df_resid * blocks, description, prob.df_resid
+
+
+def _cluster(prob: _Problem, bandwidth: int | None, clusters: IntArray | None) -> _Estimate:
+    """CRV1 sandwich over clusters nested in trajectories, with C - 1 degrees of freedom."""
+    assert clusters is not None  # covariance() checks this before any work
+    n_clusters = len(np.unique(clusters))
+
+    def meat(rows: slice) -> FloatArray:
+        _, local = np.unique(clusters[rows], return_inverse=True)
+        s = prob.scores(rows)
+        sums = np.stack(
+            [np.bincount(local, weights=col, minlength=local.max() + 1) for col in s.T], axis=1
+        )
+        return sums.T @ sums
+
+    factor = n_clusters / (n_clusters - 1) * (prob.n - 1) / prob.df_resid
+    description = DESCRIPTIONS["cluster"].format(n_clusters=n_clusters)
+    return factor * _blocks(prob, meat), description, n_clusters - 1
+
+
+ESTIMATORS: dict[str, Callable[[_Problem, int | None, IntArray | None], _Estimate]] = {
+    "classical": _classical,
+    "hc": _hc,
+    "hac": _hac,
+    "cluster": _cluster,
+}
+
+
+def _check_clusters(clusters: npt.ArrayLike, prob: _Problem) -> IntArray:
+    """Helper checking that `clusters` labels rows and nests in the trajectories."""
+    c = np.asarray(clusters)
+    if c.shape != (prob.n,):
+        raise ValueError(f"`clusters` must have shape ({prob.n},), got {c.shape}")
+    if not np.issubdtype(c.dtype, np.integer):
+        raise ValueError(f"`clusters` must hold integers, got dtype {c.dtype}")
+    # clusters nest in trajectories iff no label occurs in two trajectories
+    per_group = np.concatenate([np.unique(c[rows]) for _, rows in prob.groups()])
+    labels, counts = np.unique(per_group, return_counts=True)
+    if np.any(counts > 1):
+        raise ValueError(
+            f"`clusters` must nest in `groups`: cluster {labels[counts > 1][0]} spans "
+            "several trajectories"
+        )
+    if len(labels) < 2:
+        raise ValueError(f"`clusters` must hold at least 2 clusters, got {len(labels)}")
+    return c.astype(np.intp)
+
+
+def covariance(
+    kind: Kind,
+    G: npt.ArrayLike,
+    lam: npt.ArrayLike,
+    residuals: npt.ArrayLike,
+    weights: npt.ArrayLike | None,
+    groups: npt.ArrayLike,
+    *,
+    df_resid: int,
+    bandwidth: int | None = None,
+    clusters: npt.ArrayLike | None = None,
+) -> Covariance:
+    """Estimate the covariance of the parameters and of the level errors.
+
+    Parameters
+    ----------
+    kind : {"classical", "hc", "hac", "cluster"}
+        The estimator, a key of `ESTIMATORS`.
+    G : array_like, shape (n, p)
+        Influence of each row's error on theta_hat.
+    lam : array_like, shape (n,)
+        Weight of each row in its trajectory's level, w_i / W_j (0 for rows with no level).
+    residuals : array_like, shape (n,)
+        Unweighted residuals b - a theta - h.
+    weights : array_like, shape (n,), or None
+        Positive row weights; None means all 1.
+    groups : array_like of int, shape (n,)
+        Trajectory of each row, 0..J-1; each trajectory's rows contiguous, in time order.
+    df_resid : int
+        Residual degrees of freedom, n minus the number of fitted unknowns (levels included).
+    bandwidth : int, optional
+        Highest lag for ``"hac"``; by default Andrews' plug-in (`bartlett_bandwidth`).
+    clusters : array_like of int, shape (n,), optional
+        Cluster of each row, required for ``"cluster"``; each cluster inside one trajectory.
+
+    Returns
+    -------
+    Covariance
+        Its blocks give Var(h_j) = level_j - 2 Abar_j . theta_level_j + Abar_j theta Abar_j^T.
+
+    Raises
+    ------
+    ValueError
+        If an argument has the wrong shape or value, or an option does not apply to `kind`.
+    """
+    if kind not in ESTIMATORS:
+        raise ValueError(f"`kind` must be one of {', '.join(ESTIMATORS)}, got {kind!r}")
+    prob = _problem(G, lam, residuals, weights, groups, df_resid)
+    if bandwidth is not None:
+        if kind != "hac":
+            raise ValueError(f"`bandwidth` applies only to kind 'hac', not {kind!r}")
+        if isinstance(bandwidth, bool) or not isinstance(bandwidth, int | np.integer):
+            raise ValueError(f"`bandwidth` must be an integer, got {bandwidth!r}")
+        if bandwidth < 0:
+            raise ValueError(f"`bandwidth` must be >= 0, got {bandwidth}")
+    checked_clusters = None
+    if kind == "cluster":
+        if clusters is None:
+            raise ValueError("`clusters` is required for kind 'cluster'")
+        checked_clusters = _check_clusters(clusters, prob)
+    elif clusters is not None:
+        raise ValueError(f"`clusters` applies only to kind 'cluster', not {kind!r}")
+
+    blocks, description, df = ESTIMATORS[kind](prob, bandwidth, checked_clusters)
+    p = prob.p
+    theta = blocks[:, :p, :p].sum(axis=0)
+    theta = (theta + theta.T) / 2  # exact symmetry, lost in summation order
+    theta_level = blocks[:, p, :p].copy()
+    level = blocks[:, p, p].copy()
+    for array in (theta, theta_level, level):
+        array.setflags(write=False)
+    return Covariance(theta, theta_level, level, kind, description, int(df))
+
+
+def bartlett_bandwidth(
+    G: npt.ArrayLike,
+    lam: npt.ArrayLike,
+    residuals: npt.ArrayLike,
+    groups: npt.ArrayLike,
+) -> int:
+    """Choose the Newey-West bandwidth from the autocorrelation of the scores.
+
+    Andrews' (1991) AR(1) plug-in for the Bartlett kernel: an AR(1) coefficient rho_a is
+    fitted to each score column [G, lam] r, pooling lag-1 pairs within trajectories (never
+    across), and
+
+        alpha = sum 4 rho^2 / ((1 - rho)^6 (1 + rho)^2) / sum 1 / (1 - rho)^4,
+        L = ceil(1.1447 (alpha n_eff)^(1/3)),
+
+    with n_eff the median trajectory length. This is Andrews' formula with weights
+    w_a = sigma_a^-4, so that L does not change when a parameter's units do. rho is clipped
+    to +-0.99, and L to 0..(longest trajectory - 1): a longer lag adds no pair of rows, and
+    a short trajectory does not switch the correction off for the long ones.
+
+    Parameters
+    ----------
+    G : array_like, shape (n, p)
+        Influence of each row's error on theta_hat.
+    lam : array_like, shape (n,)
+        Weight of each row in its trajectory's level.
+    residuals : array_like, shape (n,)
+        Unweighted residuals.
+    groups : array_like of int, shape (n,)
+        Trajectory of each row, contiguous.
+
+    Returns
+    -------
+    int
+        The highest lag with nonzero weight.
+    """
+    return _andrews_bandwidth(_problem(G, lam, residuals, None, groups, 1))
+
+
+def confidence_bounds(
+    estimate: npt.ArrayLike,
+    stderr: npt.ArrayLike | None,
+    df: float,
+    level: float,
+) -> tuple[FloatArray, FloatArray]:
+    """Two-sided t confidence bounds; an unknown standard error gives NaN bounds.
+
+    Parameters
+    ----------
+    estimate : array_like
+        Estimates.
+    stderr : array_like or None
+        Standard errors, broadcastable to `estimate`; None or NaN where unknown.
+    df : float
+        Degrees of freedom of the t distribution (``inf`` for the normal).
+    level : float
+        Confidence level, strictly between 0 and 1.
+
+    Returns
+    -------
+    low, high : ndarray
+        Bounds with the broadcast shape of `estimate` and `stderr`.
+
+    Examples
+    --------
+    >>> low, high = confidence_bounds([1.0, 2.0], [0.1, None], df=10, level=0.95)
+    >>> round(float(low[0]), 4), bool(np.isnan(high[1]))
+    (0.7772, True)
+    """
+    if not 0 < level < 1:
+        raise ValueError(f"`level` must be strictly between 0 and 1, got {level!r}")
+    if not df > 0:
+        raise ValueError(f"`df` must be positive, got {df!r}")
+    est = np.asarray(estimate, dtype=np.float64)
+    # dtype float64 turns None entries into NaN
+    se = np.full_like(est, np.nan) if stderr is None else np.asarray(stderr, dtype=np.float64)
+    if np.any(se < 0):
+        raise ValueError(f"`stderr` must be >= 0, got {np.nanmin(se)}")
+    half = stats.t.ppf((1 + level) / 2, df) * se
+    return est - half, est + half
+
+
+def _block_indices(
+    rng: np.random.Generator, starts: IntArray, stops: IntArray, lengths: IntArray
+) -> IntArray:
+    """Helper drawing one moving-block resample of the rows, trajectory by trajectory."""
+    parts = []
+    for lo, hi, block in zip(starts, stops, lengths, strict=True):
+        size = hi - lo
+        n_blocks = -(-size // block)
+        first = rng.integers(0, size - block + 1, size=n_blocks)
+        parts.append(lo + (first[:, None] + np.arange(block)).ravel()[:size])
+    return np.concatenate(parts)
+
+
+def bootstrap(
+    refit: Callable[[IntArray], npt.ArrayLike],
+    groups: npt.ArrayLike,
+    *,
+    n_boot: int,
+    seed: int | None,
+    block_length: int | None = None,
+) -> tuple[FloatArray, int, str]:
+    """Estimate a covariance by refitting on moving-block resamples of each trajectory.
+
+    Each replicate rebuilds every trajectory to its own length from contiguous blocks of its
+    own rows, drawn with replacement, so the correlation within a block is kept and rows of
+    different trajectories are never mixed.
+
+    Parameters
+    ----------
+    refit : callable
+        ``refit(indices)`` fits the rows ``indices`` (shape (n,), into the original rows,
+        each trajectory's rows contiguous and in order of the original trajectories) and
+        returns the estimate vector. A `FitError` marks a failed replicate.
+    groups : array_like of int, shape (n,)
+        Trajectory of each row, contiguous.
+    n_boot : int
+        Number of replicates, at least 2.
+    seed : int or None
+        Seed for `numpy.random.default_rng`.
+    block_length : int, optional
+        Block length for every trajectory (shortened to a trajectory's length); by default
+        ceil(n_j^(1/3)) for a trajectory of n_j rows.
+
+    Returns
+    -------
+    cov : ndarray, shape (p, p)
+        Sample covariance (ddof 1) of the successful replicates.
+    n_failed : int
+        Replicates whose refit raised `FitError`.
+    description : str
+        One line for the report.
+
+    Raises
+    ------
+    FitError
+        If more than half of the replicates (or all but one) fail.
+    """
+    g = np.asarray(groups)
+    if g.ndim != 1:
+        raise ValueError(f"`groups` must have shape (n,), got {g.shape}")
+    _, starts, stops = _group_runs(g, g.shape[0])
+    if isinstance(n_boot, bool) or not isinstance(n_boot, int | np.integer) or n_boot < 2:
+        raise ValueError(f"`n_boot` must be an integer >= 2, got {n_boot!r}")
+    sizes = stops - starts
+    if block_length is None:
+        lengths = np.ceil(sizes ** (1 / 3)).astype(np.intp)
+        block = "ceil(n^(1/3)) per trajectory"
+    else:
+        if isinstance(block_length, bool) or not isinstance(block_length, int | np.integer):
+            raise ValueError(f"`block_length` must be an integer, got {block_length!r}")
+        if block_length < 1:
+            raise ValueError(f"`block_length` must be >= 1, got {block_length}")
+        lengths = np.full(len(sizes), block_length, dtype=np.intp)
+        block = str(block_length)
+    lengths = np.minimum(lengths, sizes)
+
+    rng = np.random.default_rng(seed)
+    estimates: list[FloatArray] = []
+    n_failed = 0
+    last_error: FitError | None = None
+    for _ in range(n_boot):
+        indices = _block_indices(rng, starts, stops, lengths)
+        try:
+            estimate = np.asarray(refit(indices), dtype=np.float64)
+        except FitError as exc:
+            n_failed += 1
+            last_error = exc
+            continue
+        if estimates and estimate.shape != estimates[0].shape:
+            raise ValueError(
+                f"`refit` returned shape {estimate.shape}, earlier {estimates[0].shape}"
+            )
+        estimates.append(estimate.ravel())
+    if 2 * n_failed > n_boot or len(estimates) < 2:
+        raise FitError(
+            f"bootstrap failed: {n_failed} of {n_boot} resampled fits could not determine "
+            f"the parameters (last: {last_error})"
+        ) from last_error
+    cov = np.atleast_2d(np.cov(np.stack(estimates), rowvar=False))
+    failed = f", {n_failed} failed" if n_failed else ""
+    description = DESCRIPTIONS["bootstrap"].format(n_boot=n_boot, block=block, failed=failed)
+    return cov, n_failed, description
