@@ -25,7 +25,7 @@ __all__ = [
     "simulate",
 ]
 
-_LAZY = {"fit": "hamid.api", "simulate": "hamid.api", "load_model": "hamid.model"}
+_LAZY = {"fit": "hamid.api", "simulate": "hamid.api", "load_model": "hamid.api"}
 
 
 def __getattr__(name: str) -> Any:

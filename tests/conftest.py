@@ -1,0 +1,80 @@
+"""Shared data: small simulated records with known parameters, made once per session."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import hamid
+
+PENG = {
+    "model": {"builtin": "peng-quadratic"},
+    "parameters": {"w1sq": 1.0, "w2sq": 2.25, "a1": 0.3, "a2": -0.4, "a3": 0.25, "a6": 0.2},
+    "initial": [{"u1": 0.3, "u2": -0.2, "v1": 0.1, "v2": 0.2},
+                {"u1": -0.2, "u2": 0.25, "v1": 0.3, "v2": 0.0}],
+    "simulate": {"t_end": 40.0, "dt": 0.05, "seed": 0},
+}
+DUFFING = {
+    "model": {"builtin": "duffing"},
+    "parameters": {"k": 1.0, "k3": 0.5},
+    "initial": [{"x": 1.0, "v": 0.0}, {"x": 0.4, "v": 0.3}],
+    "simulate": {"t_end": 30.0, "dt": 0.05, "seed": 1},
+}
+HENON_HEILES = {
+    "model": {"builtin": "henon-heiles"},
+    "parameters": {"a": 1.0, "b": 1.0, "c": 1.0, "d": -1 / 3},
+    "initial": [{"x": 0.2, "y": 0.1, "vx": 0.2, "vy": 0.2},
+                {"x": -0.1, "y": 0.3, "vx": 0.3, "vy": 0.0}],
+    "simulate": {"t_end": 40.0, "dt": 0.05},
+}
+ELASTIC_PENDULUM = {
+    "model": {"name": "elastic-pendulum", "coordinates": ["x", "y"], "velocities": ["vx", "vy"],
+              "energy": "(vx**2 + vy**2)/2 + k*(x**2 + y**2)/2 - kL*sqrt(x**2 + y**2) + g*y"},
+    "parameters": {"k": 12.0, "kL": 12.0, "g": 2.0},
+    "initial": [{"x": 0.4, "y": -1.1, "vx": 0.0, "vy": 0.2},
+                {"x": -0.2, "y": -1.3, "vx": 0.5, "vy": 0.0}],
+    "simulate": {"t_end": 20.0, "dt": 0.02},
+}
+# Two masses on springs, the second mass unknown: a parameter in the kinetic energy.
+TWO_MASS = {
+    "model": {"name": "two-mass", "coordinates": ["x1", "x2"], "velocities": ["v1", "v2"],
+              "energy": "(v1**2 + m*v2**2)/2 + k1*x1**2/2 + k2*(x2 - x1)**2/2"
+                        " + k3*(x2 - x1)**4/4"},
+    "parameters": {"m": 2.0, "k1": 1.5, "k2": 0.8, "k3": 0.3},
+    "initial": [{"x1": 0.5, "x2": -0.3, "v1": 0.0, "v2": 0.2},
+                {"x1": -0.2, "x2": 0.6, "v1": 0.3, "v2": 0.0}],
+    "simulate": {"t_end": 40.0, "dt": 0.04},
+}
+PENDULUM = {
+    "model": {"name": "pendulum", "coordinates": ["theta"], "velocities": ["omega"],
+              "energy": "omega**2/2 - K*cos(theta)"},
+    "parameters": {"K": 9.0},
+    "initial": [{"theta": 1.2, "omega": 0.0}, {"theta": 0.3, "omega": 1.0}],
+    "simulate": {"t_end": 10.0, "dt": 0.01},
+}
+SYSTEMS = {"peng-quadratic": PENG, "duffing": DUFFING, "henon-heiles": HENON_HEILES,
+           "elastic-pendulum": ELASTIC_PENDULUM, "two-mass": TWO_MASS, "pendulum": PENDULUM}
+
+
+@pytest.fixture(scope="session")
+def clean_records() -> dict[str, pd.DataFrame]:
+    """Noise-free simulated records of every test system."""
+    return {name: hamid.simulate(system) for name, system in SYSTEMS.items()}
+
+
+def with_noise(frame: pd.DataFrame, relative: float, seed: int) -> pd.DataFrame:
+    """A copy with white noise of `relative` times each column's spread on the states."""
+    rng = np.random.default_rng(seed)
+    noisy = frame.copy()
+    noisy.attrs = dict(frame.attrs)
+    for column in frame.columns[2:]:
+        noisy[column] = frame[column] + relative * frame[column].std() * rng.standard_normal(
+            len(frame))
+    return noisy
+
+
+def truth_of(system: dict[str, Any]) -> dict[str, float]:
+    return dict(system["parameters"])
