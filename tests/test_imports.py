@@ -1,0 +1,30 @@
+"""Start-up cost: the command line and built-in fits import only what they need."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SAMPLE = Path(__file__).resolve().parent.parent / "sample_data" / "duffing.csv"
+HEAVY = ("numpy", "scipy", "pandas", "pyarrow", "sympy", "rich")
+
+
+def _loaded_after(code: str) -> set[str]:
+    probe = f"{code}\nimport sys\nprint(' '.join(m for m in {HEAVY!r} if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         check=True)
+    return set(out.stdout.split())
+
+
+@pytest.mark.parametrize("code", ["import hamid.cli", "import hamid"])
+def test_importing_the_cli_loads_nothing_heavy(code):
+    assert _loaded_after(code) == set()
+
+
+def test_fitting_a_builtin_model_does_not_import_sympy():
+    loaded = _loaded_after(f"import hamid\nhamid.fit({str(SAMPLE)!r})")
+    assert "numpy" in loaded  # the probe works
+    assert "sympy" not in loaded
