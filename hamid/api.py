@@ -7,9 +7,11 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from hamid import __version__
 from hamid.design import Block, Records
-from hamid.errors import DataError, ModelError, UsageError
+from hamid.errors import DataError, FitError, ModelError, UsageError
 from hamid.model import BUILTINS, Model, builtin_model, model_from_expression, model_from_spec
 from hamid.result import EnergyLevel, FitResult, ParameterEstimate
 
@@ -75,13 +77,14 @@ def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | 
 
 
 COVARIANCE_KINDS = ("classical", "hc", "hac", "bootstrap")
-METHODS = ("energy", "auto")
+METHODS = ("auto", "joint", "weak", "energy")
 
 
 def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         columns: Mapping[str, str] | None = None, time: str | None = None,
         trajectory: str | None = None, fix: Mapping[str, float] | None = None,
-        method: str = "auto", cov: str = "hac", level: float = 0.95,
+        method: str = "auto", weak_window: float | None = None, cov: str = "hac",
+        level: float = 0.95,
         bootstrap: int = 200, seed: int | None = None,
         format: str | None = None) -> FitResult:
     """Fit the energy of recorded free oscillations.
@@ -99,8 +102,11 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         Names of the time and trajectory columns (default ``t``/``time``, ``trajectory``).
     fix : dict, optional
         Parameters held at known values.
-    method : {"auto", "energy"}
-        Which rows to fit; ``auto`` chooses and the result says why.
+    method : {"auto", "joint", "weak", "energy"}
+        Which rows to fit: energy rows, weak-form equations of motion, or both; ``auto``
+        takes ``joint`` when the data allow it and says why.
+    weak_window : float, optional
+        Length of the weak-form windows in seconds; by default half the dominant period.
     cov : {"hac", "classical", "hc", "bootstrap"}
         How standard errors are computed.
     level : float
@@ -120,9 +126,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     >>> result.estimates
     {'k': 1.0..., 'k3': 0.5...}
     """
-    import numpy as np
-
     from hamid import design, solve, uncertainty
+    from hamid.result import _finite
 
     _check_choice(method, METHODS, "method")
     _check_choice(cov, COVARIANCE_KINDS, "cov")
@@ -130,43 +135,57 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         raise UsageError(f"level must be between 0 and 1, found {level!r}")
     if cov == "bootstrap" and bootstrap < 10:
         raise UsageError(f"bootstrap needs at least 10 replicates, found {bootstrap}")
+    if weak_window is not None and not weak_window > 0:
+        raise UsageError(f"--weak-window must be a positive number of seconds, "
+                         f"found {weak_window!r}")
 
     loaded = _load_data(data, model, columns=columns, time=time, trajectory=trajectory,
                         format=format)
     m, records = loaded.model, loaded.records
     fixed = _check_fixed(fix or {}, m.parameters)
-    kind, kind_reason = "energy", _energy_reason(method)
-
-    blocks = [design.energy_block(m, records)]
     names = list(m.parameters)
     free = [k for k, name in enumerate(names) if name not in fixed]
     if not free:
         raise UsageError("every parameter is fixed; nothing is left to fit")
-    fixed_values = np.array([fixed.get(name, 0.0) for name in names])
-    blocks = [_hold_fixed(b, free, fixed_values) for b in blocks]
     free_names = [names[k] for k in free]
+    kind, kind_reason, window = _choose_method(method, m, records, weak_window)
 
+    fixed_values = np.array([fixed.get(name, 0.0) for name in names])
+    energy_rows = _hold_fixed(design.energy_block(m, records), free, fixed_values)
+    blocks, spans = [], None
+    if kind == "energy":
+        blocks.append(energy_rows)
+    if kind in ("weak", "joint"):
+        spans = design.windows(records, window)
+        if kind == "joint":
+            blocks.append(_hold_fixed(design.energy_block(m, records, spans), free,
+                                      fixed_values))
+        weak = design.weak_block(m, records, spans)
+        if weak.n_rows == 0:
+            raise DataError(f"the records are too short for one weak-form window of "
+                            f"{window:.4g} s; use --method energy or a shorter --weak-window")
+        blocks.append(_hold_fixed(weak, free, fixed_values))
     J = records.n_trajectories
-    centred = solve.centre(blocks, J)
-    solution = solve.solve(centred, free_names, n_levels=J)
-    theta = solution.theta
-    h = centred.level_means_A @ theta - centred.level_means_b
-    residual = np.concatenate([b.A @ theta - b.b - (h[b.group] if b.has_level else 0.0)
-                               for b in blocks])
-    weight = np.concatenate([b.weight for b in blocks])
-    group = np.concatenate([b.group for b in blocks])
-    n_rows = len(residual)
-    df_resid = n_rows - len(free) - J
+    units, unit_group = _resampling_units(blocks, kind, window)
+    blocks, block_variance = _balance_blocks(blocks, free_names, J, units)
+    estimate = _least_squares(blocks, free_names, J)
+    theta = estimate.theta
 
     if cov == "bootstrap":
-        theta_cov, h_var, cov_text = _bootstrap_covariance(blocks, free_names, J, group,
-                                                           bootstrap, seed)
-        df = df_resid
+        theta_cov, h_var, cov_text = _bootstrap_covariance(
+            blocks, free_names, J, units, unit_group, bootstrap, seed)
+        df = estimate.df_resid
     else:
-        c = uncertainty.covariance(cov, solution.G, centred.level_weight, residual, weight,
-                                   group, df_resid=df_resid)
+        cov_kind = "cluster" if kind != "energy" and cov == "hac" else cov
+        order = np.lexsort((np.concatenate([np.full(b.n_rows, i) for i, b in
+                                            enumerate(blocks)]), estimate.group))
+        c = uncertainty.covariance(
+            cov_kind, estimate.solution.G[order], estimate.centred.level_weight[order],
+            estimate.residual[order], estimate.weight[order], estimate.group[order],
+            df_resid=estimate.df_resid,
+            clusters=units[order] if cov_kind == "cluster" else None)
         theta_cov, cov_text, df = c.theta, c.description, c.df
-        Abar = centred.level_means_A
+        Abar = estimate.centred.level_means_A
         h_var = (c.level - 2 * np.einsum("jp,jp->j", Abar, c.theta_level)
                  + np.einsum("jp,pq,jq->j", Abar, c.theta, Abar))
     stderr = np.sqrt(np.clip(np.diag(theta_cov), 0, None))
@@ -186,32 +205,45 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
             name, "energy", float(theta[i]), _finite_or_none(stderr[i]),
             _finite_or_none(low[i]), _finite_or_none(high[i]), truth.get(name), False))
 
+    # Energy levels and energy residuals are reported for every method; with weak rows
+    # alone the levels are the mean fitted energies and carry no standard error.
+    if kind == "weak":
+        levels_centred = solve.centre([energy_rows], J)
+        h = levels_centred.level_means_A @ theta - levels_centred.level_means_b
+        h_stderr = [None] * J
+    else:
+        h = estimate.h
+        h_stderr = [_finite_or_none(np.sqrt(max(v, 0))) for v in h_var]
+    energy_residual = energy_rows.A @ theta - energy_rows.b - h[energy_rows.group]
     bounds = records.bounds()
-    levels = tuple(EnergyLevel(label, float(h[j]), _finite_or_none(np.sqrt(max(h_var[j], 0))),
-                               stop - start)
+    levels = tuple(EnergyLevel(label, float(h[j]), h_stderr[j], stop - start)
                    for j, (label, (start, stop)) in enumerate(zip(records.labels, bounds,
                                                                   strict=True)))
-    energy_rows = blocks[0]
-    stats = _residual_stats(residual[:energy_rows.n_rows], energy_rows, h, bounds,
-                            records.labels)
+    stats = _residual_stats(energy_residual, energy_rows, h, bounds, records.labels)
+    stats["blocks"] = {b.kind: _block_stats(r) for b, r in
+                       zip(blocks, np.split(estimate.residual,
+                                            np.cumsum([b.n_rows for b in blocks])[:-1]),
+                           strict=True)}
     cond = solve.conditioning(blocks, free_names, records.labels)
-    warnings = [*loaded.notes,
-                *_warnings(parameters, stats, cond, df, level, cov)]
+    warnings = [*loaded.notes, *_warnings(parameters, stats, cond, df, level, cov, kind)]
     method_info = {
-        "kind": kind, "kind_reason": kind_reason, "weak_window": None, "damping": [],
+        "kind": kind, "kind_reason": kind_reason, "weak_window": window, "damping": [],
         "weighting": "none", "noise": None, "bias_correction": False, "covariance": cov,
         "covariance_description": cov_text, "level": level, "fixed": dict(fixed),
+        "block_variance": block_variance,
     }
-    conditioning_info = {"condition_number": cond.condition_number,
-                         "singular_values": list(cond.singular_values),
-                         "weakest_direction": cond.weakest_direction, "status": cond.status}
-    from hamid.result import _finite
-
+    conditioning_info = {
+        "condition_number": cond.condition_number,
+        "singular_values": list(cond.singular_values),
+        "weakest_direction": cond.weakest_direction, "status": cond.status,
+        "blocks": {b.kind: solve.conditioning([b], free_names, records.labels).condition_number
+                   for b in blocks} if len(blocks) > 1 else None,
+    }
     labels = np.asarray(records.labels, dtype=object)
     samples = {"trajectory": labels[energy_rows.group], "t": energy_rows.time,
-               "energy": m.total_energy(records.X, [estimates[n]
-                                                    for n in names]),
-               "residual": residual[:energy_rows.n_rows], "weight": energy_rows.weight}
+               "energy": m.total_energy(records.X, [estimates[n] for n in names]),
+               "residual": energy_residual,
+               "weight": _sample_weights(kind, blocks, energy_rows, spans)}
     return FitResult(
         hamid_version=__version__,
         model=m.info(),
@@ -242,10 +274,41 @@ def _check_choice(value: str, choices: tuple[str, ...], option: str) -> None:
         raise UsageError(f"{option} must be one of {', '.join(choices)}, found {value!r}")
 
 
-def _energy_reason(method: str) -> str:
+def _choose_method(method: str, model: Model, records: Records,
+                   weak_window: float | None) -> tuple[str, str, float | None]:
+    """Which rows to fit, why, and the weak-form window (SPEC section 1, --method)."""
+    from hamid import design
+
     if method == "energy":
-        return "asked for with --method energy"
-    return "the energy rows are the only kind of row this version fits"
+        return "energy", "asked for with --method energy", None
+    obstacle = None
+    window = weak_window
+    if records.t is None:
+        obstacle = "the data have no time column"
+    elif not model.is_natural:
+        obstacle = "the energy is not natural (E = T + V), so Lagrange's equations do not apply"
+    elif window is None:
+        period = design.dominant_period(records, len(model.coordinates))
+        if period is None:
+            obstacle = "no oscillation was found in the coordinates to size the windows"
+        else:
+            window = period / 2
+    if obstacle is None:
+        dt = float(np.median(np.diff(records.t))) if len(records.t) > 1 else np.inf
+        per_window = window / dt
+        if per_window < design.MIN_SAMPLES_PER_WINDOW:
+            obstacle = (f"a weak-form window of {window:.3g} s holds only {per_window:.0f} "
+                        f"samples (at least {design.MIN_SAMPLES_PER_WINDOW} are needed)")
+    if obstacle is not None:
+        if method != "auto":
+            raise UsageError(f"--method {method} is not possible: {obstacle}")
+        return "energy", f"{obstacle}; fitted the energy rows", None
+    how = "given" if weak_window is not None else "half the dominant period"
+    if method == "auto":
+        return "joint", (f"time column sampled finely enough for weak-form windows of "
+                         f"{window:.3g} s ({how})"), window
+    return method, f"asked for with --method {method}; windows of {window:.3g} s ({how})", \
+        window
 
 
 def _check_fixed(fix: Mapping[str, float], parameters: tuple[str, ...]) -> dict[str, float]:
@@ -274,35 +337,161 @@ def _finite_or_none(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _bootstrap_covariance(blocks: list[Block], names: list[str], J: int, group: Any,
-                          n_boot: int, seed: int | None) -> tuple[Any, Any, str]:
-    """Covariance of theta and the levels from refits on block resamples."""
+@dataclass(frozen=True)
+class _Estimate:
+    """One least-squares solution of stacked blocks, with what the covariances need."""
+
+    theta: Any
+    h: Any
+    residual: Any      # unweighted, all blocks stacked
+    weight: Any
+    group: Any
+    centred: Any
+    solution: Any
+    df_resid: int
+
+
+def _least_squares(blocks: list[Block], names: list[str], J: int) -> _Estimate:
+    from hamid import solve
+
+    has_levels = any(b.has_level for b in blocks)
+    centred = solve.centre(blocks, J)
+    solution = solve.solve(centred, names, n_levels=J if has_levels else 0)
+    theta = solution.theta
+    h = centred.level_means_A @ theta - centred.level_means_b
+    residual = np.concatenate([b.A @ theta - b.b - (h[b.group] if b.has_level else 0.0)
+                               for b in blocks])
+    return _Estimate(theta, h, residual, np.concatenate([b.weight for b in blocks]),
+                     np.concatenate([b.group for b in blocks]), centred, solution,
+                     len(residual) - len(names) - (J if has_levels else 0))
+
+
+def _balance_blocks(blocks: list[Block], names: list[str], J: int,
+                    units: Any) -> tuple[list[Block], dict[str, float] | None]:
+    """Weight the blocks of a joint fit against each other.
+
+    The starting point is feasible GLS: each block weighted by the inverse of its residual
+    variance from a fit of that block alone. Rows of overlapping windows are correlated,
+    and differently in the two blocks, so that guess can be far from best; the final
+    ratio is the one, on a grid around it, that minimises the determinant of the
+    cluster-robust covariance of the parameters (invariant to their units).
+    """
     import dataclasses
 
-    import numpy as np
+    from hamid import uncertainty
 
-    from hamid import solve, uncertainty
+    if len(blocks) == 1:
+        return blocks, None
+    variance = {}
+    for block in blocks:
+        try:
+            residual = _least_squares([block], names, J).residual
+            variance[block.kind] = max(float(np.mean(residual**2)), _TINY)
+        except FitError:
+            variance[block.kind] = max(float(np.mean(block.b**2)), _TINY)
+    first, rest = blocks[0], blocks[1:]
 
-    (block,) = blocks
+    def weighted(ratio: float) -> list[Block]:
+        return [dataclasses.replace(first, weight=first.weight * ratio / variance[first.kind]),
+                *(dataclasses.replace(b, weight=b.weight / variance[b.kind]) for b in rest)]
+
+    def spread(ratio: float) -> float:
+        candidate = weighted(ratio)
+        fit = _least_squares(candidate, names, J)
+        order = np.argsort(fit.group, kind="stable")
+        c = uncertainty.covariance("cluster", fit.solution.G[order],
+                                   fit.centred.level_weight[order], fit.residual[order],
+                                   fit.weight[order], fit.group[order],
+                                   df_resid=max(fit.df_resid, 1), clusters=units[order])
+        sign, logdet = np.linalg.slogdet(c.theta)
+        return logdet if sign > 0 else np.inf
+
+    grid = 10.0 ** np.arange(-4, 4.5, 0.5)
+    best = min(grid, key=spread)
+    return weighted(best), {k: v / (best if k == first.kind else 1.0)
+                            for k, v in variance.items()}
+
+
+_TINY = 1e-300
+# Clusters for the robust covariance of weak-form rows span this many windows of time.
+_CLUSTER_WINDOWS = 3
+_MIN_CLUSTERS = 10
+
+
+def _resampling_units(blocks: list[Block], kind: str, window: float | None) -> tuple[Any, Any]:
+    """Independent units for robust covariances and the bootstrap.
+
+    Energy rows alone: every row is a unit (the HAC kernel and moving blocks handle their
+    correlation). With weak-form rows: contiguous time spans of each trajectory, a few
+    windows long, holding both kinds of rows, so that overlapping windows and the samples
+    they share fall in one cluster.
+    """
+    group = np.concatenate([b.group for b in blocks])
+    if kind == "energy":
+        units = np.arange(len(group))
+        return units, group
+    time = np.concatenate([b.time for b in blocks])
+    assert window is not None
+    starts = {j: time[group == j].min() for j in np.unique(group)}
+    duration = sum(time[group == j].max() - t0 for j, t0 in starts.items())
+    span = max(min(_CLUSTER_WINDOWS * window, duration / _MIN_CLUSTERS), window)
+    offset = np.array([starts[j] for j in group])
+    slot = np.floor((time - offset) / span).astype(np.int64)
+    keys = group * (int(slot.max()) + 1) + slot
+    _, units = np.unique(keys, return_inverse=True)
+    unit_group = np.zeros(units.max() + 1, dtype=np.int64)
+    unit_group[units] = group
+    return units, unit_group
+
+
+def _bootstrap_covariance(blocks: list[Block], names: list[str], J: int, units: Any,
+                          unit_group: Any, n_boot: int,
+                          seed: int | None) -> tuple[Any, Any, str]:
+    """Covariance of theta and the levels from refits on resampled blocks of units."""
+    import dataclasses
+
+    from hamid import uncertainty
+
     p = len(names)
+    offsets = np.cumsum([0] + [b.n_rows for b in blocks])
+    rows_of_unit = [np.flatnonzero(units == u) for u in range(len(unit_group))]
 
     def refit(index: Any) -> Any:
-        sample = dataclasses.replace(block, A=block.A[index], b=block.b[index],
-                                     group=block.group[index], time=block.time[index],
-                                     weight=block.weight[index])
-        centred = solve.centre([sample], J)
-        theta = solve.solve(centred, names, n_levels=J).theta
-        return np.concatenate([theta, centred.level_means_A @ theta - centred.level_means_b])
+        rows = np.concatenate([rows_of_unit[u] for u in index])
+        sample = []
+        for b, lo, hi in zip(blocks, offsets[:-1], offsets[1:], strict=True):
+            mine = rows[(rows >= lo) & (rows < hi)] - lo
+            sample.append(dataclasses.replace(b, A=b.A[mine], b=b.b[mine], group=b.group[mine],
+                                              time=b.time[mine], weight=b.weight[mine]))
+        estimate = _least_squares(sample, names, J)
+        return np.concatenate([estimate.theta, estimate.h])
 
-    cov, _, description = uncertainty.bootstrap(refit, group, n_boot=n_boot, seed=seed)
+    cov, _, description = uncertainty.bootstrap(refit, unit_group, n_boot=n_boot, seed=seed)
     return cov[:p, :p], np.diag(cov)[p:], description
+
+
+def _sample_weights(kind: str, blocks: list[Block], energy_rows: Block, spans: Any) -> Any:
+    """The weight each sample's energy equation carried in the fit.
+
+    In `joint` the energy rows are window means, so a sample's weight is its share of the
+    windows that hold it; in `weak` the energy equations were not fitted (weight 0).
+    """
+    if kind == "energy":
+        return blocks[0].weight
+    if kind == "weak":
+        return np.zeros(energy_rows.n_rows)
+    mass = spans.Q_psi @ np.ones(energy_rows.n_rows)
+    return spans.Q_psi.T @ (blocks[0].weight / mass)
+
+
+def _block_stats(residual: Any) -> dict[str, Any]:
+    return {"n_rows": len(residual), "rms": float(np.sqrt(np.mean(residual**2))),
+            "max_abs": float(np.max(np.abs(residual)))}
 
 
 def _residual_stats(residual: Any, block: Block, h: Any, bounds: list[tuple[int, int]],
                     labels: tuple[str | int, ...]) -> dict[str, Any]:
     """Residual summary of the energy rows (SPEC section 4, residuals)."""
-    import numpy as np
-
     rms = float(np.sqrt(np.mean(residual**2)))
     mean_level = float(np.mean(np.abs(h)))
     centred_b = np.concatenate([block.b[a:b] - block.b[a:b].mean() for a, b in bounds])
@@ -334,7 +523,7 @@ _DRIFT_CHANGE, _DRIFT_SHARE = 0.01, 0.2
 
 
 def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: Any,
-              df: int, level: float, cov: str) -> list[str]:
+              df: int, level: float, cov: str, kind: str) -> list[str]:
     """Plain-words warnings about the fit."""
     from scipy import stats as distributions
 
@@ -359,7 +548,10 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
             notes.append(f"{p.name} is not significantly different from zero "
                          f"(its {level:.0%} interval contains 0)")
     autocorrelation = stats["lag1_autocorrelation"]
-    if cov in ("classical", "hc") and autocorrelation is not None and autocorrelation > 0.5:
+    if cov in ("classical", "hc") and kind != "energy":
+        notes.append(f"--cov {cov} treats overlapping weak-form windows as independent and "
+                     "understates the errors; use --cov hac (clustered in time)")
+    elif cov in ("classical", "hc") and autocorrelation is not None and autocorrelation > 0.5:
         notes.append(f"residuals are strongly autocorrelated (lag-1 {autocorrelation:.2f}); "
                      f"--cov {cov} understates the errors, use --cov hac")
     return notes
@@ -369,7 +561,6 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
                columns: Mapping[str, str] | None, time: str | None,
                trajectory: str | None, format: str | None) -> _Loaded:
     """Read the sources, settle the model and arrange the rows by trajectory."""
-    import numpy as np
     import pandas as pd
 
     from hamid import io
@@ -486,7 +677,6 @@ def _optional_column(names: list[str], asked: str | None, default: str | None, o
 
 def _trajectory_keys(values: Any, column: str, source: str) -> tuple[Any, list[Any]]:
     """Index 0..J-1 of each row's trajectory, in order of first appearance, and the labels."""
-    import numpy as np
     import pandas as pd
 
     if values.isna().any():
@@ -501,8 +691,6 @@ def _trajectory_keys(values: Any, column: str, source: str) -> tuple[Any, list[A
 def _check_order(keys: Any, t: Any, source: str, traj_col: str | None,
                  time_col: str | None) -> None:
     """Each trajectory's rows must be contiguous and, with a time column, increasing."""
-    import numpy as np
-
     changes = np.flatnonzero(np.diff(keys)) + 1
     if len(np.unique(keys[np.concatenate([[0], changes])])) != len(changes) + 1:
         seen, row = set(), 0

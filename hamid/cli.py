@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import Any
+from typing import Any, NoReturn
 
 import click
 
@@ -22,6 +22,13 @@ _debug = False
 
 class _HamidGroup(click.Group):
     """Turns library errors into click's exit codes, and bugs into one line."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        # `hamid --help` / `--version` write while parsing, before invoke; click would exit 1.
+        try:
+            return super().parse_args(ctx, args)
+        except BrokenPipeError:
+            _quiet_broken_pipe()
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
@@ -45,7 +52,7 @@ class _HamidGroup(click.Group):
                 "Rerun with --debug for the traceback") from exc
 
 
-def _quiet_broken_pipe() -> None:
+def _quiet_broken_pipe() -> NoReturn:
     """The reader of our output went away (e.g. `| head`): stop quietly, as cat does."""
     devnull = os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, sys.stdout.fileno())
@@ -64,7 +71,7 @@ def cli(debug: bool) -> None:
 def _stderr_console() -> Any:
     from rich.console import Console
 
-    return Console(stderr=True, highlight=False)
+    return Console(stderr=True, highlight=False, soft_wrap=True)
 
 
 @cli.command()
@@ -132,7 +139,11 @@ def _parse_floats(text: str | None, option: str) -> dict[str, float] | None:
 @click.option("--format-in", type=click.Choice(["csv", "tsv", "parquet"]),
               help="Input format, when the file name does not tell it.")
 @click.option("--method", default="auto", show_default=True,
-              type=click.Choice(["auto", "energy"]), help="Which rows to fit.")
+              type=click.Choice(["auto", "joint", "weak", "energy"]),
+              help="Energy rows, weak-form equations of motion, or both (auto: joint when "
+                   "the data allow it).")
+@click.option("--weak-window", type=float, metavar="SECONDS",
+              help="Length of the weak-form windows (default: half the dominant period).")
 @click.option("--fix", metavar="NAME=VALUE,...", help="Hold parameters at known values.")
 @click.option("--cov", default="hac", show_default=True,
               type=click.Choice(["hac", "classical", "hc", "bootstrap"]),
@@ -148,8 +159,8 @@ def _parse_floats(text: str | None, option: str) -> dict[str, float] | None:
 @click.option("--residuals", metavar="FILE", help="Write per-sample residuals (CSV/Parquet).")
 def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         time_column: str | None, trajectory: str | None, format_in: str | None, method: str,
-        fix: str | None, cov: str, level: float, n_boot: int, seed: int | None,
-        fmt: str | None, output: str, residuals: str | None) -> None:
+        weak_window: float | None, fix: str | None, cov: str, level: float, n_boot: int,
+        seed: int | None, fmt: str | None, output: str, residuals: str | None) -> None:
     """Fit the energy of the recorded motion in DATA (CSV, TSV, Parquet; '-' for stdin)."""
     from hamid import io
     from hamid.api import fit as run_fit
@@ -161,8 +172,8 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
                      columns=None if columns is None else io.parse_mapping(columns,
                                                                            option="--columns"),
                      time=time_column, trajectory=trajectory, fix=_parse_floats(fix, "--fix"),
-                     method=method, cov=cov, level=level, bootstrap=n_boot, seed=seed,
-                     format=format_in)
+                     method=method, weak_window=weak_window, cov=cov, level=level,
+                     bootstrap=n_boot, seed=seed, format=format_in)
     if residuals is not None:
         import pandas as pd
 

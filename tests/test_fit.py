@@ -124,7 +124,7 @@ def test_term_that_never_varies_is_named(clean_records):
     model = hamid.api.model_from_expression(
         "m", "v**2/2 + vy**2/2 + k*x**2/2 + k3*x**4/4 + c*y**2", ["x", "y"], ["v", "vy"])
     with pytest.raises(FitError, match=r"cannot determine c: its term does not vary"):
-        hamid.fit(frame, model)
+        hamid.fit(frame, model, method="energy")
 
 
 def test_collinear_terms_are_named(clean_records):
@@ -156,7 +156,7 @@ def test_each_file_is_its_own_trajectory(tmp_path, clean_records):
 def test_model_assumed_when_none_is_known(clean_records):
     frame = clean_records["duffing"].rename(columns={"v": "x_dot"})
     frame.attrs = {}
-    result = hamid.fit(frame)
+    result = hamid.fit(frame, method="energy")
     assert result.model["name"] == "poly:1:3"
     assert result.model["parameters"] == ["c_2", "c_3"]
     x, v, groups = frame["x"].to_numpy(), frame["x_dot"].to_numpy(), frame["trajectory"]
@@ -213,7 +213,7 @@ def test_insignificant_parameter_is_flagged(clean_records):
 
 def test_conditioning_reports_scaled_condition_and_weakest_direction(clean_records):
     frame = clean_records["duffing"]
-    result = hamid.fit(frame)
+    result = hamid.fit(frame, method="energy")
     s = np.array(result.conditioning["singular_values"])
     assert result.conditioning["condition_number"] == pytest.approx(s[0] / s[-1])
     # Independent: the same scaled matrix built by hand.

@@ -1,0 +1,189 @@
+"""Weak-form rows and the joint fit: exact integrals, accuracy under noise, method choice."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from conftest import DUFFING, PENG, SYSTEMS, with_noise
+from scipy import integrate
+
+import hamid
+from hamid import design
+from hamid.errors import DataError, UsageError
+
+
+@pytest.mark.parametrize("method", ["weak", "joint", "auto"])
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_clean_data_recover_true_parameters(clean_records, name, method):
+    result = hamid.fit(clean_records[name], method=method)
+    truth = SYSTEMS[name]["parameters"]
+    assert result.estimates == pytest.approx(truth, rel=1e-7)
+    assert result.method["kind"] == ("joint" if method == "auto" else method)
+
+
+def test_weak_row_equals_the_integral_of_the_exact_solution():
+    k, A = 2.0, 0.7
+    w = np.sqrt(k)
+    t = np.linspace(0.0, 12.0, 6001)
+    records = design.Records(np.column_stack([A * np.cos(w * t), -A * w * np.sin(w * t)]), t,
+                             np.zeros(len(t), dtype=np.int64), (1,))
+    model = hamid.api.model_from_expression("h", "v**2/2 + k*x**2/2", ["x"], ["v"])
+    length = 2.0
+    spans = design.windows(records, length)
+    block = design.weak_block(model, records, spans)
+    p = design.BUMP_ORDER
+    for row in (0, 3, spans.n_windows - 1):
+        lo, hi = spans.centre[row] - length / 2, spans.centre[row] + length / 2
+        half = (hi - lo) / 2
+
+        def psi(s, half=half):
+            return (1 - s**2) ** p
+
+        def dpsi(s, half=half):
+            return -2 * p * s * (1 - s**2) ** (p - 1) / half
+
+        centre = (lo + hi) / 2
+        # L = v^2/2 - k x^2/2: the k column is the integral of psi * dL_k/dx = -x psi,
+        # and b = -integral of psi' * dL0/dv = -psi' v.
+        def x(s, centre=centre, half=half):
+            return A * np.cos(w * (centre + half * s))
+
+        def v(s, centre=centre, half=half):
+            return -A * w * np.sin(w * (centre + half * s))
+
+        column = integrate.quad(lambda s, h=half: psi(s) * -x(s) * h, -1, 1, epsabs=1e-13)[0]
+        target = -integrate.quad(lambda s, h=half: dpsi(s) * v(s) * h, -1, 1, epsabs=1e-13)[0]
+        assert block.A[row, 0] == pytest.approx(column, rel=1e-9, abs=1e-12)
+        assert block.b[row] == pytest.approx(target, rel=1e-9, abs=1e-12)
+    assert block.A[:, 0] * k - block.b == pytest.approx(0, abs=1e-9)
+
+
+def test_window_is_half_the_dominant_period():
+    system = {**DUFFING, "parameters": {"k": 4.0, "k3": 0.0}}  # harmonic, period pi
+    result = hamid.fit(hamid.simulate(system), method="weak")
+    assert result.method["weak_window"] == pytest.approx(np.pi / 2, rel=0.02)
+
+
+def test_weak_window_can_be_set(clean_records):
+    result = hamid.fit(clean_records["duffing"], method="joint", weak_window=2.0)
+    assert result.method["weak_window"] == 2.0
+    assert result.estimates == pytest.approx(DUFFING["parameters"], rel=1e-7)
+
+
+def test_uneven_sampling(clean_records):
+    """A fifth of the samples dropped at random: the joint fit stays exact; the weak rows
+    alone carry the O(h^4) error of Simpson's rule on the gaps (README, limitations)."""
+    frame = clean_records["peng-quadratic"]
+    keep = np.random.default_rng(0).random(len(frame)) < 0.8
+    keep[frame.groupby("trajectory").head(1).index] = True
+    assert hamid.fit(frame[keep]).estimates == pytest.approx(PENG["parameters"], rel=1e-8)
+    weak = hamid.fit(frame[keep], method="weak").estimates
+    assert weak == pytest.approx(PENG["parameters"], rel=2e-2)
+
+
+def _finite_difference_fit(frame: pd.DataFrame, model: hamid.api.Model) -> np.ndarray:
+    """The plain peer: least squares on Lagrange's equations with central-difference
+    accelerations from the recorded velocities."""
+    lag = model.lagrangian
+    N = len(model.coordinates)
+    A_rows, b_rows = [], []
+    for _, part in frame.groupby("trajectory"):
+        X = part[list(model.variables)].to_numpy()
+        dt = np.diff(part["t"].to_numpy())[0]
+        acc = (X[2:, N:] - X[:-2, N:]) / (2 * dt)
+        Xc = X[1:-1]
+        columns = []
+        for f in (lag.L0, *lag.L):
+            equations = []
+            for i in range(N):
+                dv = f.diff(model.velocities[i])
+                d_dt = sum(dv.diff(model.velocities[j])(Xc) * acc[:, j] for j in range(N))
+                d_dt = d_dt + sum(dv.diff(model.coordinates[k])(Xc) * Xc[:, N + k]
+                                  for k in range(N))
+                equations.append(d_dt - f.diff(model.coordinates[i])(Xc))
+            columns.append(np.concatenate(equations))
+        columns = np.array(columns).T
+        A_rows.append(columns[:, 1:])
+        b_rows.append(-columns[:, 0])
+    return np.linalg.lstsq(np.vstack(A_rows), np.concatenate(b_rows), rcond=None)[0]
+
+
+@pytest.mark.parametrize("noise", [0.01, 0.03])
+def test_joint_beats_energy_rows_and_finite_differences(clean_records, noise):
+    clean = clean_records["peng-quadratic"]
+    truth = np.array(list(PENG["parameters"].values()))
+    model = hamid.load_model("peng-quadratic")
+    errors = {"joint": [], "energy": [], "fd": []}
+    for seed in range(5):
+        noisy = with_noise(clean, noise, seed)
+        for method in ("joint", "energy"):
+            estimate = np.array(list(hamid.fit(noisy, method=method).estimates.values()))
+            errors[method].append(np.max(np.abs(estimate / truth - 1)))
+        errors["fd"].append(np.max(np.abs(_finite_difference_fit(noisy, model) / truth - 1)))
+    median = {k: np.median(v) for k, v in errors.items()}
+    assert median["joint"] < median["energy"] / 2, median
+    assert median["joint"] < median["fd"], median
+
+
+def test_auto_falls_back_without_time_column(clean_records):
+    frame = clean_records["duffing"].drop(columns="t")
+    result = hamid.fit(frame)
+    assert result.method["kind"] == "energy"
+    assert "no time column" in result.method["kind_reason"]
+    assert result.method["weak_window"] is None
+
+
+def test_auto_falls_back_for_coarse_sampling(clean_records):
+    frame = clean_records["duffing"].iloc[::12]
+    result = hamid.fit(frame)
+    assert result.method["kind"] == "energy"
+    assert "samples (at least 20 are needed)" in result.method["kind_reason"]
+
+
+def test_auto_falls_back_for_an_energy_that_is_not_natural(clean_records):
+    frame = clean_records["duffing"]
+    model = hamid.api.model_from_expression(
+        "gyro", "v**2/2 + k*x**2/2 + k3*x**4/4 + g*x*v", ["x"], ["v"])
+    result = hamid.fit(frame, model)
+    assert result.method["kind"] == "energy"
+    assert "not natural" in result.method["kind_reason"]
+    with pytest.raises(UsageError, match="--method weak is not possible: the energy is not"):
+        hamid.fit(frame, model, method="weak")
+
+
+def test_auto_chooses_joint_and_says_why(clean_records):
+    result = hamid.fit(clean_records["duffing"])
+    assert result.method["kind"] == "joint"
+    assert "weak-form windows" in result.method["kind_reason"]
+    assert set(result.residuals["blocks"]) == {"energy", "weak"}
+    assert set(result.conditioning["blocks"]) == {"energy", "weak"}
+    assert len(result.energy_levels) == 2
+    assert all(h.stderr is not None for h in result.energy_levels)
+
+
+def test_record_too_short_for_one_window(clean_records):
+    frame = clean_records["duffing"]
+    with pytest.raises(DataError, match="too short for one weak-form window of 100 s"):
+        hamid.fit(frame, method="weak", weak_window=100.0)
+
+
+@pytest.mark.parametrize("window", [0.0, -1.0])
+def test_bad_weak_window(clean_records, window):
+    with pytest.raises(UsageError, match="--weak-window must be a positive number"):
+        hamid.fit(clean_records["duffing"], weak_window=window)
+
+
+@pytest.mark.slow
+def test_joint_bounds_cover_the_truth():
+    """Over 100 noise realizations, joint 95% bounds cover each true value 88-99%."""
+    clean = hamid.simulate({**DUFFING, "simulate": {"t_end": 60.0, "dt": 0.02}})
+    truth = DUFFING["parameters"]
+    hits = {name: 0 for name in truth}
+    n = 100
+    for seed in range(n):
+        result = hamid.fit(with_noise(clean, 0.003, seed), method="joint")
+        for p in result.parameters:
+            hits[p.name] += p.ci_low <= truth[p.name] <= p.ci_high
+    for name, count in hits.items():
+        assert 0.88 <= count / n <= 0.99, (name, count / n)
