@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -83,7 +83,8 @@ METHODS = ("auto", "joint", "weak", "energy")
 def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         columns: Mapping[str, str] | None = None, time: str | None = None,
         trajectory: str | None = None, fix: Mapping[str, float] | None = None,
-        method: str = "auto", weak_window: float | None = None, cov: str = "hac",
+        method: str = "auto", weak_window: float | None = None,
+        damping: str | Sequence[str] = "none", cov: str = "hac",
         level: float = 0.95,
         bootstrap: int = 200, seed: int | None = None,
         format: str | None = None) -> FitResult:
@@ -107,6 +108,9 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         takes ``joint`` when the data allow it and says why.
     weak_window : float, optional
         Length of the weak-form windows in seconds; by default half the dominant period.
+    damping : str or list of str
+        Dissipative forces to fit: "none", or any of "viscous", "coulomb", "quadratic"
+        (a comma list or a list), one coefficient per coordinate and kind.
     cov : {"hac", "classical", "hc", "bootstrap"}
         How standard errors are computed.
     level : float
@@ -142,8 +146,12 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     loaded = _load_data(data, model, columns=columns, time=time, trajectory=trajectory,
                         format=format)
     m, records = loaded.model, loaded.records
-    fixed = _check_fixed(fix or {}, m.parameters)
-    names = list(m.parameters)
+    dissipation = design.Damping(_parse_damping(damping), m.coordinates)
+    if dissipation.kinds and records.t is None:
+        raise UsageError("--damping needs a time column (the dissipated work is an integral "
+                         "over time)")
+    names = [*m.parameters, *dissipation.names]
+    fixed = _check_fixed(fix or {}, tuple(names))
     free = [k for k, name in enumerate(names) if name not in fixed]
     if not free:
         raise UsageError("every parameter is fixed; nothing is left to fit")
@@ -151,16 +159,17 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     kind, kind_reason, window = _choose_method(method, m, records, weak_window)
 
     fixed_values = np.array([fixed.get(name, 0.0) for name in names])
-    energy_rows = _hold_fixed(design.energy_block(m, records), free, fixed_values)
+    energy_rows = _hold_fixed(design.energy_block(m, records, damping=dissipation), free,
+                              fixed_values)
     blocks, spans = [], None
     if kind == "energy":
         blocks.append(energy_rows)
     if kind in ("weak", "joint"):
         spans = design.windows(records, window)
         if kind == "joint":
-            blocks.append(_hold_fixed(design.energy_block(m, records, spans), free,
-                                      fixed_values))
-        weak = design.weak_block(m, records, spans)
+            blocks.append(_hold_fixed(design.energy_block(m, records, spans, dissipation),
+                                      free, fixed_values))
+        weak = design.weak_block(m, records, spans, dissipation)
         if weak.n_rows == 0:
             raise DataError(f"the records are too short for one weak-form window of "
                             f"{window:.4g} s; use --method energy or a shorter --weak-window")
@@ -195,14 +204,15 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     estimates = dict(fixed)
     parameters = []
     for k, name in enumerate(names):
+        role = "energy" if k < len(m.parameters) else "damping"
         if name in fixed:
-            parameters.append(ParameterEstimate(name, "energy", fixed[name], None, None, None,
+            parameters.append(ParameterEstimate(name, role, fixed[name], None, None, None,
                                                 truth.get(name), True))
             continue
         i = free.index(k)
         estimates[name] = float(theta[i])
         parameters.append(ParameterEstimate(
-            name, "energy", float(theta[i]), _finite_or_none(stderr[i]),
+            name, role, float(theta[i]), _finite_or_none(stderr[i]),
             _finite_or_none(low[i]), _finite_or_none(high[i]), truth.get(name), False))
 
     # Energy levels and energy residuals are reported for every method; with weak rows
@@ -225,9 +235,11 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                                             np.cumsum([b.n_rows for b in blocks])[:-1]),
                            strict=True)}
     cond = solve.conditioning(blocks, free_names, records.labels)
-    warnings = [*loaded.notes, *_warnings(parameters, stats, cond, df, level, cov, kind)]
+    warnings = [*loaded.notes,
+                *_warnings(parameters, stats, cond, df, level, cov, kind, dissipation.kinds)]
     method_info = {
-        "kind": kind, "kind_reason": kind_reason, "weak_window": window, "damping": [],
+        "kind": kind, "kind_reason": kind_reason, "weak_window": window,
+        "damping": list(dissipation.kinds),
         "weighting": "none", "noise": None, "bias_correction": False, "covariance": cov,
         "covariance_description": cov_text, "level": level, "fixed": dict(fixed),
         "block_variance": block_variance,
@@ -241,7 +253,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     }
     labels = np.asarray(records.labels, dtype=object)
     samples = {"trajectory": labels[energy_rows.group], "t": energy_rows.time,
-               "energy": m.total_energy(records.X, [estimates[n] for n in names]),
+               "energy": m.total_energy(records.X, [estimates[n] for n in m.parameters]),
                "residual": energy_residual,
                "weight": _sample_weights(kind, blocks, energy_rows, spans)}
     return FitResult(
@@ -254,6 +266,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         residuals=_finite(stats),
         conditioning=_finite(conditioning_info),
         warnings=tuple(warnings),
+        dissipation=_finite(_dissipation_summary(m, records, dissipation, estimates,
+                                                 energy_rows, h)),
         samples=samples,
     )
 
@@ -522,8 +536,64 @@ def _residual_stats(residual: Any, block: Block, h: Any, bounds: list[tuple[int,
 _DRIFT_CHANGE, _DRIFT_SHARE = 0.01, 0.2
 
 
+def _parse_damping(damping: str | Sequence[str]) -> tuple[str, ...]:
+    """Damping kinds from "none", "viscous,coulomb" or a list; unknown kinds are errors."""
+    from hamid.model import DAMPING_KINDS
+
+    items = damping.split(",") if isinstance(damping, str) else list(damping)
+    kinds = [item.strip() for item in items if item.strip()]
+    if kinds == ["none"]:
+        return ()
+    for kind in kinds:
+        if kind not in DAMPING_KINDS:
+            raise UsageError(f"--damping: unknown kind {kind!r} (choose none or any of "
+                             f"{', '.join(DAMPING_KINDS)}, comma separated)")
+    if len(set(kinds)) != len(kinds):
+        raise UsageError(f"--damping: a kind is given twice in {','.join(kinds)!r}")
+    return tuple(kinds)
+
+
+def _dissipation_summary(model: Model, records: Records, damping: Any,
+                         estimates: dict[str, float], energy_rows: Block,
+                         h: Any) -> dict[str, Any] | None:
+    """Energy lost per trajectory and, for one viscous coordinate, the damping ratio.
+
+    The energy lost is the fitted dissipated work over the record divided by the energy
+    above the lowest potential energy seen on the trajectory.
+    """
+    from hamid import design
+
+    if not damping.kinds:
+        return None
+    n_energy = len(model.parameters)
+    coefficients = np.array([estimates[name] for name in damping.names])
+    work = energy_rows.A[:, n_energy:] @ coefficients if energy_rows.A.shape[1] > n_energy \
+        else np.zeros(energy_rows.n_rows)
+    theta = [estimates[name] for name in model.parameters]
+    at_rest = records.X.copy()
+    at_rest[:, len(model.coordinates):] = 0.0
+    potential = model.total_energy(at_rest, theta)
+    trajectories = []
+    for j, (start, stop) in enumerate(records.bounds()):
+        available = h[j] - potential[start:stop].min()
+        trajectories.append({"trajectory": records.labels[j],
+                             "energy_lost_fraction": float(work[stop - 1] / available)
+                             if available > 0 else None})
+    period = design.dominant_period(records, len(model.coordinates))
+    ratio = None
+    if len(model.coordinates) == 1 and "viscous" in damping.kinds and period and \
+            model.is_natural:
+        moving = at_rest.copy()
+        moving[:, 1] = 1.0
+        mass = float(np.mean(model.total_energy(moving, theta) - potential)) * 2
+        ratio = estimates[f"c_{model.coordinates[0]}"] * period / (4 * np.pi * mass)
+    return {"trajectories": trajectories, "equivalent_damping_ratio": ratio,
+            "period": period}
+
+
 def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: Any,
-              df: int, level: float, cov: str, kind: str) -> list[str]:
+              df: int, level: float, cov: str, kind: str,
+              damping: tuple[str, ...]) -> list[str]:
     """Plain-words warnings about the fit."""
     from scipy import stats as distributions
 
@@ -533,7 +603,10 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
         if change is not None and abs(change) > _DRIFT_CHANGE and d["trend_share"] > _DRIFT_SHARE:
             notes.append(f"trajectory {d['trajectory']}: the energy drifts by {change:+.1%} "
                          "over the record; the system may be damped or forced "
-                         "(try --damping viscous)")
+                         "(try --damping viscous)" if not damping else
+                         f"trajectory {d['trajectory']}: the energy balance still drifts by "
+                         f"{change:+.1%} over the record with {', '.join(damping)} damping; "
+                         "try another kind of --damping, or the system is forced")
     if cond.status != "ok":
         combination = " ".join(f"{w:+.2f}*{n}" for n, w in
                                sorted(cond.weakest_direction.items(), key=lambda x: -abs(x[1]))

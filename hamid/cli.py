@@ -144,6 +144,9 @@ def _parse_floats(text: str | None, option: str) -> dict[str, float] | None:
                    "the data allow it).")
 @click.option("--weak-window", type=float, metavar="SECONDS",
               help="Length of the weak-form windows (default: half the dominant period).")
+@click.option("--damping", default="none", show_default=True,
+              metavar="none|viscous|coulomb|quadratic[,...]",
+              help="Dissipative forces to fit, one coefficient per coordinate and kind.")
 @click.option("--fix", metavar="NAME=VALUE,...", help="Hold parameters at known values.")
 @click.option("--cov", default="hac", show_default=True,
               type=click.Choice(["hac", "classical", "hc", "bootstrap"]),
@@ -159,7 +162,8 @@ def _parse_floats(text: str | None, option: str) -> dict[str, float] | None:
 @click.option("--residuals", metavar="FILE", help="Write per-sample residuals (CSV/Parquet).")
 def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         time_column: str | None, trajectory: str | None, format_in: str | None, method: str,
-        weak_window: float | None, fix: str | None, cov: str, level: float, n_boot: int,
+        weak_window: float | None, damping: str, fix: str | None, cov: str, level: float,
+        n_boot: int,
         seed: int | None, fmt: str | None, output: str, residuals: str | None) -> None:
     """Fit the energy of the recorded motion in DATA (CSV, TSV, Parquet; '-' for stdin)."""
     from hamid import io
@@ -172,7 +176,8 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
                      columns=None if columns is None else io.parse_mapping(columns,
                                                                            option="--columns"),
                      time=time_column, trajectory=trajectory, fix=_parse_floats(fix, "--fix"),
-                     method=method, weak_window=weak_window, cov=cov, level=level,
+                     method=method, weak_window=weak_window, damping=damping, cov=cov,
+                     level=level,
                      bootstrap=n_boot, seed=seed, format=format_in)
     if residuals is not None:
         import pandas as pd

@@ -14,9 +14,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from hamid.model import Model
+from hamid.model import DAMPING_KINDS, Model
 
-__all__ = ["Block", "Records", "dominant_period", "energy_block", "weak_block", "windows"]
+__all__ = [
+    "Damping","Block", "Records", "dominant_period", "energy_block", "weak_block", "windows"]
 
 
 @dataclass(frozen=True)
@@ -63,13 +64,59 @@ class Block:
         return len(self.b)
 
 
-def energy_block(model: Model, records: Records, windows: Windows | None = None) -> Block:
+@dataclass(frozen=True)
+class Damping:
+    """Dissipative forces F_i = -coefficient * law(v_i), one unknown per kind and coordinate."""
+
+    kinds: tuple[str, ...]
+    coordinates: tuple[str, ...]
+
+    @property
+    def terms(self) -> list[tuple[str, int, Any]]:
+        """(parameter name, coordinate index, law) of every damping unknown."""
+        return [(f"{DAMPING_KINDS[kind][0]}_{q}", i, DAMPING_KINDS[kind][1])
+                for kind in self.kinds for i, q in enumerate(self.coordinates)]
+
+    @property
+    def names(self) -> list[str]:
+        return [name for name, _, _ in self.terms]
+
+
+def _dissipated_work(records: Records, damping: Damping) -> npt.NDArray[np.float64]:
+    """Work done against each damping term since the start of its trajectory.
+
+    Column k is integral_0^t law_k(v_i) v_i dt (v_i^2, |v_i|, |v_i|^3), by the cumulative
+    Simpson rule on the recorded times: the trapezoid rule's O(dt^2) error would show in
+    the energy balance of a clean record.
+    """
+    from scipy.integrate import cumulative_simpson
+
+    n_coordinates = len(damping.coordinates)
+    V = records.X[:, n_coordinates:]
+    work = np.zeros((len(V), len(damping.terms)))
+    for start, stop in records.bounds():
+        t = records.t[start:stop] if records.t is not None else None
+        if t is None or stop - start < 2:
+            continue
+        for k, (_, i, law) in enumerate(damping.terms):
+            power = law(V[start:stop, i]) * V[start:stop, i]
+            work[start + 1:stop, k] = (cumulative_simpson(power, x=t) if stop - start > 2
+                                       else np.diff(t) * (power[0] + power[1]) / 2)
+    return work
+
+
+def energy_block(model: Model, records: Records, windows: Windows | None = None,
+                 damping: Damping | None = None) -> Block:
     """The energy rows: E0(x_i) + sum_k theta_k phi_k(x_i) - h_j = r_i, one per sample.
 
-    With `windows`, one row per window instead: the psi-weighted mean of the same
-    equation, which averages the noise of the measured terms before they enter the fit.
+    With `damping`, the energy balance: the work dissipated since the start of the
+    trajectory is added, one column per damping coefficient. With `windows`, one row per
+    window instead of per sample: the psi-weighted mean of the same equation, which
+    averages the noise of the measured terms before they enter the fit.
     """
     E0, Phi = model.energy_basis(records.X)
+    if damping is not None and damping.kinds:
+        Phi = np.hstack([Phi, _dissipated_work(records, damping)])
     if windows is not None:
         mass = windows.Q_psi @ np.ones(len(E0))
         return Block("energy", (windows.Q_psi @ Phi) / mass[:, None],
@@ -219,16 +266,24 @@ def windows(records: Records, length: float, order: int | None = None) -> Window
                    np.asarray(groups, dtype=np.int64), length)
 
 
-def weak_block(model: Model, records: Records, windows: Windows) -> Block:
+def weak_block(model: Model, records: Records, windows: Windows,
+               damping: Damping | None = None) -> Block:
     """Weak-form rows of Lagrange's equations: one per window and coordinate.
 
-    Row (w, i):  integral( psi_w' dL/dv_i + psi_w dL/dq_i ) dt = r,  split into the
-    parameter-free part (moved to b) and one column per parameter.
+    Row (w, i):  integral( psi_w' dL/dv_i + psi_w dL/dq_i + psi_w F_i ) dt = r,  split
+    into the parameter-free part (moved to b) and one column per parameter; the damping
+    force F_i = -c law(v_i) gives the column -integral(psi_w law(v_i)) in the rows of i.
     """
     dLdv, dLdq = model.lagrangian.gradients(records.X)   # (n, N, 1 + p)
     n, N, parts = dLdv.shape
     rows = windows.n_windows * N
     integrals = windows.Q_dpsi @ dLdv.reshape(n, -1) + windows.Q_psi @ dLdq.reshape(n, -1)
     integrals = integrals.reshape(rows, parts)   # rows (window, coordinate)
-    return Block("weak", integrals[:, 1:], -integrals[:, 0], np.repeat(windows.group, N),
+    A = integrals[:, 1:]
+    if damping is not None and damping.kinds:
+        forces = np.zeros((rows, len(damping.terms)))
+        for k, (_, i, law) in enumerate(damping.terms):
+            forces[i::N, k] = -(windows.Q_psi @ law(records.X[:, N + i]))
+        A = np.hstack([A, forces])
+    return Block("weak", A, -integrals[:, 0], np.repeat(windows.group, N),
                  np.repeat(windows.centre, N), np.ones(rows), has_level=False)

@@ -378,6 +378,23 @@ def _residuals_section(result: Mapping[str, Any]) -> _Section:
     return _Section("Residuals", tables=tuple(tables))
 
 
+def _dissipation_section(result: Mapping[str, Any]) -> _Section | None:
+    """Helper: energy lost per trajectory and the equivalent damping ratio, if damped."""
+    dissipation = result.get("dissipation")
+    if not dissipation:
+        return None
+    rows = tuple((str(d["trajectory"]), _percent(d["energy_lost_fraction"]))
+                 for d in dissipation["trajectories"])
+    tables = [_Table(("trajectory", "energy lost"), (("", rows),))]
+    ratio = dissipation.get("equivalent_damping_ratio")
+    if ratio is not None:
+        tables.append(_Table(("quantity", "value"), (("", (
+            ("equivalent damping ratio ζ", _num(ratio, ".4g")),
+            ("at the dominant period", f"{_num(dissipation['period'], '.4g')} s"),
+        )),), True))
+    return _Section("Dissipation", tables=tuple(tables))
+
+
 def _conditioning_section(result: Mapping[str, Any]) -> _Section:
     """Helper: condition number, its verdict and the worst-determined combination."""
     conditioning = result["conditioning"]
@@ -434,13 +451,14 @@ def _view(result: Mapping[str, Any]) -> _View:
     if method["kind_reason"]:
         title += f" ({method['kind_reason']})"
     warnings = tuple(f"warning: {w}" for w in result["warnings"])
-    sections = (
+    sections = tuple(section for section in (
         _parameters_section(result),
         _energy_levels_section(result),
+        _dissipation_section(result),
         _residuals_section(result),
         _conditioning_section(result),
         _method_section(result),
-    )
+    ) if section is not None)
     if warnings:
         sections += (_Section("", lines=warnings, style="yellow"),)
     return _View(title, (_data_line(result["data"]),), sections)

@@ -48,6 +48,7 @@ class FitResult:
     residuals: dict[str, Any]
     conditioning: dict[str, Any]
     warnings: tuple[str, ...] = field(default=())
+    dissipation: dict[str, Any] | None = None
     # Per-sample energy rows (trajectory, t, energy, residual, weight) for --residuals;
     # bulk data, so not part of the JSON nor of equality.
     samples: dict[str, Any] | None = field(default=None, compare=False, repr=False)
@@ -70,6 +71,7 @@ class FitResult:
             "residuals": self.residuals,
             "conditioning": self.conditioning,
             "warnings": list(self.warnings),
+            "dissipation": self.dissipation,
         })
 
     @classmethod
@@ -85,6 +87,7 @@ class FitResult:
             residuals=data["residuals"],
             conditioning=data["conditioning"],
             warnings=tuple(data["warnings"]),
+            dissipation=data.get("dissipation"),
         )
 
 
