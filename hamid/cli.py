@@ -34,7 +34,8 @@ class _HamidGroup(click.Group):
         try:
             return super().invoke(ctx)
         except UsageError as exc:
-            raise click.UsageError(str(exc), ctx) from exc
+            # Raised inside a subcommand, whose context is gone by now: no usage line.
+            raise click.UsageError(str(exc)) from exc
         except HamidError as exc:
             raise click.ClickException(str(exc)) from exc
         except (click.ClickException, click.exceptions.Exit, click.Abort):
@@ -91,6 +92,7 @@ def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_met
     from hamid import io
     from hamid.api import simulate as run_simulation
 
+    io.table_format(output, fmt)
     console = _stderr_console()
     with _progress(console, "simulating") as progress:
         frame = run_simulation(config, seed=seed, max_samples=max_samples, progress=progress)
@@ -171,6 +173,8 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
 
     if seed is not None and cov != "bootstrap":
         raise click.UsageError("--seed applies only to --cov bootstrap")
+    if residuals is not None:
+        io.table_format(residuals)
     fmt = fmt or _format_from_name(output, {".json": "json", ".csv": "csv"}, "table")
     result = run_fit(list(data), model,
                      columns=None if columns is None else io.parse_mapping(columns,

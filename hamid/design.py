@@ -250,7 +250,7 @@ def windows(records: Records, length: float, order: int | None = None) -> Window
             nodes = t[first:last + 1]
             weights = _quadrature_weights(nodes)
             s = (nodes - (lo + hi) / 2) / ((hi - lo) / 2)
-            base = 1 - s**2
+            base = np.clip(1 - s**2, 0.0, None)  # rounding can put s a hair past 1
             row_index.append(np.full(len(nodes), len(centres)))
             cols.append(np.arange(start + first, start + last + 1))
             values_psi.append(base**order * weights)

@@ -490,18 +490,26 @@ def write_table(
     >>> write_table(table, "run.parquet", metadata={"seed": 0})  # doctest: +SKIP
     """
     name = _output_name(dest)
-    if format is not None:
-        fmt = _check_format(format)
-    elif _is_stdio(dest):
-        fmt = "csv"
-    else:
-        fmt = _format_from_suffix(dest)
-        if fmt is None:
-            raise _unknown_extension(dest)
+    fmt = table_format(dest, format)
     metadata_json = _dump_metadata(metadata) if metadata is not None else None
     _check_unique([str(column) for column in table.columns], name)
     arrow = _to_arrow(table, name)
     _WRITERS[fmt](arrow, metadata_json, dest, name)
+
+
+def table_format(dest: str | os.PathLike[str], format: str | None = None) -> Format:
+    """The format a table written to `dest` will have; a UsageError if it cannot be told.
+
+    Callers check this before long work, so that a bad output name fails at once.
+    """
+    if format is not None:
+        return _check_format(format)
+    if _is_stdio(dest):
+        return "csv"
+    fmt = _format_from_suffix(dest)
+    if fmt is None:
+        raise _unknown_extension(dest)
+    return fmt
 
 
 def _to_arrow(table: pd.DataFrame, name: str) -> pa.Table:

@@ -89,7 +89,8 @@ def solve(centred: Centred, names: Sequence[str], *, n_levels: int = 0) -> Solut
     if n < p + n_levels:
         raise FitError(f"cannot determine {', '.join(names)}: {n} rows for {p + n_levels} "
                        f"unknowns ({p} parameters"
-                       + (f" and {n_levels} energy levels)" if n_levels else ")"))
+                       + (f" and {n_levels} energy level{'s' if n_levels > 1 else ''})"
+                          if n_levels else ")"))
     scale = np.linalg.norm(A, axis=0)
     varies = scale > _VARIES * centred.raw_norms
     still = [name for name, v in zip(names, varies, strict=True) if not v]
