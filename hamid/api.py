@@ -159,8 +159,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     kind, kind_reason, window = _choose_method(method, m, records, weak_window)
 
     fixed_values = np.array([fixed.get(name, 0.0) for name in names])
-    energy_rows = _hold_fixed(design.energy_block(m, records, damping=dissipation), free,
-                              fixed_values)
+    all_energy_rows = design.energy_block(m, records, damping=dissipation)
+    energy_rows = _hold_fixed(all_energy_rows, free, fixed_values)
     blocks, spans = [], None
     if kind == "energy":
         blocks.append(energy_rows)
@@ -175,8 +175,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                             f"{window:.4g} s; use --method energy or a shorter --weak-window")
         blocks.append(_hold_fixed(weak, free, fixed_values))
     J = records.n_trajectories
-    units, unit_group = _resampling_units(blocks, kind, window)
-    blocks, block_variance = _balance_blocks(blocks, free_names, J, units)
+    units, unit_group = _resampling_units(blocks, kind)
+    blocks, block_variance = _balance_blocks(blocks, free_names, J, units, unit_group)
     estimate = _least_squares(blocks, free_names, J)
     theta = estimate.theta
 
@@ -185,14 +185,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
             blocks, free_names, J, units, unit_group, bootstrap, seed)
         df = estimate.df_resid
     else:
-        cov_kind = "cluster" if kind != "energy" and cov == "hac" else cov
-        order = np.lexsort((np.concatenate([np.full(b.n_rows, i) for i, b in
-                                            enumerate(blocks)]), estimate.group))
-        c = uncertainty.covariance(
-            cov_kind, estimate.solution.G[order], estimate.centred.level_weight[order],
-            estimate.residual[order], estimate.weight[order], estimate.group[order],
-            df_resid=estimate.df_resid,
-            clusters=units[order] if cov_kind == "cluster" else None)
+        c = _covariance(cov, estimate, units, unit_group)
         theta_cov, cov_text, df = c.theta, c.description, c.df
         Abar = estimate.centred.level_means_A
         h_var = (c.level - 2 * np.einsum("jp,jp->j", Abar, c.theta_level)
@@ -267,7 +260,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         conditioning=_finite(conditioning_info),
         warnings=tuple(warnings),
         dissipation=_finite(_dissipation_summary(m, records, dissipation, estimates,
-                                                 energy_rows, h)),
+                                                 all_energy_rows, h)),
         samples=samples,
     )
 
@@ -380,19 +373,40 @@ def _least_squares(blocks: list[Block], names: list[str], J: int) -> _Estimate:
                      len(residual) - len(names) - (J if has_levels else 0))
 
 
-def _balance_blocks(blocks: list[Block], names: list[str], J: int,
-                    units: Any) -> tuple[list[Block], dict[str, float] | None]:
+def _covariance(cov: str, fit: _Estimate, units: Any, unit_group: Any) -> Any:
+    """Covariance of a fit: the analytic kinds of `hamid.uncertainty` on the right rows.
+
+    Rows are first summed into their units (windows, when weak-form rows are present: a
+    window's energy row and its weak rows share samples), so that ``hac`` runs Newey-West
+    over the time series of window scores of each trajectory. Its automatic bandwidth
+    grows with their autocorrelation: overlapping windows, and the long memory that the
+    cumulative work of an energy balance brings.
+    """
+    from hamid import uncertainty
+
+    n_units = len(unit_group)
+    if n_units == len(units) and np.array_equal(units, np.arange(n_units)):
+        return uncertainty.covariance(cov, fit.solution.G, fit.centred.level_weight,
+                                      fit.residual, fit.weight, fit.group,
+                                      df_resid=fit.df_resid)
+    order = np.argsort(fit.group, kind="stable")
+    return uncertainty.covariance(cov, fit.solution.G[order], fit.centred.level_weight[order],
+                                  fit.residual[order], fit.weight[order], fit.group[order],
+                                  df_resid=fit.df_resid,
+                                  units=units[order] if cov == "hac" else None)
+
+
+def _balance_blocks(blocks: list[Block], names: list[str], J: int, units: Any,
+                    unit_group: Any) -> tuple[list[Block], dict[str, float] | None]:
     """Weight the blocks of a joint fit against each other.
 
     The starting point is feasible GLS: each block weighted by the inverse of its residual
     variance from a fit of that block alone. Rows of overlapping windows are correlated,
     and differently in the two blocks, so that guess can be far from best; the final
-    ratio is the one, on a grid around it, that minimises the determinant of the
-    cluster-robust covariance of the parameters (invariant to their units).
+    ratio is the one, on a grid around it, that minimises the determinant of the robust
+    (``hac``) covariance of the parameters, which does not depend on their units.
     """
     import dataclasses
-
-    from hamid import uncertainty
 
     if len(blocks) == 1:
         return blocks, None
@@ -410,14 +424,8 @@ def _balance_blocks(blocks: list[Block], names: list[str], J: int,
                 *(dataclasses.replace(b, weight=b.weight / variance[b.kind]) for b in rest)]
 
     def spread(ratio: float) -> float:
-        candidate = weighted(ratio)
-        fit = _least_squares(candidate, names, J)
-        order = np.argsort(fit.group, kind="stable")
-        c = uncertainty.covariance("cluster", fit.solution.G[order],
-                                   fit.centred.level_weight[order], fit.residual[order],
-                                   fit.weight[order], fit.group[order],
-                                   df_resid=max(fit.df_resid, 1), clusters=units[order])
-        sign, logdet = np.linalg.slogdet(c.theta)
+        fit = _least_squares(weighted(ratio), names, J)
+        sign, logdet = np.linalg.slogdet(_covariance("hac", fit, units, unit_group).theta)
         return logdet if sign > 0 else np.inf
 
     grid = 10.0 ** np.arange(-4, 4.5, 0.5)
@@ -427,32 +435,24 @@ def _balance_blocks(blocks: list[Block], names: list[str], J: int,
 
 
 _TINY = 1e-300
-# Clusters for the robust covariance of weak-form rows span this many windows of time.
-_CLUSTER_WINDOWS = 3
-_MIN_CLUSTERS = 10
 
 
-def _resampling_units(blocks: list[Block], kind: str, window: float | None) -> tuple[Any, Any]:
-    """Independent units for robust covariances and the bootstrap.
+def _resampling_units(blocks: list[Block], kind: str) -> tuple[Any, Any]:
+    """Units of the robust covariances and the bootstrap, and the trajectory of each.
 
     Energy rows alone: every row is a unit (the HAC kernel and moving blocks handle their
-    correlation). With weak-form rows: contiguous time spans of each trajectory, a few
-    windows long, holding both kinds of rows, so that overlapping windows and the samples
-    they share fall in one cluster.
+    correlation). With weak-form rows: windows, each holding its weak rows and its energy
+    row, numbered in time order within each trajectory.
     """
     group = np.concatenate([b.group for b in blocks])
     if kind == "energy":
-        units = np.arange(len(group))
-        return units, group
+        return np.arange(len(group)), group
     time = np.concatenate([b.time for b in blocks])
-    assert window is not None
-    starts = {j: time[group == j].min() for j in np.unique(group)}
-    duration = sum(time[group == j].max() - t0 for j, t0 in starts.items())
-    span = max(min(_CLUSTER_WINDOWS * window, duration / _MIN_CLUSTERS), window)
-    offset = np.array([starts[j] for j in group])
-    slot = np.floor((time - offset) / span).astype(np.int64)
-    keys = group * (int(slot.max()) + 1) + slot
-    _, units = np.unique(keys, return_inverse=True)
+    order = np.lexsort((time, group))
+    fresh = np.ones(len(order), dtype=bool)
+    fresh[1:] = (np.diff(group[order]) != 0) | (np.diff(time[order]) != 0)
+    units = np.empty(len(order), dtype=np.int64)
+    units[order] = np.cumsum(fresh) - 1
     unit_group = np.zeros(units.max() + 1, dtype=np.int64)
     unit_group[units] = group
     return units, unit_group
@@ -623,7 +623,7 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
     autocorrelation = stats["lag1_autocorrelation"]
     if cov in ("classical", "hc") and kind != "energy":
         notes.append(f"--cov {cov} treats overlapping weak-form windows as independent and "
-                     "understates the errors; use --cov hac (clustered in time)")
+                     "understates the errors; use --cov hac")
     elif cov in ("classical", "hc") and autocorrelation is not None and autocorrelation > 0.5:
         notes.append(f"residuals are strongly autocorrelated (lag-1 {autocorrelation:.2f}); "
                      f"--cov {cov} understates the errors, use --cov hac")

@@ -82,26 +82,91 @@ class Damping:
         return [name for name, _, _ in self.terms]
 
 
+_GAUSS_POINTS, _GAUSS_WEIGHTS = np.polynomial.legendre.leggauss(5)
+_STENCIL = 6  # samples of the local interpolant: quintic, O(dt^6) like the trapezoid rule
+
+
+@dataclass(frozen=True)
+class _Points:
+    """Quadrature points of every sample interval for a function of one velocity.
+
+    Each interval [t_k, t_k+1] gets Gauss-Legendre points on the local quintic through the
+    six nearest samples, split where it changes sign: the damping laws sign(v)
+    and |v| have a kink at v = 0, which would cost the sample-based rules their order.
+    """
+
+    interval: npt.NDArray[np.int64]   # left sample (row index) of each point's interval
+    t: npt.NDArray[np.float64]
+    v: npt.NDArray[np.float64]
+    weight: npt.NDArray[np.float64]
+
+
+def _velocity_points(records: Records, v: npt.NDArray[np.float64]) -> _Points:
+    assert records.t is not None
+    parts = [_points_of_trajectory(records.t[a:b], v[a:b], a) for a, b in records.bounds()
+             if b - a >= 2]
+    return _Points(*(np.concatenate([p[k] for p in parts]) for k in range(4)))
+
+
+def _points_of_trajectory(t: np.ndarray, v: np.ndarray, offset: int) -> tuple[np.ndarray, ...]:
+    n = len(t)
+    left = np.arange(n - 1)
+    width = min(_STENCIL, n)
+    stencil = np.clip(left - (width // 2 - 1), 0, n - width)[:, None] + np.arange(width)
+    nodes, values = t[stencil], v[stencil]
+
+    def interpolant(x: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """The local interpolant of the intervals `rows` at x (one point per row or grid)."""
+        total = np.zeros_like(x)
+        for m in range(nodes.shape[1]):
+            basis = np.ones_like(x)
+            for k in range(nodes.shape[1]):
+                if k != m:
+                    basis = basis * (x - nodes[rows, k][..., None]) / (
+                        nodes[rows, m] - nodes[rows, k])[..., None]
+            total = total + basis * values[rows, m][..., None]
+        return total
+
+    a, b = t[:-1], t[1:]
+    crossing = np.flatnonzero(np.sign(v[:-1]) * np.sign(v[1:]) < 0)
+    root = (a[crossing] + b[crossing]) / 2
+    lo, hi = a[crossing].copy(), b[crossing].copy()
+    sign_lo = np.sign(v[crossing])
+    for _ in range(60):  # bisection: the bracket is known and halves to rounding
+        value = interpolant(root[:, None], crossing)[:, 0]
+        right = np.sign(value) == sign_lo
+        lo = np.where(right, root, lo)
+        hi = np.where(right, hi, root)
+        root = (lo + hi) / 2
+    starts = np.concatenate([a, root])
+    ends = np.concatenate([b, b[crossing]])
+    ends[crossing] = root
+    rows = np.concatenate([left, crossing])
+    half = (ends - starts) / 2
+    x = (starts + ends)[:, None] / 2 + half[:, None] * _GAUSS_POINTS
+    w = half[:, None] * _GAUSS_WEIGHTS
+    order = np.argsort(rows, kind="stable")
+    x, w, rows = x[order], w[order], rows[order]
+    return (np.repeat(rows + offset, len(_GAUSS_POINTS)), x.ravel(),
+            interpolant(x, rows).ravel(), w.ravel())
+
+
 def _dissipated_work(records: Records, damping: Damping) -> npt.NDArray[np.float64]:
     """Work done against each damping term since the start of its trajectory.
 
-    Column k is integral_0^t law_k(v_i) v_i dt (v_i^2, |v_i|, |v_i|^3), by the cumulative
-    Simpson rule on the recorded times: the trapezoid rule's O(dt^2) error would show in
-    the energy balance of a clean record.
+    Column k is integral_0^t law_k(v_i) v_i dt (v_i^2, |v_i|, |v_i|^3), integrated on the
+    local quintic of v_i between samples and split where v_i changes sign (`_Points`).
     """
-    from scipy.integrate import cumulative_simpson
-
     n_coordinates = len(damping.coordinates)
-    V = records.X[:, n_coordinates:]
-    work = np.zeros((len(V), len(damping.terms)))
-    for start, stop in records.bounds():
-        t = records.t[start:stop] if records.t is not None else None
-        if t is None or stop - start < 2:
-            continue
-        for k, (_, i, law) in enumerate(damping.terms):
-            power = law(V[start:stop, i]) * V[start:stop, i]
-            work[start + 1:stop, k] = (cumulative_simpson(power, x=t) if stop - start > 2
-                                       else np.diff(t) * (power[0] + power[1]) / 2)
+    work = np.zeros((len(records.group), len(damping.terms)))
+    points = {i: _velocity_points(records, records.X[:, n_coordinates + i])
+              for i in {i for _, i, _ in damping.terms}}
+    for k, (_, i, law) in enumerate(damping.terms):
+        p = points[i]
+        per_interval = np.bincount(p.interval, weights=p.weight * law(p.v) * p.v,
+                                   minlength=len(records.group))
+        for start, stop in records.bounds():
+            work[start + 1:stop, k] = np.cumsum(per_interval[start:stop - 1])
     return work
 
 
@@ -201,10 +266,34 @@ class Windows:
     centre: npt.NDArray[np.float64]
     group: npt.NDArray[np.int64]
     length: float
+    first: npt.NDArray[np.int64]   # first and last sample (row index) of each window
+    last: npt.NDArray[np.int64]
+    order: int
 
     @property
     def n_windows(self) -> int:
         return len(self.centre)
+
+    def psi_at(self, t: npt.NDArray[np.float64], interval: npt.NDArray[np.int64],
+               weights: npt.NDArray[np.float64], times: npt.NDArray[np.float64]) -> Any:
+        """Operator of the integrals of psi_w(t) f(t) from values of f at given points.
+
+        The points `t` (with quadrature `weights`) lie in the sample intervals `interval`
+        (index of each interval's left sample, sorted); `times` are the sample times.
+        """
+        from scipy import sparse
+
+        lo_point = np.searchsorted(interval, self.first, side="left")
+        hi_point = np.searchsorted(interval, self.last, side="left")
+        counts = hi_point - lo_point
+        rows = np.repeat(np.arange(self.n_windows), counts)
+        cols = np.concatenate([np.arange(a, b) for a, b in zip(lo_point, hi_point,
+                                                               strict=True)] or
+                              [np.zeros(0, np.int64)])
+        lo, hi = times[self.first][rows], times[self.last][rows]
+        s = (t[cols] - (lo + hi) / 2) / ((hi - lo) / 2)
+        values = np.clip(1 - s**2, 0.0, None) ** self.order * weights[cols]
+        return sparse.csr_matrix((values, (rows, cols)), shape=(self.n_windows, len(t)))
 
 
 def _quadrature_weights(nodes: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
@@ -243,9 +332,12 @@ def windows(records: Records, length: float, order: int | None = None) -> Window
     assert records.t is not None
     order = BUMP_ORDER if order is None else order
     centres, groups, row_index, cols, values_psi, values_dpsi = [], [], [], [], [], []
+    firsts, lasts = [], []
     for j, (start, stop) in enumerate(records.bounds()):
         t = records.t[start:stop]
         for first, last in _window_ranges(t, length):
+            firsts.append(start + first)
+            lasts.append(start + last)
             lo, hi = t[first], t[last]
             nodes = t[first:last + 1]
             weights = _quadrature_weights(nodes)
@@ -263,7 +355,8 @@ def windows(records: Records, length: float, order: int | None = None) -> Window
     operator = [sparse.csr_matrix((np.concatenate(v or [np.zeros(0)]), index), shape=shape)
                 for v in (values_psi, values_dpsi)]
     return Windows(operator[0], operator[1], np.asarray(centres, dtype=np.float64),
-                   np.asarray(groups, dtype=np.int64), length)
+                   np.asarray(groups, dtype=np.int64), length,
+                   np.asarray(firsts, dtype=np.int64), np.asarray(lasts, dtype=np.int64), order)
 
 
 def weak_block(model: Model, records: Records, windows: Windows,
@@ -282,8 +375,11 @@ def weak_block(model: Model, records: Records, windows: Windows,
     A = integrals[:, 1:]
     if damping is not None and damping.kinds:
         forces = np.zeros((rows, len(damping.terms)))
+        assert records.t is not None
         for k, (_, i, law) in enumerate(damping.terms):
-            forces[i::N, k] = -(windows.Q_psi @ law(records.X[:, N + i]))
+            p = _velocity_points(records, records.X[:, N + i])
+            forces[i::N, k] = -(windows.psi_at(p.t, p.interval, p.weight, records.t)
+                                @ law(p.v))
         A = np.hstack([A, forces])
     return Block("weak", A, -integrals[:, 0], np.repeat(windows.group, N),
                  np.repeat(windows.centre, N), np.ones(rows), has_level=False)

@@ -40,6 +40,9 @@ FUNCTIONS = ("sqrt", "exp", "log", "sin", "cos", "tan", "sinh", "cosh", "tanh", 
 CONSTANTS = {"pi": math.pi}
 MAX_LENGTH = 10_000
 MAX_EXPONENT = 64
+MAX_DEPTH = 500  # nesting of the syntax tree; deeper trees would exhaust the Python stack
+MAX_TERMS = 10_000  # monomials an expanded energy may have, against blow-up
+MAX_DEGREE = 256  # total degree of an expanded energy (Polynomial tabulates every power)
 
 _OPERATORS = {ast.Add: "+", ast.Sub: "-", ast.Mult: "*", ast.Div: "/", ast.Pow: "**"}
 _FORBIDDEN = {
@@ -86,6 +89,14 @@ def parse(text: str, names: Sequence[str] | None, *, where: str = "energy") -> a
     except (SyntaxError, ValueError, MemoryError, RecursionError) as exc:
         detail = getattr(exc, "msg", None) or str(exc) or type(exc).__name__
         raise ModelError(f"{where}: cannot parse {text.strip()!r}: {detail}") from exc
+    depth, stack = 0, [(tree, 1)]
+    while stack:
+        node, level = stack.pop()
+        depth = max(depth, level)
+        stack.extend((child, level + 1) for child in ast.iter_child_nodes(node))
+    if depth > MAX_DEPTH:
+        raise ModelError(f"{where}: the expression is nested {depth} levels deep "
+                         f"(at most {MAX_DEPTH})")
     allowed = None if names is None else set(names)
     called = {id(n.func) for n in ast.walk(tree) if isinstance(n, ast.Call)}
     for node in ast.walk(tree):
@@ -117,6 +128,12 @@ def _check_node(node: ast.AST, allowed: set[str] | None, text: str, where: str) 
     elif isinstance(node, ast.Constant):
         if isinstance(node.value, bool) or not isinstance(node.value, int | float):
             raise ModelError(f"{where}: only numbers may appear as constants: {piece!r}")
+        try:
+            finite = math.isfinite(node.value)
+        except OverflowError:
+            finite = False
+        if not finite:
+            raise ModelError(f"{where}: the number {piece!r} is too large")
     elif isinstance(node, ast.BinOp):
         if type(node.op) not in _OPERATORS:
             raise ModelError(f"{where}: operator not allowed in {piece!r} (use + - * / **)")
@@ -143,7 +160,10 @@ def _check_exponent(node: ast.expr, text: str, where: str) -> None:
 def _constant_value(node: ast.expr) -> float | None:
     """The value of a constant exponent: a number, a signed number or a ratio of numbers."""
     if isinstance(node, ast.Constant) and isinstance(node.value, int | float):
-        return float(node.value)
+        try:
+            return float(node.value)
+        except OverflowError:
+            return math.inf
     if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.UAdd | ast.USub):
         inner = _constant_value(node.operand)
         if inner is None:
@@ -418,6 +438,7 @@ def split_linear(tree: ast.expr, variables: Sequence[str], parameters: Sequence[
     no parameter-free part.
     """
     names = [*variables, *parameters]
+    _check_size(tree, where)
     try:
         terms = _to_terms(tree, {n: i for i, n in enumerate(names)})
     except _NotPolynomial:
@@ -431,6 +452,35 @@ def split_linear(tree: ast.expr, variables: Sequence[str], parameters: Sequence[
         if f.is_zero():
             raise ModelError(f"{where}: parameter {name!r} does not appear in the energy")
     return E0, phi
+
+
+def _check_size(tree: ast.expr, where: str) -> None:
+    """Reject energies whose expansion would be huge, e.g. ``((x + y + 1)**64)**64``."""
+
+    def size(node: ast.expr) -> tuple[int, int]:
+        """Upper bounds on (number of monomials, total degree) once expanded."""
+        if isinstance(node, ast.Constant):
+            return 1, 0
+        if isinstance(node, ast.UnaryOp):
+            return size(node.operand)
+        if isinstance(node, ast.Call):
+            size(node.args[0])
+        if not isinstance(node, ast.BinOp):
+            return 1, 1
+        (n_left, d_left), (n_right, d_right) = size(node.left), size(node.right)
+        if isinstance(node.op, ast.Add | ast.Sub):
+            n, d = n_left + n_right, max(d_left, d_right)
+        elif isinstance(node.op, ast.Pow):
+            power = math.ceil(abs(_constant_value(node.right) or 0.0))
+            n, d = math.comb(n_left + power - 1, power), d_left * power
+        else:
+            n, d = n_left * n_right, d_left + d_right
+        if n > MAX_TERMS or d > MAX_DEGREE:
+            raise ModelError(f"{where}: {ast.unparse(node)!r} expands to too many terms "
+                             f"(at most {MAX_TERMS} terms of degree at most {MAX_DEGREE})")
+        return n, d
+
+    size(tree)
 
 
 def _split_polynomial(terms: _Terms, variables: Sequence[str], parameters: Sequence[str],
@@ -458,6 +508,9 @@ def _split_symbolic(tree: ast.expr, variables: Sequence[str], parameters: Sequen
     params = [sympy.Symbol(p, real=True) for p in parameters]
     parts = [sympy.Integer(0) for _ in range(len(parameters) + 1)]
     for term in sympy.Add.make_args(sympy.expand(expression)):
+        if term.has(sympy.zoo, sympy.oo, -sympy.oo, sympy.nan):
+            raise ModelError(f"{where}: energy term {str(term)!r} is not finite "
+                             "(a division by zero?)")
         involved = [p for p in params if term.has(p)]
         if not involved:
             parts[0] += term

@@ -21,7 +21,8 @@ from hamid import expr
 from hamid.config import check_keys
 from hamid.errors import ModelError
 
-__all__ = ["BUILTINS", "Lagrangian", "Model", "builtin_model", "model_from_spec"]
+__all__ = ["BUILTINS", "DAMPING_KINDS", "Lagrangian", "Model", "builtin_model", "damping_names",
+           "model_from_spec"]
 
 BUILTINS: dict[str, dict[str, Any]] = {
     "peng-quadratic": {
@@ -48,6 +49,20 @@ BUILTINS: dict[str, dict[str, Any]] = {
     },
 }
 POLY_HELP = "poly:N:D"
+
+# Dissipative force on coordinate i of each kind (SPEC section 1): F_i = -coefficient *
+# law(v_i); the coefficient is named <prefix>_<coordinate>.
+DAMPING_KINDS: dict[str, tuple[str, Any]] = {
+    "viscous": ("c", lambda v: v),
+    "coulomb": ("mu", np.sign),
+    "quadratic": ("d", lambda v: np.abs(v) * v),
+}
+
+
+def damping_names(coordinates: Sequence[str]) -> dict[str, tuple[str, int]]:
+    """Every damping coefficient name a model allows -> (kind, coordinate index)."""
+    return {f"{prefix}_{q}": (kind, i) for kind, (prefix, _) in DAMPING_KINDS.items()
+            for i, q in enumerate(coordinates)}
 _POLY_LIMIT = 200  # monomials; beyond this a fit would need more data than anyone records
 
 
@@ -127,8 +142,12 @@ class Model:
         for f, label in zip(parts, labels, strict=True):
             degrees = f.velocity_degrees(self.velocities)
             if degrees is None or set(degrees) - {0, 2}:
+                bad = [f] if degrees is None else [g for d, g in degrees.items()
+                                                   if d not in (0, 2)]
+                text = " + ".join(g.text() if isinstance(g, expr.Polynomial) else str(g.expression)
+                                  for g in bad)
                 return (f"{label} of the energy is not a kinetic energy quadratic in the "
-                        "velocities plus a potential energy")
+                        f"velocities plus a potential energy: {text!r}")
             T, V = degrees.get(2), degrees.get(0)
             present = [(g, w) for g, w in ((T, 1.0), (V, -1.0)) if g is not None]
             lagrangians.append(expr.Func.combine([g for g, _ in present],

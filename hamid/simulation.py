@@ -101,6 +101,9 @@ def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:
             raise ModelError(f"{where}: [simulate] needs {key!r}")
     t_end = number(settings["t_end"], where=f"{where}: [simulate] t_end", positive=True)
     dt = number(settings["dt"], where=f"{where}: [simulate] dt", positive=True)
+    if len(sample_times(t_end, dt)) < 2:
+        raise ModelError(f"{where}: [simulate] t_end = {t_end:g} is shorter than dt = {dt:g};"
+                         " the run would have a single sample")
     method = settings.get("method", "dop853")
     if not isinstance(method, str) or method.lower() not in INTEGRATORS:
         raise ModelError(f"{where}: [simulate] method {method!r} is not one of "
@@ -215,7 +218,21 @@ def run(system: System, *, seed: int | None = None,
                              rtol=system.rtol, atol=system.atol, events=escape)
     states = solution.y.T.reshape(len(solution.t), n_traj, 2 * n + 1)
     if solution.status != 0 or len(solution.t) < len(times) or not np.all(np.isfinite(states)):
-        _raise_escape(solution, n_traj, n)
+        # the joint run failed before the sample after the last one it kept
+        t_stop = float(times[min(len(solution.t) + 1, len(times) - 1)])
+
+        def alone(j: int) -> Any:
+            """Trajectory j integrated by itself, to tell which one fails and when."""
+            def bound(t: float, y: np.ndarray) -> float:
+                return _ESCAPE_BOUND - np.max(np.abs(y[:2 * n]))
+
+            bound.terminal = True  # type: ignore[attr-defined]
+            with np.errstate(all="ignore"):
+                return solve_ivp(dynamics, (0.0, t_stop), start[j],
+                                 method=INTEGRATORS[system.method], rtol=system.rtol,
+                                 atol=system.atol, events=bound)
+
+        _raise_escape(solution, n_traj, n, alone)
     if progress is not None:
         progress(1.0)
     X = states[:, :, :2 * n]
@@ -272,18 +289,27 @@ def _check_mass(dynamics: _Dynamics, X: np.ndarray, label: str) -> None:
                          " check the parameters and the velocity terms of the energy")
 
 
-def _raise_escape(solution: Any, n_traj: int, n: int) -> None:
-    last = solution.y[:, -1].reshape(n_traj, -1)[:, :2 * n] if solution.y.size else None
-    t_fail = float(solution.t[-1]) if len(solution.t) else 0.0
+def _raise_escape(solution: Any, n_traj: int, n: int, alone: Callable[[int], Any]) -> None:
     if solution.t_events and len(solution.t_events[0]):
         t_fail = float(solution.t_events[0][0])
         last = solution.y_events[0][0].reshape(n_traj, -1)[:, :2 * n]
-    size = np.where(np.isfinite(last), np.abs(last), np.inf).max(axis=1) if last is not None \
-        else np.zeros(n_traj)
-    j = int(np.argmax(size)) + 1
-    raise ModelError(f"trajectory {j} escapes (the state grows without bound) near "
-                     f"t = {t_fail:.6g}; no output was written. Check its initial state and "
-                     f"the parameters ({solution.message.rstrip('.')})"
+        size = np.where(np.isfinite(last), np.abs(last), np.inf).max(axis=1)
+        j = int(np.argmax(size)) + 1
+    else:
+        # The integrator failed (the equations of motion stopped being finite). The samples
+        # kept by the joint run do not show which trajectory did it, nor when: integrate
+        # each alone and name the one that fails first.
+        fail_times = []
+        for k in range(n_traj):
+            single = alone(k)
+            fail_times.append(float(single.t[-1]) if single.status != 0 else math.inf)
+        j = int(np.argmin(fail_times)) + 1
+        t_fail = fail_times[j - 1] if math.isfinite(fail_times[j - 1]) else \
+            float(solution.t[-1]) if len(solution.t) else 0.0
+    raise ModelError(f"trajectory {j} escapes (the state grows without bound or leaves the "
+                     f"domain of the energy) near t = {t_fail:.6g}; no output was written. "
+                     f"Check its initial state and the parameters "
+                     f"({solution.message.rstrip('.')})"
                      if solution.status != 1 else
                      f"trajectory {j} escapes (|state| > {_ESCAPE_BOUND:g}) near "
                      f"t = {t_fail:.6g}; no output was written. Check its initial state and "

@@ -27,8 +27,8 @@ dummy column per trajectory, k = p + J columns, ``df_resid = n - k``):
 - ``hac``: Bartlett weights 1 - l / (L + 1), lags only within a trajectory, times
   n / df_resid (``cov_type="HAC"`` with ``use_correction=True`` for one trajectory,
   ``cov_type="hac-panel"`` with ``use_correction="hac"`` for several);
-- ``cluster``: CRV1, C / (C - 1) * (n - 1) / df_resid with C clusters, and C - 1 degrees of
-  freedom (``cov_type="cluster"``).
+- ``hac`` with ``units``: the same on the series of unit sums of the scores, with
+  K - (n - df_resid) residual degrees of freedom for K units.
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ __all__ = [
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.intp]
-Kind = Literal["classical", "hc", "hac", "cluster"]
+Kind = Literal["classical", "hc", "hac"]
 # An estimator's (J, p+1, p+1) meat blocks (scaled), its description and its t degrees of freedom.
 _Estimate = tuple[FloatArray, str, int]
 
@@ -64,7 +64,6 @@ DESCRIPTIONS: dict[str, str] = {
     "classical": "classical (independent errors, variance proportional to 1/weight)",
     "hc": "heteroscedasticity robust (HC1)",
     "hac": "Newey-West (Bartlett kernel, bandwidth {bandwidth}{how}) within each trajectory",
-    "cluster": "cluster robust (CRV1, {n_clusters} clusters within trajectories)",
     "bootstrap": (
         "moving-block bootstrap within each trajectory ({n_boot} replicates, "
         "block length {block}{failed})"
@@ -219,7 +218,7 @@ def _blocks(prob: _Problem, meat: Callable[[slice], FloatArray]) -> FloatArray:
     return out
 
 
-def _classical(prob: _Problem, bandwidth: int | None, clusters: IntArray | None) -> _Estimate:
+def _classical(prob: _Problem, bandwidth: int | None) -> _Estimate:
     """Errors independent with variance s^2 / w_i."""
     s2 = float(np.sum(prob.w * prob.r**2)) / prob.df_resid
 
@@ -230,7 +229,7 @@ def _classical(prob: _Problem, bandwidth: int | None, clusters: IntArray | None)
     return s2 * _blocks(prob, meat), DESCRIPTIONS["classical"], prob.df_resid
 
 
-def _hc(prob: _Problem, bandwidth: int | None, clusters: IntArray | None) -> _Estimate:
+def _hc(prob: _Problem, bandwidth: int | None) -> _Estimate:
     """White's sandwich with the HC1 factor n / df_resid."""
 
     def meat(rows: slice) -> FloatArray:
@@ -278,7 +277,7 @@ def _andrews_bandwidth(prob: _Problem) -> int:
     return int(min(max(bandwidth, 0), int(sizes.max()) - 1))
 
 
-def _hac(prob: _Problem, bandwidth: int | None, clusters: IntArray | None) -> _Estimate:
+def _hac(prob: _Problem, bandwidth: int | None) -> _Estimate:
     """Newey-West sandwich with lags inside each trajectory, times n / df_resid."""
     automatic = bandwidth is None
     lags = _andrews_bandwidth(prob) if automatic else int(bandwidth)
@@ -288,50 +287,40 @@ def _hac(prob: _Problem, bandwidth: int | None, clusters: IntArray | None) -> _E
     return prob.n / prob.df_resid * blocks, description, prob.df_resid
 
 
-def _cluster(prob: _Problem, bandwidth: int | None, clusters: IntArray | None) -> _Estimate:
-    """CRV1 sandwich over clusters nested in trajectories, with C - 1 degrees of freedom."""
-    assert clusters is not None  # covariance() checks this before any work
-    n_clusters = len(np.unique(clusters))
-
-    def meat(rows: slice) -> FloatArray:
-        _, local = np.unique(clusters[rows], return_inverse=True)
-        s = prob.scores(rows)
-        sums = np.stack(
-            [np.bincount(local, weights=col, minlength=local.max() + 1) for col in s.T], axis=1
-        )
-        return sums.T @ sums
-
-    factor = n_clusters / (n_clusters - 1) * (prob.n - 1) / prob.df_resid
-    description = DESCRIPTIONS["cluster"].format(n_clusters=n_clusters)
-    return factor * _blocks(prob, meat), description, n_clusters - 1
-
-
-ESTIMATORS: dict[str, Callable[[_Problem, int | None, IntArray | None], _Estimate]] = {
+ESTIMATORS: dict[str, Callable[[_Problem, int | None], _Estimate]] = {
     "classical": _classical,
     "hc": _hc,
     "hac": _hac,
-    "cluster": _cluster,
 }
 
 
-def _check_clusters(clusters: npt.ArrayLike, prob: _Problem) -> IntArray:
-    """Helper checking that `clusters` labels rows and nests in the trajectories."""
-    c = np.asarray(clusters)
-    if c.shape != (prob.n,):
-        raise ValueError(f"`clusters` must have shape ({prob.n},), got {c.shape}")
-    if not np.issubdtype(c.dtype, np.integer):
-        raise ValueError(f"`clusters` must hold integers, got dtype {c.dtype}")
-    # clusters nest in trajectories iff no label occurs in two trajectories
-    per_group = np.concatenate([np.unique(c[rows]) for _, rows in prob.groups()])
-    labels, counts = np.unique(per_group, return_counts=True)
-    if np.any(counts > 1):
-        raise ValueError(
-            f"`clusters` must nest in `groups`: cluster {labels[counts > 1][0]} spans "
-            "several trajectories"
-        )
-    if len(labels) < 2:
-        raise ValueError(f"`clusters` must hold at least 2 clusters, got {len(labels)}")
-    return c.astype(np.intp)
+def _by_unit(prob: _Problem, units: npt.ArrayLike) -> _Problem:
+    """Helper summing the scores of the rows of each unit into one row of a new problem.
+
+    The new rows carry the summed scores as G (and lam) with residual 1 and weight 1, so
+    every estimator sees the units as its rows; its residual degrees of freedom keep the
+    number of fitted unknowns.
+    """
+    u = np.asarray(units)
+    if u.shape != (prob.n,):
+        raise ValueError(f"`units` must have shape ({prob.n},), got {u.shape}")
+    if not np.issubdtype(u.dtype, np.integer) or u.min() != 0:
+        raise ValueError("`units` must number the units 0..K-1 with integers")
+    n_units = int(u.max()) + 1
+    sums = np.zeros((n_units, prob.p + 1))
+    np.add.at(sums, u, np.column_stack((prob.G, prob.lam)) * prob.r[:, None])
+    row_labels = np.repeat(prob.labels, prob.stops - prob.starts)
+    owner = np.full(n_units, -1)
+    owner[u] = row_labels
+    if np.any(owner < 0) or np.any(owner[u] != row_labels):
+        raise ValueError("`units` must number 0..K-1 without gaps, each unit inside one "
+                         "trajectory")
+    labels, starts, stops = _group_runs(owner, n_units)
+    fitted = prob.n - prob.df_resid
+    if n_units - fitted < 1:
+        raise ValueError(f"{n_units} units leave no degrees of freedom for {fitted} unknowns")
+    return _Problem(sums[:, :prob.p], sums[:, prob.p], np.ones(n_units), np.ones(n_units),
+                    labels, starts, stops, n_units - fitted)
 
 
 def covariance(
@@ -344,13 +333,13 @@ def covariance(
     *,
     df_resid: int,
     bandwidth: int | None = None,
-    clusters: npt.ArrayLike | None = None,
+    units: npt.ArrayLike | None = None,
 ) -> Covariance:
     """Estimate the covariance of the parameters and of the level errors.
 
     Parameters
     ----------
-    kind : {"classical", "hc", "hac", "cluster"}
+    kind : {"classical", "hc", "hac"}
         The estimator, a key of `ESTIMATORS`.
     G : array_like, shape (n, p)
         Influence of each row's error on theta_hat.
@@ -366,8 +355,10 @@ def covariance(
         Residual degrees of freedom, n minus the number of fitted unknowns (levels included).
     bandwidth : int, optional
         Highest lag for ``"hac"``; by default Andrews' plug-in (`bartlett_bandwidth`).
-    clusters : array_like of int, shape (n,), optional
-        Cluster of each row, required for ``"cluster"``; each cluster inside one trajectory.
+    units : array_like of int, shape (n,), optional
+        For ``"hac"``: rows that share their errors (e.g. the rows of one weak-form
+        window), numbered 0..K-1 in time order within each trajectory. Their scores are
+        summed first, and the kernel runs over the series of unit sums.
 
     Returns
     -------
@@ -389,15 +380,14 @@ def covariance(
             raise ValueError(f"`bandwidth` must be an integer, got {bandwidth!r}")
         if bandwidth < 0:
             raise ValueError(f"`bandwidth` must be >= 0, got {bandwidth}")
-    checked_clusters = None
-    if kind == "cluster":
-        if clusters is None:
-            raise ValueError("`clusters` is required for kind 'cluster'")
-        checked_clusters = _check_clusters(clusters, prob)
-    elif clusters is not None:
-        raise ValueError(f"`clusters` applies only to kind 'cluster', not {kind!r}")
+    if units is not None:
+        if kind != "hac":
+            raise ValueError(f"`units` applies only to kind 'hac', not {kind!r}")
+        prob = _by_unit(prob, units)
 
-    blocks, description, df = ESTIMATORS[kind](prob, bandwidth, checked_clusters)
+    blocks, description, df = ESTIMATORS[kind](prob, bandwidth)
+    if units is not None:
+        description += f", on the summed scores of {prob.n} units of rows"
     p = prob.p
     theta = blocks[:, :p, :p].sum(axis=0)
     theta = (theta + theta.T) / 2  # exact symmetry, lost in summation order

@@ -124,8 +124,6 @@ def _statsmodels(data: Data, cov_type, cov_kwds):
 
 
 def _cov(kind, data: Data, fit: Fit, **options):
-    if kind == "cluster":
-        options["clusters"] = _clusters(data.groups)
     return covariance(
         kind, fit.G, fit.lam, fit.r, data.w, data.groups, df_resid=fit.df_resid, **options
     )
@@ -139,7 +137,6 @@ CASES = [
     ("hac", (400,), "auto", "HAC"),
     ("hac", SIZES, 5, "hac-panel"),
     ("hac", SIZES, "auto", "hac-panel"),
-    ("cluster", SIZES, None, "cluster"),
 ]
 
 
@@ -168,8 +165,6 @@ def test_matches_statsmodels_on_full_design(kind, sizes, bandwidth, cov_type, we
             "use_correction": "hac",
             "df_correction": False,
         }
-    elif cov_type == "cluster":
-        kwds = {"groups": _clusters(data.groups)}
     res = _statsmodels(data, cov_type, kwds)
     p = len(fit.theta)
 
@@ -218,7 +213,6 @@ def test_parameter_units_rescale_covariance_only(kind, scale):
         data.w,
         data.groups,
         df_resid=fit.df_resid,
-        clusters=_clusters(data.groups) if kind == "cluster" else None,
     )
     np.testing.assert_allclose(scaled.theta, base.theta * np.outer(d, d), rtol=1e-9)
     # classical cross terms are zero up to rounding: compare on the Cauchy-Schwarz scale
@@ -238,7 +232,6 @@ def test_trajectory_order_only_relabels_levels(kind, order):
     rows = np.concatenate([np.flatnonzero(data.groups == j) for j in order])
     relabel = np.argsort(order)  # old label -> new label
     groups = relabel[data.groups[rows]]
-    clusters = _clusters(data.groups)[rows] if kind == "cluster" else None
     base = _cov(kind, data, fit)
     moved = covariance(
         kind,
@@ -248,7 +241,6 @@ def test_trajectory_order_only_relabels_levels(kind, order):
         data.w[rows],
         groups,
         df_resid=fit.df_resid,
-        clusters=clusters,
     )
     np.testing.assert_allclose(moved.theta, base.theta, rtol=1e-9)
     np.testing.assert_allclose(moved.theta_level, base.theta_level[list(order)], rtol=1e-9)
@@ -427,7 +419,7 @@ def _nan_at(values, row):
 
 
 BAD = [
-    ({"kind": "HC1"}, "`kind` must be one of classical, hc, hac, cluster"),
+    ({"kind": "HC1"}, "`kind` must be one of classical, hc, hac"),
     ({"G": np.zeros(400)}, r"`G` must have shape \(n, p\)"),
     ({"lam": np.ones(399)}, r"`lam` must have shape \(400,\)"),
     ({"residuals": _nan_at(np.zeros(400), 17)}, "`residuals` has non-finite values.*row 17"),
@@ -438,10 +430,9 @@ BAD = [
     ({"df_resid": 0}, "`df_resid` must be a positive integer"),
     ({"kind": "hc", "bandwidth": 3}, "`bandwidth` applies only to kind 'hac'"),
     ({"bandwidth": -1}, "`bandwidth` must be >= 0"),
-    ({"kind": "cluster"}, "`clusters` is required"),
-    ({"clusters": np.zeros(400, dtype=int)}, "`clusters` applies only to kind 'cluster'"),
-    ({"kind": "cluster", "clusters": np.zeros(400, dtype=int)}, "cluster 0 spans several"),
-    ({"kind": "cluster", "clusters": np.repeat([0, 1, 2], SIZES)[::-1].copy()}, "spans"),
+    ({"kind": "hc", "units": np.arange(400)}, "`units` applies only to kind 'hac'"),
+    ({"units": np.zeros(400, dtype=int)}, "each unit inside one trajectory"),
+    ({"units": np.arange(400) + 1}, "must number the units 0..K-1"),
 ]
 
 
@@ -452,20 +443,37 @@ def test_covariance_rejects_bad_arguments(changes, match):
         _bad_call(**changes)()
 
 
-def test_cluster_needs_two_clusters():
-    data = _simulate(5, (60,))
-    fit = _fit(data.A, data.b, data.w, data.groups)
-    with pytest.raises(ValueError, match="at least 2 clusters, got 1"):
-        covariance(
-            "cluster",
-            fit.G,
-            fit.lam,
-            fit.r,
-            data.w,
-            data.groups,
-            df_resid=fit.df_resid,
-            clusters=np.zeros(60, dtype=int),
-        )
+def test_hac_units_of_single_rows_change_nothing():
+    data, fit = _reference()
+    plain = _cov("hac", data, fit, bandwidth=4)
+    units = _cov("hac", data, fit, bandwidth=4, units=np.arange(len(data.b)))
+    np.testing.assert_allclose(units.theta, plain.theta, rtol=1e-12)
+    np.testing.assert_allclose(units.level, plain.level, rtol=1e-12)
+
+
+def test_hac_on_units_is_newey_west_of_the_unit_sums():
+    """Rows summed per unit, then the Bartlett kernel over units: written out by hand."""
+    data, fit = _reference()
+    units = _clusters(data.groups)  # consecutive blocks of rows in each trajectory
+    lags = 2
+    cov = _cov("hac", data, fit, bandwidth=lags, units=units)
+    scores = np.column_stack((fit.G, fit.lam)) * fit.r[:, None]
+    n_units = units.max() + 1
+    sums = np.array([scores[units == u].sum(axis=0) for u in range(n_units)])
+    owner = np.array([data.groups[units == u][0] for u in range(n_units)])
+    fitted = len(data.b) - fit.df_resid
+    factor = n_units / (n_units - fitted)
+    p = fit.G.shape[1]
+    theta = np.zeros((p, p))
+    for j in np.unique(owner):
+        s = sums[owner == j]
+        meat = sum(max(0.0, 1 - abs(a - b) / (lags + 1)) * np.outer(s[a], s[b])
+                   for a in range(len(s)) for b in range(len(s)))
+        theta += factor * meat[:p, :p]
+        np.testing.assert_allclose(cov.level[j], factor * meat[p, p], rtol=1e-9)
+        np.testing.assert_allclose(cov.theta_level[j], factor * meat[p, :p], rtol=1e-9)
+    np.testing.assert_allclose(cov.theta, theta, rtol=1e-9)
+    assert f"{n_units} units" in cov.description
 
 
 @pytest.mark.parametrize(
