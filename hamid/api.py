@@ -77,17 +77,20 @@ def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | 
 
 
 COVARIANCE_KINDS = ("classical", "hc", "hac", "bootstrap")
+VELOCITY_SOURCES = ("measured", "savgol")
+SAVGOL_ORDER = 5
 METHODS = ("auto", "joint", "weak", "energy")
 
 
 def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         columns: Mapping[str, str] | None = None, time: str | None = None,
-        trajectory: str | None = None, fix: Mapping[str, float] | None = None,
-        method: str = "auto", weak_window: float | None = None,
-        damping: str | Sequence[str] = "none", cov: str = "hac",
-        level: float = 0.95,
-        bootstrap: int = 200, seed: int | None = None,
-        format: str | None = None) -> FitResult:
+        trajectory: str | None = None, velocity: str = "measured",
+        window: int | None = None, order: int = SAVGOL_ORDER,
+        noise: str | Mapping[str, float] | None = None,
+        fix: Mapping[str, float] | None = None, method: str = "auto",
+        weak_window: float | None = None, damping: str | Sequence[str] = "none",
+        cov: str = "hac", level: float = 0.95, bootstrap: int = 200,
+        seed: int | None = None, format: str | None = None) -> FitResult:
     """Fit the energy of recorded free oscillations.
 
     Parameters
@@ -101,6 +104,13 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         Model name -> file column, for columns named otherwise.
     time, trajectory : str, optional
         Names of the time and trajectory columns (default ``t``/``time``, ``trajectory``).
+    velocity : {"measured", "savgol"}
+        Take the velocities from the file, or derive them from the positions by
+        Savitzky-Golay differentiation with an odd `window` (samples; default about a tenth
+        of the dominant period) and polynomial `order`.
+    noise : None, "auto" or dict
+        Measurement noise std per column (model or file name): rows are then weighted by
+        the inverse of the variance the noise puts into them. "auto" estimates it.
     fix : dict, optional
         Parameters held at known values.
     method : {"auto", "joint", "weak", "energy"}
@@ -143,9 +153,11 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         raise UsageError(f"--weak-window must be a positive number of seconds, "
                          f"found {weak_window!r}")
 
+    _check_choice(velocity, VELOCITY_SOURCES, "velocity")
     loaded = _load_data(data, model, columns=columns, time=time, trajectory=trajectory,
-                        format=format)
+                        format=format, velocity=velocity, window=window, order=order)
     m, records = loaded.model, loaded.records
+    sigma, noise_info = _noise_levels(noise, m, records, loaded)
     dissipation = design.Damping(_parse_damping(damping), m.coordinates)
     if dissipation.kinds and records.t is None:
         raise UsageError("--damping needs a time column (the dissipated work is an integral "
@@ -176,7 +188,13 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         blocks.append(_hold_fixed(weak, free, fixed_values))
     J = records.n_trajectories
     units, unit_group = _resampling_units(blocks, kind)
-    blocks, block_variance = _balance_blocks(blocks, free_names, J, units, unit_group)
+    if sigma is None:
+        blocks, block_variance = _balance_blocks(blocks, free_names, J, units, unit_group)
+        rounds = 0
+    else:
+        blocks, block_variance, rounds = _noise_weighted(
+            blocks, m, records, spans, dissipation, sigma, free, fixed_values, free_names, J,
+            units, unit_group)
     estimate = _least_squares(blocks, free_names, J)
     theta = estimate.theta
 
@@ -233,7 +251,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     method_info = {
         "kind": kind, "kind_reason": kind_reason, "weak_window": window,
         "damping": list(dissipation.kinds),
-        "weighting": "none", "noise": None, "bias_correction": False, "covariance": cov,
+        "weighting": "none" if sigma is None else "noise", "noise": noise_info,
+        "weighting_rounds": rounds, "bias_correction": False, "covariance": cov,
         "covariance_description": cov_text, "level": level, "fixed": dict(fixed),
         "block_variance": block_variance,
     }
@@ -274,6 +293,7 @@ class _Loaded:
     truth: dict[str, float]
     data_info: dict[str, Any]
     notes: tuple[str, ...]
+    velocity_gain: float | None  # noise gain of derived velocities, None when measured
 
 
 def _check_choice(value: str, choices: tuple[str, ...], option: str) -> None:
@@ -400,9 +420,10 @@ def _balance_blocks(blocks: list[Block], names: list[str], J: int, units: Any,
                     unit_group: Any) -> tuple[list[Block], dict[str, float] | None]:
     """Weight the blocks of a joint fit against each other.
 
-    The starting point is feasible GLS: each block weighted by the inverse of its residual
-    variance from a fit of that block alone. Rows of overlapping windows are correlated,
-    and differently in the two blocks, so that guess can be far from best; the final
+    The starting point is feasible GLS: each block's row weights scaled by the inverse of
+    its weighted residual variance from a fit of that block alone. Rows of overlapping
+    windows are correlated, and differently in the two blocks, so that guess can be far
+    from best; the final
     ratio is the one, on a grid around it, that minimises the determinant of the robust
     (``hac``) covariance of the parameters, which does not depend on their units.
     """
@@ -414,9 +435,9 @@ def _balance_blocks(blocks: list[Block], names: list[str], J: int, units: Any,
     for block in blocks:
         try:
             residual = _least_squares([block], names, J).residual
-            variance[block.kind] = max(float(np.mean(residual**2)), _TINY)
+            variance[block.kind] = max(float(np.mean(block.weight * residual**2)), _TINY)
         except FitError:
-            variance[block.kind] = max(float(np.mean(block.b**2)), _TINY)
+            variance[block.kind] = max(float(np.mean(block.weight * block.b**2)), _TINY)
     first, rest = blocks[0], blocks[1:]
 
     def weighted(ratio: float) -> list[Block]:
@@ -632,7 +653,8 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
 
 def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
                columns: Mapping[str, str] | None, time: str | None,
-               trajectory: str | None, format: str | None) -> _Loaded:
+               trajectory: str | None, format: str | None, velocity: str = "measured",
+               window: int | None = None, order: int = SAVGOL_ORDER) -> _Loaded:
     """Read the sources, settle the model and arrange the rows by trajectory."""
     import pandas as pd
 
@@ -663,14 +685,15 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
     has_time = True
     for source, frame, _ in tables:
         names = [str(c) for c in frame.columns]
-        mapping = io.resolve_columns(names, m.coordinates, m.velocities, mapping=columns,
-                                     source=source)
+        derived = velocity == "savgol"
+        mapping = io.resolve_columns(names, m.coordinates, () if derived else m.velocities,
+                                     mapping=columns, source=source)
         time_col = _optional_column(names, time, io.default_time_column(names), "--time",
                                     source)
         traj_col = _optional_column(names, trajectory, io.default_trajectory_column(names),
                                     "--trajectory", source)
         X = np.column_stack([io.numeric_column(frame, mapping[v], source=source)
-                             for v in m.variables])
+                             if v in mapping else np.zeros(len(frame)) for v in m.variables])
         t = io.numeric_column(frame, time_col, source=source) if time_col else None
         has_time = has_time and t is not None
         if traj_col is None:
@@ -688,6 +711,9 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
     records = Records(np.vstack(X_parts),
                       np.concatenate(t_parts) if has_time else None,
                       np.concatenate(group_parts), tuple(labels))
+    derivation = None
+    if velocity == "savgol":
+        records, derivation = _derive_velocities(records, m, window, order)
     truth = {}
     if metadata and isinstance(metadata.get("model"), Mapping) \
             and metadata["model"].get("energy") == m.energy:
@@ -698,9 +724,113 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
         "n_samples": int(len(records.group)),
         "n_trajectories": records.n_trajectories,
         "columns": dict(mapping),
-        "velocity_source": "measured",
+        "velocity_source": velocity,
+        **({"velocity_window": derivation[0], "velocity_order": order}
+           if derivation else {}),
     }
-    return _Loaded(m, records, truth, data_info, tuple(notes))
+    if derivation:
+        notes.append(f"velocities derived from the positions (Savitzky-Golay, window "
+                     f"{derivation[0]} samples, order {order}); their noise is correlated "
+                     "with the positions'")
+    return _Loaded(m, records, truth, data_info, tuple(notes),
+                   derivation[1] if derivation else None)
+
+
+def _derive_velocities(records: Records, model: Model, window: int | None,
+                       order: int) -> tuple[Records, tuple[int, float]]:
+    """Records whose velocities come from Savitzky-Golay differentiation of the positions."""
+    import dataclasses
+
+    from hamid import design, measurement
+
+    if records.t is None:
+        raise UsageError("--velocity savgol needs a time column")
+    N = len(model.coordinates)
+    if window is None:
+        period = design.dominant_period(records, N)
+        dt = float(np.median(np.diff(records.t)))
+        window = measurement.default_savgol_window(None if period is None else period / dt,
+                                                   order)
+    V, gain = measurement.savgol_velocities(records.X[:, :N], records.t, records.bounds(),
+                                            window=window, order=order)
+    X = records.X.copy()
+    X[:, N:] = V
+    return dataclasses.replace(records, X=X), (window, gain)
+
+
+def _noise_levels(noise: str | Mapping[str, float] | None, model: Model, records: Records,
+                  loaded: _Loaded) -> tuple[Any, dict[str, float] | None]:
+    """Noise std per model variable, from the user or estimated; None without --noise."""
+    import math
+
+    from hamid import measurement
+
+    if noise is None or noise == "none":
+        return None, None
+    N = len(model.coordinates)
+    columns = loaded.data_info["columns"]
+    if noise == "auto":
+        sigma = measurement.estimate_noise(records.X, records.bounds())
+    elif isinstance(noise, Mapping):
+        by_column = {column: name for name, column in columns.items()}
+        sigma = np.zeros(len(model.variables))
+        for key, value in noise.items():
+            name = key if key in model.variables else by_column.get(key)
+            if name is None:
+                raise UsageError(f"--noise: {key!r} is not a column of the model "
+                                 f"({', '.join(model.variables)})")
+            if not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
+                raise UsageError(f"--noise: {key}={value!r} is not a non-negative number")
+            sigma[model.variables.index(name)] = float(value)
+    else:
+        raise UsageError(f"--noise must be none, auto or COL=SIGMA,..., found {noise!r}")
+    if loaded.velocity_gain is not None:
+        sigma[N:] = sigma[:N] * loaded.velocity_gain
+    if not np.any(sigma > 0):
+        raise UsageError("--noise: every column has zero noise; leave --noise out instead")
+    return sigma, {name: float(s) for name, s in zip(model.variables, sigma, strict=True)}
+
+
+def _noise_weighted(blocks: list[Block], model: Model, records: Records, spans: Any,
+                    damping: Any, sigma: Any, free: list[int], fixed_values: Any,
+                    names: list[str], J: int, units: Any,
+                    unit_group: Any) -> tuple[list[Block], dict[str, float] | None, int]:
+    """Weight every row by the inverse of the variance the noise puts into it, iterated.
+
+    The variance depends on the parameters, so fit, re-weight and refit until the
+    parameters settle (relative change below 1e-10, at most `_MAX_ROUNDS`). In a joint
+    fit the two blocks are then balanced as without noise (`_balance_blocks`): the rows
+    of overlapping windows are correlated, which the row variances do not see.
+    """
+    import dataclasses
+
+    from hamid import design
+
+    unit_size = [dataclasses.replace(b, weight=b.weight / max(float(np.mean(b.b**2)), _TINY))
+                 for b in blocks]
+    theta = _least_squares(unit_size, names, J).theta
+    rounds, settled = 0, False
+    while not settled and rounds < _MAX_ROUNDS:
+        rounds += 1
+        full = fixed_values.copy()
+        full[free] = theta
+        weighted = []
+        for block in blocks:
+            variance = design.row_variance(block, model, records, full, sigma, spans, damping)
+            positive = variance[variance > 0]
+            floor = 1e-12 * float(np.median(positive)) if positive.size else 1.0
+            weighted.append(dataclasses.replace(block,
+                                                weight=1.0 / np.maximum(variance, floor)))
+        weighted, block_variance = _balance_blocks(weighted, names, J, units, unit_group)
+        new = _least_squares(weighted, names, J).theta
+        settled = bool(np.all(np.abs(new - theta) <= 1e-10 * np.abs(new)))
+        theta = new
+    scale = float(np.mean(np.concatenate([b.weight for b in weighted])))
+    return ([dataclasses.replace(b, weight=b.weight / scale) for b in weighted],
+            block_variance, rounds)
+
+
+_MAX_ROUNDS = 20
 
 
 def _model_from_metadata(info: Mapping[str, Any], source: str) -> Model:

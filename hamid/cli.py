@@ -132,6 +132,12 @@ def _parse_floats(text: str | None, option: str) -> dict[str, float] | None:
     return None if text is None else io.parse_float_mapping(text, option=option)
 
 
+def _parse_noise(text: str | None) -> str | dict[str, float] | None:
+    if text is None or text in ("none", "auto"):
+        return text
+    return _parse_floats(text, "--noise")
+
+
 @cli.command()
 @click.argument("data", nargs=-1, required=True)
 @click.option("--model", metavar="NAME|MODEL.toml", help="Built-in model or model file.")
@@ -140,6 +146,16 @@ def _parse_floats(text: str | None, option: str) -> dict[str, float] | None:
 @click.option("--trajectory", metavar="COL", help="Trajectory column (default trajectory).")
 @click.option("--format-in", type=click.Choice(["csv", "tsv", "parquet"]),
               help="Input format, when the file name does not tell it.")
+@click.option("--velocity", default="measured", show_default=True,
+              type=click.Choice(["measured", "savgol"]),
+              help="Velocities from the file, or derived from the positions (Savitzky-Golay).")
+@click.option("--window", type=click.IntRange(min=3), metavar="SAMPLES",
+              help="Savitzky-Golay window (odd; default about a tenth of the period).")
+@click.option("--order", default=5, show_default=True, type=click.IntRange(min=1),
+              help="Savitzky-Golay polynomial order.")
+@click.option("--noise", metavar="none|auto|COL=SIGMA,...",
+              help="Measurement noise std per column; rows are weighted by the variance it "
+                   "puts into them. auto estimates it from the data.")
 @click.option("--method", default="auto", show_default=True,
               type=click.Choice(["auto", "joint", "weak", "energy"]),
               help="Energy rows, weak-form equations of motion, or both (auto: joint when "
@@ -163,7 +179,8 @@ def _parse_floats(text: str | None, option: str) -> dict[str, float] | None:
 @click.option("-o", "--output", default="-", metavar="FILE", help="Write the report here.")
 @click.option("--residuals", metavar="FILE", help="Write per-sample residuals (CSV/Parquet).")
 def fit(data: tuple[str, ...], model: str | None, columns: str | None,
-        time_column: str | None, trajectory: str | None, format_in: str | None, method: str,
+        time_column: str | None, trajectory: str | None, format_in: str | None,
+        velocity: str, window: int | None, order: int, noise: str | None, method: str,
         weak_window: float | None, damping: str, fix: str | None, cov: str, level: float,
         n_boot: int,
         seed: int | None, fmt: str | None, output: str, residuals: str | None) -> None:
@@ -173,13 +190,17 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
 
     if seed is not None and cov != "bootstrap":
         raise click.UsageError("--seed applies only to --cov bootstrap")
+    if velocity != "savgol" and (window is not None or order != 5):
+        raise click.UsageError("--window and --order apply only to --velocity savgol")
     if residuals is not None:
         io.table_format(residuals)
     fmt = fmt or _format_from_name(output, {".json": "json", ".csv": "csv"}, "table")
     result = run_fit(list(data), model,
                      columns=None if columns is None else io.parse_mapping(columns,
                                                                            option="--columns"),
-                     time=time_column, trajectory=trajectory, fix=_parse_floats(fix, "--fix"),
+                     time=time_column, trajectory=trajectory, velocity=velocity,
+                     window=window, order=order, noise=_parse_noise(noise),
+                     fix=_parse_floats(fix, "--fix"),
                      method=method, weak_window=weak_window, damping=damping, cov=cov,
                      level=level,
                      bootstrap=n_boot, seed=seed, format=format_in)

@@ -383,3 +383,44 @@ def weak_block(model: Model, records: Records, windows: Windows,
         A = np.hstack([A, forces])
     return Block("weak", A, -integrals[:, 0], np.repeat(windows.group, N),
                  np.repeat(windows.centre, N), np.ones(rows), has_level=False)
+
+
+_LAW_SLOPES = {"viscous": lambda v: np.ones_like(v), "coulomb": np.zeros_like,
+               "quadratic": lambda v: 2 * np.abs(v)}
+
+
+def row_variance(block: Block, model: Model, records: Records, theta: npt.NDArray[np.float64],
+                 sigma: npt.NDArray[np.float64], windows: Windows | None = None,
+                 damping: Damping | None = None) -> npt.NDArray[np.float64]:
+    """Variance that white measurement noise of std `sigma` (per variable) puts into each row.
+
+    First order in the noise: an energy row's residual moves by dE/dx_c e_c, a weak row's
+    by the window integral of the derivatives of dL/dv_i and dL/dq_i (and of the damping
+    force) times the noise of each sample. The cumulative work of an energy balance is left
+    out: its noise is spread over the whole record.
+    """
+    n_energy = len(model.parameters)
+    theta_energy = theta[:n_energy]
+    s2 = np.asarray(sigma, dtype=np.float64) ** 2
+    if block.kind == "energy":
+        g = (model.energy_gradient(records.X, theta_energy) ** 2) @ s2
+        if windows is None:
+            return g
+        mass = windows.Q_psi @ np.ones(len(g))
+        return (windows.Q_psi.multiply(windows.Q_psi) @ g) / mass**2
+    assert windows is not None
+    d_dv, d_dq = model.lagrangian.second_derivatives(records.X, theta_energy)
+    N = len(model.coordinates)
+    if damping is not None:
+        for k, (_, i, _) in enumerate(damping.terms):
+            kind = damping.kinds[k // N]
+            coefficient = theta[n_energy + k]
+            d_dq[:, i, N + i] -= coefficient * _LAW_SLOPES[kind](records.X[:, N + i])
+    dd, dp = windows.Q_dpsi, windows.Q_psi
+    dd2, cross, dp2 = dd.multiply(dd), dd.multiply(dp), dp.multiply(dp)
+    variance = np.zeros((windows.n_windows, N))
+    for i in range(N):
+        a, b = d_dv[:, i, :], d_dq[:, i, :]
+        variance[:, i] = (dd2 @ (a**2 @ s2) + 2 * (cross @ ((a * b) @ s2))
+                          + dp2 @ (b**2 @ s2))
+    return variance.ravel()

@@ -1007,7 +1007,8 @@ def resolve_columns(
                 f"(columns: {_list_columns(columns)})"
             )
         resolved[coordinate] = column
-    for coordinate, velocity in zip(coordinates, velocities, strict=True):
+    # No velocities: they will be derived from the positions.
+    for coordinate, velocity in zip(coordinates if velocities else (), velocities, strict=True):
         if velocity in mapping:
             resolved[velocity] = mapping[velocity]
             continue

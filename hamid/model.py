@@ -94,6 +94,28 @@ class Lagrangian:
         return (np.stack([np.stack([f(X) for f in row], axis=-1) for row in dv], axis=-1),
                 np.stack([np.stack([f(X) for f in row], axis=-1) for row in dq], axis=-1))
 
+    @cached_property
+    def _second(self) -> tuple[list[list[list[expr.Func]]], ...]:
+        variables = self.coordinates + self.velocities
+        dv, dq = self._gradients
+        return tuple([[[f.diff(x) for x in variables] for f in row] for row in grads]
+                     for grads in (dv, dq))
+
+    def second_derivatives(self, X: npt.NDArray[np.float64],
+                           theta: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+        """d(dL/dv_i)/dx_c and d(dL/dq_i)/dx_c of L(theta) at the states X.
+
+        Returns
+        -------
+        d_dLdv, d_dLdq : ndarray, shape (n_samples, n_coordinates, n_variables)
+        """
+        weights = np.concatenate([[1.0], np.asarray(theta, dtype=np.float64)])
+        return tuple(
+            sum(w * np.stack([np.stack([f(X) for f in per_x], axis=-1) for per_x in part],
+                             axis=1)
+                for w, part in zip(weights, table, strict=True) if w != 0.0)
+            for table in self._second)
+
 
 @dataclass(frozen=True, eq=False)
 class Model:
@@ -133,6 +155,17 @@ class Model:
         """E(x; theta) at the states X."""
         E0, Phi = self.energy_basis(X)
         return E0 + Phi @ np.asarray(theta, dtype=np.float64)
+
+    @cached_property
+    def _energy_gradient(self) -> list[list[expr.Func]]:
+        return [[f.diff(x) for x in self.variables] for f in (self.E0, *self.phi)]
+
+    def energy_gradient(self, X: npt.NDArray[np.float64],
+                        theta: Sequence[float]) -> np.ndarray:
+        """dE/dx at the states X, shape (n_samples, n_variables)."""
+        weights = np.concatenate([[1.0], np.asarray(theta, dtype=np.float64)])
+        return sum(w * np.stack([f(X) for f in row], axis=-1)
+                   for w, row in zip(weights, self._energy_gradient, strict=True) if w != 0.0)
 
     @cached_property
     def _natural(self) -> Lagrangian | str:
