@@ -86,7 +86,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         columns: Mapping[str, str] | None = None, time: str | None = None,
         trajectory: str | None = None, velocity: str = "measured",
         window: int | None = None, order: int = SAVGOL_ORDER,
-        noise: str | Mapping[str, float] | None = None,
+        noise: str | Mapping[str, float] | None = None, bias_correct: bool = False,
         fix: Mapping[str, float] | None = None, method: str = "auto",
         weak_window: float | None = None, damping: str | Sequence[str] = "none",
         cov: str = "hac", level: float = 0.95, bootstrap: int = 200,
@@ -111,6 +111,9 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     noise : None, "auto" or dict
         Measurement noise std per column (model or file name): rows are then weighted by
         the inverse of the variance the noise puts into them. "auto" estimates it.
+    bias_correct : bool
+        Remove the bias that the noise puts into least squares (adjusted least squares;
+        polynomial energies with measured velocities; needs `noise`).
     fix : dict, optional
         Parameters held at known values.
     method : {"auto", "joint", "weak", "energy"}
@@ -147,6 +150,11 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     _check_choice(cov, COVARIANCE_KINDS, "cov")
     if not 0 < level < 1:
         raise UsageError(f"level must be between 0 and 1, found {level!r}")
+    if bias_correct and noise in (None, "none"):
+        raise UsageError("--bias-correct needs --noise (auto or COL=SIGMA,...)")
+    if bias_correct and cov == "bootstrap":
+        raise UsageError("--bias-correct cannot be combined with --cov bootstrap (the "
+                         "refits would not be corrected); use --cov hac")
     if cov == "bootstrap" and bootstrap < 10:
         raise UsageError(f"bootstrap needs at least 10 replicates, found {bootstrap}")
     if weak_window is not None and not weak_window > 0:
@@ -195,7 +203,18 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         blocks, block_variance, rounds = _noise_weighted(
             blocks, m, records, spans, dissipation, sigma, free, fixed_values, free_names, J,
             units, unit_group)
-    estimate = _least_squares(blocks, free_names, J)
+    if bias_correct:
+        from hamid import adjust
+
+        adjust.check_adjustable(m, velocity == "savgol", dissipation)
+        moments = [adjust.adjusted_moments(b, m, records, sigma, spans, free_names, fixed)
+                   for b in blocks]
+        blocks = [mo.block for mo in moments]
+        estimate = _least_squares(blocks, free_names, J,
+                                  correction=(sum(mo.AA for mo in moments),
+                                              sum(mo.Ab for mo in moments)))
+    else:
+        estimate = _least_squares(blocks, free_names, J)
     theta = estimate.theta
 
     if cov == "bootstrap":
@@ -252,7 +271,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         "kind": kind, "kind_reason": kind_reason, "weak_window": window,
         "damping": list(dissipation.kinds),
         "weighting": "none" if sigma is None else "noise", "noise": noise_info,
-        "weighting_rounds": rounds, "bias_correction": False, "covariance": cov,
+        "weighting_rounds": rounds, "bias_correction": bias_correct, "covariance": cov,
         "covariance_description": cov_text, "level": level, "fixed": dict(fixed),
         "block_variance": block_variance,
     }
@@ -378,12 +397,17 @@ class _Estimate:
     df_resid: int
 
 
-def _least_squares(blocks: list[Block], names: list[str], J: int) -> _Estimate:
+def _least_squares(blocks: list[Block], names: list[str], J: int,
+                   correction: tuple[Any, Any] | None = None) -> _Estimate:
+    """Solve stacked blocks; with `correction` (noise-bias terms), adjusted least squares."""
     from hamid import solve
 
     has_levels = any(b.has_level for b in blocks)
     centred = solve.centre(blocks, J)
-    solution = solve.solve(centred, names, n_levels=J if has_levels else 0)
+    if correction is None:
+        solution = solve.solve(centred, names, n_levels=J if has_levels else 0)
+    else:
+        solution = solve.solve_adjusted(centred, *correction, names)
     theta = solution.theta
     h = centred.level_means_A @ theta - centred.level_means_b
     residual = np.concatenate([b.A @ theta - b.b - (h[b.group] if b.has_level else 0.0)

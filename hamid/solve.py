@@ -16,7 +16,8 @@ import numpy.typing as npt
 from hamid.design import Block
 from hamid.errors import FitError
 
-__all__ = ["Centred", "Conditioning", "Solution", "centre", "conditioning", "solve"]
+__all__ = ["Centred", "Conditioning", "Solution", "centre", "conditioning", "solve",
+           "solve_adjusted"]
 
 # A scaled singular value below this (a condition number above 1e10) leaves a direction
 # undetermined at double precision for any data with noise in them.
@@ -105,6 +106,37 @@ def solve(centred: Centred, names: Sequence[str], *, n_levels: int = 0) -> Solut
     theta = (Vt.T @ ((U.T @ b) / s)) / scale
     G = (centred.sqrt_w[:, None] * U) @ ((Vt.T / s).T / scale)
     return Solution(theta, G, s)
+
+
+def solve_adjusted(centred: Centred, AA: npt.NDArray[np.float64], Ab: npt.NDArray[np.float64],
+                   names: Sequence[str]) -> Solution:
+    """Adjusted least squares: the corrected moment equations (A'WA + AA) theta = A'Wb + Ab.
+
+    The adjusted estimator is defined by corrected sums of products, so it cannot work
+    on the design matrix alone as `solve` does; the equations are scaled to unit diagonal
+    and solved through their eigendecomposition, which also shows when the correction
+    leaves them indefinite (noise too large for the data).
+    """
+    A, b = centred.A, centred.b
+    gram = A.T @ A + AA
+    moment = A.T @ b + Ab
+    diagonal = np.diag(gram)
+    if not np.all(diagonal > 0):
+        bad = [n for n, d in zip(names, diagonal, strict=True) if not d > 0]
+        raise FitError(f"cannot correct the noise bias of {', '.join(bad)}: the noise "
+                       "given is as large as their terms' variation")
+    scale = np.sqrt(diagonal)
+    eigenvalues, V = np.linalg.eigh(gram / np.outer(scale, scale))
+    if eigenvalues[0] <= _RANK_TOLERANCE * eigenvalues[-1]:
+        weight = np.abs(V[:, 0])
+        involved = [n for n, w in zip(names, weight, strict=True) if w > 0.1]
+        raise FitError(f"cannot correct the noise bias: after the correction the data no "
+                       f"longer determine {', '.join(involved)} (the noise given is too large "
+                       "for these data, or overstated)")
+    inverse = (V / eigenvalues) @ V.T / np.outer(scale, scale)
+    theta = inverse @ moment
+    G = centred.sqrt_w[:, None] * (A @ inverse)
+    return Solution(theta, G, np.sqrt(eigenvalues[::-1]))
 
 
 def _raise_rank_deficient(s: np.ndarray, Vt: np.ndarray, names: Sequence[str],
