@@ -35,13 +35,12 @@ def load_model(name_or_path: str | os.PathLike[str]) -> Model:
     if not text.endswith(".toml"):
         return builtin_model(text)
     from hamid import io
-
-    document = io.read_toml(text)
-    if "model" not in document:
-        raise ModelError(f"{text}: no [model] table")
     from hamid.config import check_keys
 
+    document = io.read_toml(text)
     check_keys(document, _MODEL_FILE_KEYS, where=text)
+    if "model" not in document:
+        raise ModelError(f"{text}: no [model] table")
     return model_from_spec(document["model"], where=f"{text}: [model]")
 
 
@@ -180,6 +179,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
 
     fixed_values = np.array([fixed.get(name, 0.0) for name in names])
     all_energy_rows = design.energy_block(m, records, damping=dissipation)
+    _check_finite(all_energy_rows, loaded, names)
     energy_rows = _hold_fixed(all_energy_rows, free, fixed_values)
     blocks, spans = [], None
     if kind == "energy":
@@ -190,6 +190,12 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
             blocks.append(_hold_fixed(design.energy_block(m, records, spans, dissipation),
                                       free, fixed_values))
         weak = design.weak_block(m, records, spans, dissipation)
+        bad = np.flatnonzero(~np.all(np.isfinite(np.column_stack([weak.A, weak.b])), axis=1))
+        if bad.size:
+            raise DataError(f"the weak-form rows are not finite (window at t = "
+                            f"{weak.time[bad[0]]:g} of trajectory "
+                            f"{records.labels[weak.group[bad[0]]]}): the energy's derivatives "
+                            "are not finite there; use --method energy")
         if weak.n_rows == 0:
             raise DataError(f"the records are too short for one weak-form window of "
                             f"{window:.4g} s; use --method energy or a shorter --weak-window")
@@ -313,6 +319,12 @@ class _Loaded:
     data_info: dict[str, Any]
     notes: tuple[str, ...]
     velocity_gain: float | None  # noise gain of derived velocities, None when measured
+    row_sources: tuple[tuple[str, int], ...]  # (source, first row) of each input table
+
+    def locate(self, row: int) -> tuple[str, int]:
+        """The source and 1-based data row of a row of the records."""
+        source, first = next((s, f) for s, f in reversed(self.row_sources) if f <= row)
+        return source, row - first + 1
 
 
 def _check_choice(value: str, choices: tuple[str, ...], option: str) -> None:
@@ -367,6 +379,20 @@ def _check_fixed(fix: Mapping[str, float], parameters: tuple[str, ...]) -> dict[
         if not isinstance(value, int | float) or not math.isfinite(value):
             raise UsageError(f"--fix: {name}={value!r} is not a finite number")
     return {name: float(value) for name, value in fix.items()}
+
+
+def _check_finite(block: Block, loaded: _Loaded, names: list[str]) -> None:
+    """Energy terms must be finite at every sample (data inside the energy's domain)."""
+    values = np.column_stack([block.b, block.A])
+    bad = np.flatnonzero(~np.all(np.isfinite(values), axis=1))
+    if not bad.size:
+        return
+    row = int(bad[0])
+    column = int(np.flatnonzero(~np.isfinite(values[row]))[0])
+    term = "the parameter-free part" if column == 0 else f"the term of {names[column - 1]!r}"
+    source, local = loaded.locate(row)
+    raise DataError(f"{source}: row {local}: {term} of the energy is not finite there "
+                    "(the data are outside the energy's domain, or too large)")
 
 
 def _hold_fixed(block: Block, free: list[int], values: Any) -> Block:
@@ -560,12 +586,14 @@ def _residual_stats(residual: Any, block: Block, h: Any, bounds: list[tuple[int,
     for (a, b), label, level in zip(bounds, labels, h, strict=True):
         t, r = block.time[a:b], residual[a:b]
         span = t[-1] - t[0]
-        slope = np.polyfit(t - t.mean(), r, 1)[0] if b - a > 2 and span > 0 else 0.0
-        explained = (slope**2 * np.sum((t - t.mean())**2) / np.sum((r - r.mean())**2)
-                     if np.any(r != r.mean()) else 0.0)
+        # The trend in closed form, on time scaled to the record (no LAPACK on tiny steps).
+        u = (t - t.mean()) / span if b - a > 2 and span > 0 else np.zeros(b - a)
+        spread_u, spread_r = float(u @ u), float(np.sum((r - r.mean()) ** 2))
+        change = float(u @ r) / spread_u if spread_u > 0 else 0.0  # over the whole record
+        explained = change**2 * spread_u / spread_r if spread_r > 0 else 0.0
         drift.append({"trajectory": label,
-                      "relative_change": float(slope * span / abs(level)) if level else None,
-                      "trend_share": float(explained)})
+                      "relative_change": change / abs(level) if level else None,
+                      "trend_share": explained})
     return {
         "rms": rms,
         "max_abs": float(np.max(np.abs(residual))),
@@ -756,8 +784,10 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
         notes.append(f"velocities derived from the positions (Savitzky-Golay, window "
                      f"{derivation[0]} samples, order {order}); their noise is correlated "
                      "with the positions'")
+    firsts = np.cumsum([0] + [len(frame) for _, frame, _ in tables[:-1]])
     return _Loaded(m, records, truth, data_info, tuple(notes),
-                   derivation[1] if derivation else None)
+                   derivation[1] if derivation else None,
+                   tuple((name, int(f)) for (name, _, _), f in zip(tables, firsts, strict=True)))
 
 
 def _derive_velocities(records: Records, model: Model, window: int | None,

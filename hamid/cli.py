@@ -8,8 +8,11 @@ inside the commands so that `hamid --help` starts fast.
 
 from __future__ import annotations
 
+import math
 import os
 import sys
+import warnings
+from collections.abc import Callable
 from typing import Any, NoReturn
 
 import click
@@ -31,6 +34,14 @@ class _HamidGroup(click.Group):
             _quiet_broken_pipe()
 
     def invoke(self, ctx: click.Context) -> Any:
+        with warnings.catch_warnings():
+            if not ctx.params.get("debug"):
+                # numpy's floating-point warnings quote numpy's source lines, not the user's
+                # data; hamid says in its own words what they mean for the fit.
+                warnings.simplefilter("ignore", RuntimeWarning)
+            return self._invoke(ctx)
+
+    def _invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
         except UsageError as exc:
@@ -93,6 +104,7 @@ def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_met
     from hamid.api import simulate as run_simulation
 
     io.table_format(output, fmt)
+    io.check_destination(output)
     console = _stderr_console()
     with _progress(console, "simulating") as progress:
         frame = run_simulation(config, seed=seed, max_samples=max_samples, progress=progress)
@@ -156,6 +168,8 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--noise", metavar="none|auto|COL=SIGMA,...",
               help="Measurement noise std per column; rows are weighted by the variance it "
                    "puts into them. auto estimates it from the data.")
+@click.option("--bias-correct", is_flag=True,
+              help="Remove the bias that the noise puts into least squares (needs --noise).")
 @click.option("--method", default="auto", show_default=True,
               type=click.Choice(["auto", "joint", "weak", "energy"]),
               help="Energy rows, weak-form equations of motion, or both (auto: joint when "
@@ -180,7 +194,8 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--residuals", metavar="FILE", help="Write per-sample residuals (CSV/Parquet).")
 def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         time_column: str | None, trajectory: str | None, format_in: str | None,
-        velocity: str, window: int | None, order: int, noise: str | None, method: str,
+        velocity: str, window: int | None, order: int, noise: str | None,
+        bias_correct: bool, method: str,
         weak_window: float | None, damping: str, fix: str | None, cov: str, level: float,
         n_boot: int,
         seed: int | None, fmt: str | None, output: str, residuals: str | None) -> None:
@@ -190,25 +205,41 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
 
     if seed is not None and cov != "bootstrap":
         raise click.UsageError("--seed applies only to --cov bootstrap")
+    if bias_correct and noise in (None, "none"):
+        raise click.UsageError("--bias-correct needs --noise (auto or COL=SIGMA,...)")
     if velocity != "savgol" and (window is not None or order != 5):
         raise click.UsageError("--window and --order apply only to --velocity savgol")
+    if weak_window is not None and not 0 < weak_window < math.inf:
+        raise click.UsageError(f"--weak-window must be a positive, finite number of seconds, "
+                               f"found {weak_window!r}")
+    if not damping.replace(",", "").strip():
+        raise click.UsageError("--damping: empty value; expected none or any of viscous, "
+                               "coulomb, quadratic (comma separated)")
     if residuals is not None:
         io.table_format(residuals)
+        if output != "-" and os.path.realpath(output) == os.path.realpath(residuals):
+            raise click.UsageError(f"-o and --residuals name the same file {output!r}")
+    for destination in (output, residuals):
+        if destination is not None:
+            io.check_destination(destination)
     fmt = fmt or _format_from_name(output, {".json": "json", ".csv": "csv"}, "table")
     result = run_fit(list(data), model,
                      columns=None if columns is None else io.parse_mapping(columns,
                                                                            option="--columns"),
                      time=time_column, trajectory=trajectory, velocity=velocity,
                      window=window, order=order, noise=_parse_noise(noise),
+                     bias_correct=bias_correct,
                      fix=_parse_floats(fix, "--fix"),
                      method=method, weak_window=weak_window, damping=damping, cov=cov,
                      level=level,
                      bootstrap=n_boot, seed=seed, format=format_in)
-    if residuals is not None:
+
+    def write_residuals() -> None:
         import pandas as pd
 
         io.write_table(pd.DataFrame(result.samples), residuals)
-    _emit(result.to_dict(), fmt, output)
+
+    _emit(result.to_dict(), fmt, output, also=None if residuals is None else write_residuals)
 
 
 @cli.command()
@@ -222,6 +253,7 @@ def report(result_file: str, fmt: str | None, output: str) -> None:
     from hamid.report import validate_result
 
     result = validate_result(io.read_json(result_file), source=result_file)
+    io.check_destination(output)
     fmt = fmt or _format_from_name(output, {".json": "json", ".md": "markdown"}, "table")
     _emit(result, fmt, output)
 
@@ -230,15 +262,26 @@ def _format_from_name(output: str, by_suffix: dict[str, str], default: str) -> s
     return by_suffix.get(os.path.splitext(output)[1].lower(), default)
 
 
-def _emit(result: dict[str, Any], fmt: str, output: str) -> None:
-    """Render a result and write it; warnings also go to stderr unless a terminal shows them."""
+def _emit(result: dict[str, Any], fmt: str, output: str, *,
+          also: Callable[[], None] | None = None) -> None:
+    """Render a result and write it; warnings also go to stderr unless a terminal shows them.
+
+    `also` writes further output files; they and the report file appear together or, if
+    anything fails, none of them does.
+    """
     from hamid import io
     from hamid.report import render
 
     to_terminal = output == "-" and sys.stdout.isatty()
     color = to_terminal and "NO_COLOR" not in os.environ
     text = render(result, fmt, color=color)
-    io.write_text(text, output)
+    with io.all_or_nothing():
+        if also is not None:
+            also()
+        if output != "-":
+            io.write_text(text, output)
+    if output == "-":
+        io.write_text(text, output)
     if not (fmt == "table" and output == "-"):
         for warning in result["warnings"]:
             click.echo(f"warning: {warning}", err=True)

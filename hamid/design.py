@@ -105,7 +105,8 @@ def _velocity_points(records: Records, v: npt.NDArray[np.float64]) -> _Points:
     assert records.t is not None
     parts = [_points_of_trajectory(records.t[a:b], v[a:b], a) for a, b in records.bounds()
              if b - a >= 2]
-    return _Points(*(np.concatenate([p[k] for p in parts]) for k in range(4)))
+    empty = (np.zeros(0, np.int64), *(np.zeros(0) for _ in range(3)))
+    return _Points(*(np.concatenate([empty[k], *(p[k] for p in parts)]) for k in range(4)))
 
 
 def _points_of_trajectory(t: np.ndarray, v: np.ndarray, offset: int) -> tuple[np.ndarray, ...]:

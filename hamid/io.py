@@ -31,6 +31,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "VELOCITY_PATTERNS",
+    "all_or_nothing",
+    "check_destination",
     "default_time_column",
     "default_trajectory_column",
     "find_coordinates",
@@ -645,6 +647,69 @@ def _write_stdout(write: Callable[[IO[bytes]], object], *, binary: bool) -> None
     sys.stdout.flush()
 
 
+def check_destination(dest: str | os.PathLike[str]) -> None:
+    """Fail at once, before long work, if an output file cannot be created.
+
+    Parameters
+    ----------
+    dest : str or path-like
+        Destination file; ``"-"`` (standard output) always passes.
+
+    Raises
+    ------
+    DataError
+        The destination is a folder, or its folder does not exist.
+    """
+    if _is_stdio(dest):
+        return
+    path, name = Path(os.fspath(dest)), os.fsdecode(dest)
+    if path.is_dir():
+        raise DataError(f"{name}: is a folder, not a file")
+    if not path.parent.is_dir():
+        raise DataError(f"{name}: cannot write: folder {str(path.parent)!r} does not exist")
+
+
+# Renames held back by `all_or_nothing`: (temporary, destination, name).
+_held: list[tuple[str, Path, str]] | None = None
+
+
+@contextlib.contextmanager
+def all_or_nothing() -> Iterator[None]:
+    """Files written inside appear together at the end, or none of them does.
+
+    Each file is written to its temporary as usual; the renames onto the destinations wait
+    until the block ends without an error. On any error (Ctrl-C included) the temporaries
+    are removed and every destination is left as it was. Standard output is not held back.
+
+    Examples
+    --------
+    >>> with all_or_nothing():  # doctest: +SKIP
+    ...     write_table(residuals, "residuals.csv")
+    ...     write_text(report, "report.json")
+    """
+    global _held
+    outer, held = _held, []
+    _held = held
+    try:
+        yield
+    except BaseException:
+        for temporary, _, _ in held:
+            _remove_quietly(temporary)
+        raise
+    finally:
+        _held = outer
+    for k, (temporary, path, name) in enumerate(held):
+        try:
+            os.replace(temporary, path)
+        except BaseException as exc:
+            for later, _, _ in held[k:]:
+                _remove_quietly(later)
+            if isinstance(exc, OSError):
+                raise DataError(f"{name}: cannot write: {_reason(exc)}") from exc
+            raise
+        _sync_folder(path.parent)
+
+
 def _write_atomic(path: Path, name: str, write: Callable[[IO[bytes]], object]) -> None:
     """Helper function writing through a temporary file in the destination's folder."""
     if path.is_dir():
@@ -662,6 +727,9 @@ def _write_atomic(path: Path, name: str, write: Callable[[IO[bytes]], object]) -
             stream.flush()
             os.fsync(stream.fileno())
         os.chmod(temporary, _new_file_mode(path))
+        if _held is not None:
+            _held.append((temporary, path, name))
+            return
         os.replace(temporary, path)
     except OSError as exc:
         _remove_quietly(temporary)

@@ -87,18 +87,20 @@ def solve(centred: Centred, names: Sequence[str], *, n_levels: int = 0) -> Solut
     """Least squares of the centred rows; a FitError names undetermined parameters."""
     A, b = centred.A, centred.b
     n, p = A.shape
-    if n < p + n_levels:
+    if n <= p + n_levels:
         raise FitError(f"cannot determine {', '.join(names)}: {n} rows for {p + n_levels} "
                        f"unknowns ({p} parameters"
                        + (f" and {n_levels} energy level{'s' if n_levels > 1 else ''})"
-                          if n_levels else ")"))
+                          if n_levels else ")")
+                       + ", which leaves nothing to estimate their errors from")
     scale = np.linalg.norm(A, axis=0)
     varies = scale > _VARIES * centred.raw_norms
     still = [name for name, v in zip(names, varies, strict=True) if not v]
     if still:
-        subject = "its term does" if len(still) == 1 else "their terms do"
+        subject, pronoun = ("its term does", "it") if len(still) == 1 else (
+            "their terms do", "them")
         raise FitError(f"cannot determine {', '.join(still)}: {subject} not vary along any "
-                       "trajectory, so the energy level absorbs it")
+                       f"trajectory, so the energy level absorbs {pronoun}")
     U, s, Vt = np.linalg.svd(A / scale, full_matrices=False)
     tolerance = _RANK_TOLERANCE * s[0]
     if s[-1] <= tolerance or not np.all(np.isfinite(s)):
