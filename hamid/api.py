@@ -668,7 +668,7 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
               df: int, level: float, cov: str, kind: str,
               damping: tuple[str, ...]) -> list[str]:
     """Plain-words warnings about the fit."""
-    from scipy import stats as distributions
+    from hamid.uncertainty import t_quantile
 
     notes = []
     for d in stats["drift"]:
@@ -688,7 +688,7 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
                      f" ill-conditioned (condition number {cond.condition_number:.3g}); the "
                      f"data determine {combination} worst: record larger amplitudes or add a "
                      "trajectory at another energy")
-    critical = distributions.t.ppf((1 + level) / 2, df)
+    critical = t_quantile(df, level)
     for p in parameters:
         if p.stderr is not None and abs(p.estimate) < critical * p.stderr:
             notes.append(f"{p.name} is not significantly different from zero "

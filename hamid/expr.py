@@ -11,8 +11,10 @@ backed by sympy.
 from __future__ import annotations
 
 import ast
+import itertools
 import math
-from collections.abc import Mapping, Sequence
+import warnings
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from typing import TYPE_CHECKING, Any
@@ -85,7 +87,12 @@ def parse(text: str, names: Sequence[str] | None, *, where: str = "energy") -> a
         raise ModelError(f"{where}: the expression is {len(text)} characters long "
                          f"(at most {MAX_LENGTH})")
     try:
-        tree = ast.parse(text.strip(), mode="eval").body
+        with warnings.catch_warnings():
+            # Python would print a warning about text such as '1if x' on standard error;
+            # such text is refused instead.
+            warnings.simplefilter("error", SyntaxWarning)
+            warnings.simplefilter("error", DeprecationWarning)
+            tree = ast.parse(text.strip(), mode="eval").body
     except (SyntaxError, ValueError, MemoryError, RecursionError) as exc:
         detail = getattr(exc, "msg", None) or str(exc) or type(exc).__name__
         raise ModelError(f"{where}: cannot parse {text.strip()!r}: {detail}") from exc
@@ -280,6 +287,19 @@ class Func:
             raise TypeError("cannot combine functions of different kinds")
         return kinds.pop()._combine(funcs, weights)
 
+    @staticmethod
+    def stack(funcs: Sequence[Func]) -> Callable[[npt.NDArray[np.float64]], np.ndarray]:
+        """One compiled evaluation of several functions of one kind and the same variables.
+
+        The returned callable takes the state with the variables on the first axis,
+        ``Xt`` of shape (n_variables, ...), and returns shape (len(funcs), ...). It is much
+        faster than calling each function, since the work they share is done once.
+        """
+        kinds = {type(f) for f in funcs}
+        if len(kinds) != 1:
+            raise TypeError("cannot stack functions of different kinds")
+        return kinds.pop()._stack(funcs)
+
 
 @dataclass(frozen=True, eq=False)
 class Polynomial(Func):
@@ -352,11 +372,103 @@ class Polynomial(Func):
         terms = {k: c for k, c in terms.items() if c != 0.0}
         return cls.from_terms(terms, funcs[0].variables)
 
+    @classmethod
+    def _stack(cls, funcs: Sequence[Func]) -> _PolynomialStack:
+        return _PolynomialStack(funcs)
+
     def text(self) -> str:
         """The polynomial as an expression string, e.g. ``0.5*x**2 - 2*x*y``."""
         return _terms_text({tuple(int(e) for e in row): c for row, c in
                             zip(self.exponents, self.coefficients, strict=True)},
                            self.variables)
+
+
+class _PolynomialStack:
+    """Several polynomials as one table of their monomials times one coefficient matrix.
+
+    The table holds the constant (if used), every variable, then the monomials of degree
+    2, 3, ... Each monomial of degree d is a monomial of degree d - 1 times one variable;
+    those sharing that variable come from consecutive rows, so one vectorised
+    multiplication per degree and variable builds the table, however many monomials.
+    """
+
+    _CHUNK = 1 << 14  # samples per pass, so that the table stays in cache
+
+    def __init__(self, funcs: Sequence[Func]):
+        n_vars = len(funcs[0].variables)
+        keys: set[tuple[int, ...]] = set()
+        for f in funcs:
+            assert isinstance(f, Polynomial)
+            keys.update(tuple(int(e) for e in row) for row in f.exponents)
+        pending = [k for k in keys if sum(k) > 1]
+        while pending:
+            parent = self._parent(pending.pop())[0]
+            if sum(parent) > 1 and parent not in keys:
+                keys.add(parent)
+                pending.append(parent)
+        self.constant = (0,) * n_vars in keys
+        offset = int(self.constant)
+        unit = [tuple(int(i == j) for i in range(n_vars)) for j in range(n_vars)]
+        order = [(0,) * n_vars] * offset + unit
+        self.levels: list[tuple[slice, slice | np.ndarray, slice]] = []
+        index = {k: i for i, k in enumerate(order)}
+        for degree in range(2, max((sum(k) for k in keys), default=0) + 1):
+            # grouped by the variable that multiplies the parent, parents in table order:
+            # each group is then usually one multiplication of consecutive rows (a view)
+            level = sorted((self._parent(k)[1], index[self._parent(k)[0]], k)
+                           for k in keys if sum(k) == degree)
+            for j, group in itertools.groupby(level, key=lambda item: item[0]):
+                members = list(group)
+                start = len(order)
+                order += [k for _, _, k in members]
+                index.update((k, start + i) for i, (_, _, k) in enumerate(members))
+                self.levels.append((slice(start, len(order)),
+                                    _as_slice([parent for _, parent, _ in members]),
+                                    slice(j, j + 1)))
+        self.n_variables = n_vars
+        self.n_rows = len(order)
+        self.coefficients = np.zeros((len(funcs), len(order)))
+        for i, f in enumerate(funcs):
+            assert isinstance(f, Polynomial)
+            for row, c in zip(f.exponents, f.coefficients, strict=True):
+                self.coefficients[i, index[tuple(int(e) for e in row)]] += c
+
+    @staticmethod
+    def _parent(key: tuple[int, ...]) -> tuple[tuple[int, ...], int]:
+        """The monomial of one degree less, and the variable that multiplies it back."""
+        j = max(i for i, e in enumerate(key) if e)
+        return key[:j] + (key[j] - 1,) + key[j + 1:], j
+
+    def __call__(self, Xt: npt.NDArray[np.float64]) -> np.ndarray:
+        Xt = np.asarray(Xt, dtype=np.float64)
+        if Xt.ndim == 2 and Xt.shape[1] <= self._CHUNK:  # the common small case, kept lean
+            return self.coefficients @ self._table(Xt)
+        shape = Xt.shape[1:]
+        flat = Xt.reshape(self.n_variables, -1)
+        size = flat.shape[1]
+        if size <= self._CHUNK:
+            return (self.coefficients @ self._table(flat)).reshape(-1, *shape)
+        out = np.empty((len(self.coefficients), size))
+        for start in range(0, size, self._CHUNK):
+            part = flat[:, start:start + self._CHUNK]
+            out[:, start:start + part.shape[1]] = self.coefficients @ self._table(part)
+        return out.reshape(-1, *shape)
+
+    def _table(self, flat: np.ndarray) -> np.ndarray:
+        table = np.empty((self.n_rows, flat.shape[1]))
+        if self.constant:
+            table[0] = 1.0
+        table[int(self.constant):self.n_variables + int(self.constant)] = flat
+        for rows, parents, variables in self.levels:
+            np.multiply(table[parents], flat[variables], out=table[rows])
+        return table
+
+
+def _as_slice(rows: Sequence[int]) -> slice | np.ndarray:
+    """Rows as a slice when they are consecutive (a view is cheaper than fancy indexing)."""
+    if all(b - a == 1 for a, b in itertools.pairwise(rows)):
+        return slice(rows[0], rows[-1] + 1)
+    return np.array(rows, dtype=np.intp)
 
 
 def _terms_text(terms: _Terms, names: Sequence[str]) -> str:
@@ -389,8 +501,12 @@ class Symbolic(Func):
     def __call__(self, X: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         X = np.asarray(X, dtype=np.float64)
         with np.errstate(all="ignore"):
-            value = self._compiled(*np.moveaxis(X, -1, 0))
-        return np.broadcast_to(np.asarray(value, dtype=np.float64), X.shape[:-1]).copy()
+            value = np.asarray(self._compiled(*np.moveaxis(X, -1, 0)))
+        if np.iscomplexobj(value):
+            # A real formula can still give complex numbers (the square root of a negative
+            # constant): outside the energy's domain, like numpy's sqrt(-1) = nan.
+            value = np.where(value.imag == 0, value.real, np.nan)
+        return np.broadcast_to(value.astype(np.float64), X.shape[:-1]).copy()
 
     def diff(self, name: str) -> Symbolic:
         import sympy
@@ -425,6 +541,31 @@ class Symbolic(Func):
         total = sympy.Add(*[sympy.Float(w) * f.expression for f, w in zip(funcs, weights,
                                                                             strict=True)])
         return cls(funcs[0].variables, total)
+
+    @classmethod
+    def _stack(cls, funcs: Sequence[Func]) -> Callable[[npt.NDArray[np.float64]], np.ndarray]:
+        import sympy
+
+        expressions = []
+        for f in funcs:
+            assert isinstance(f, Symbolic)
+            expressions.append(f.expression)
+        symbols = [sympy.Symbol(v, real=True) for v in funcs[0].variables]
+        # one function, so that subexpressions common to several functions are shared
+        compiled = sympy.lambdify(symbols, expressions, modules="numpy", cse=True)
+
+        def evaluate(Xt: npt.NDArray[np.float64]) -> np.ndarray:
+            Xt = np.asarray(Xt, dtype=np.float64)
+            out = np.empty((len(funcs), *Xt.shape[1:]))
+            with np.errstate(all="ignore"):
+                for i, value in enumerate(compiled(*Xt)):
+                    value = np.asarray(value)
+                    if np.iscomplexobj(value):  # outside the domain, as in __call__
+                        value = np.where(value.imag == 0, value.real, np.nan)
+                    out[i] = value
+            return out
+
+        return evaluate
 
 
 # --- linear split -----------------------------------------------------------------------
@@ -511,6 +652,9 @@ def _split_symbolic(tree: ast.expr, variables: Sequence[str], parameters: Sequen
         if term.has(sympy.zoo, sympy.oo, -sympy.oo, sympy.nan):
             raise ModelError(f"{where}: energy term {str(term)!r} is not finite "
                              "(a division by zero?)")
+        if term.has(sympy.I):
+            raise ModelError(f"{where}: energy term {str(term)!r} is not real "
+                             "(the square root or logarithm of a negative number?)")
         involved = [p for p in params if term.has(p)]
         if not involved:
             parts[0] += term

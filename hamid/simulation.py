@@ -101,7 +101,7 @@ def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:
             raise ModelError(f"{where}: [simulate] needs {key!r}")
     t_end = number(settings["t_end"], where=f"{where}: [simulate] t_end", positive=True)
     dt = number(settings["dt"], where=f"{where}: [simulate] dt", positive=True)
-    if len(sample_times(t_end, dt)) < 2:
+    if sample_count(t_end, dt) < 2:
         raise ModelError(f"{where}: [simulate] t_end = {t_end:g} is shorter than dt = {dt:g};"
                          " the run would have a single sample")
     method = settings.get("method", "dop853")
@@ -133,51 +133,115 @@ def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:
                   noise, relative, damping, max_samples)
 
 
+def sample_count(t_end: float, dt: float) -> float:
+    """Number of samples t = k*dt up to t_end (inf when it does not fit a float)."""
+    steps = t_end / dt
+    if not math.isfinite(steps) or steps > 2**53:
+        return math.inf
+    n = round(steps) if math.isclose(steps, round(steps), rel_tol=1e-9) else math.floor(steps)
+    return n + 1
+
+
 def sample_times(t_end: float, dt: float) -> npt.NDArray[np.float64]:
     """t = k*dt for k = 0, 1, ... up to t_end, including t_end when it is a multiple of dt."""
-    steps = t_end / dt
-    n = round(steps) if math.isclose(steps, round(steps), rel_tol=1e-9) else math.floor(steps)
-    return np.arange(n + 1) * dt
+    return np.arange(int(sample_count(t_end, dt))) * dt
 
 
 class _Dynamics:
-    """Vectorised right-hand side for all trajectories at once."""
+    """Right-hand side for all trajectories at once.
+
+    The state vector holds one variable of every trajectory after another:
+    ``y.reshape(n_rows, n_traj)`` has rows q_1..q_N, v_1..v_N and, when there is
+    damping, the energy it has drained. What Lagrange's equations need is evaluated in one
+    compiled call (`Func.stack`). A constant mass matrix is inverted once and folded into
+    the forces, so that call returns the accelerations themselves.
+    """
 
     def __init__(self, model: Model, theta: Sequence[float], damping: Mapping[str, float]):
         lag = model.lagrangian
         L = Func.combine([lag.L0, *lag.L], [1.0, *theta])
         q, v = model.coordinates, model.velocities
-        self.n = len(q)
+        self.n = n = len(q)
         dLdv = [L.diff(vi) for vi in v]
-        self.mass = [[f.diff(vj) for vj in v] for f in dLdv]
-        self.mixed = [[f.diff(qk) for qk in q] for f in dLdv]
-        self.force = [L.diff(qi) for qi in q]
+        mass = [[f.diff(vj) for vj in v] for f in dLdv]
+        forces = [L.diff(qi) for qi in q]
+        # the mass matrix is symmetric: its upper triangle, row by row
+        self._upper = [(i, j) for i in range(n) for j in range(i, n)]
+        self._mass = Func.stack([mass[i][j] for i, j in self._upper])
+        self.constant_mass = all(_is_constant(mass[i][j], q) for i, j in self._upper)
+        self.inverse: np.ndarray | None = None
+        self.mixed: list[tuple[int, int]] = []
+        if self.constant_mass:
+            M = self.mass_matrix(np.zeros((2 * n, 1)))[0]
+            # one that is not positive definite is rejected by _check_mass before any step
+            if np.all(np.linalg.eigvalsh(M) > 0):
+                self.inverse = np.linalg.inv(M)
+        if self.inverse is not None:
+            # d/dq (dL/dv) = (dM/dq) v vanishes, and M^-1 dL/dq are the accelerations
+            funcs = [Func.combine(forces, [float(w) for w in row]) for row in self.inverse]
+        else:
+            mixed = [(i, k, f.diff(qk)) for i, f in enumerate(dLdv) for k, qk in enumerate(q)]
+            mixed = [(i, k, f) for i, k, f in mixed if not f.is_zero()]
+            self.mixed = [(i, k) for i, k, _ in mixed]
+            funcs = forces + [f for _, _, f in mixed] + [mass[i][j] for i, j in self._upper]
+        self._evaluate = Func.stack(funcs)
         names = damping_names(q)
         self.damping = [(DAMPING_KINDS[kind][1], i, value)
                         for key, value in damping.items() if value
                         for kind, i in [names[key]]]
+        # a conservative run carries no drained-energy row: a fifth less to interpolate
+        # and store at every sample of a 2-DOF run
+        self.n_rows = 2 * n + bool(self.damping)
 
-    def mass_matrix(self, X: np.ndarray) -> np.ndarray:
-        return np.stack([np.stack([f(X) for f in row], axis=-1) for row in self.mass], axis=-2)
+    def mass_matrix(self, Xt: np.ndarray) -> np.ndarray:
+        """M at states with the variables on the first axis, shape (2N, ...) -> (..., N, N)."""
+        return self._assemble(self._mass(Xt))
+
+    def _assemble(self, upper: np.ndarray) -> np.ndarray:
+        M = np.empty((*upper.shape[1:], self.n, self.n))
+        for (i, j), entry in zip(self._upper, upper, strict=True):
+            M[..., i, j] = M[..., j, i] = entry
+        return M
 
     def dissipation(self, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Dissipative forces (n_traj, N) and the power they drain (n_traj,)."""
+        """Dissipative forces (N, n_traj) and the power they drain (n_traj,)."""
         forces = np.zeros_like(V)
         for law, i, coefficient in self.damping:
-            forces[:, i] -= coefficient * law(V[:, i])
-        return forces, -np.einsum("ij,ij->i", forces, V)
+            forces[i] -= coefficient * law(V[i])
+        return forces, -np.einsum("ij,ij->j", forces, V)
 
     def __call__(self, t: float, y: np.ndarray) -> np.ndarray:
         n = self.n
-        Y = y.reshape(-1, 2 * n + 1)
-        X, V = Y[:, :2 * n], Y[:, n:2 * n]
-        rhs = np.stack([f(X) for f in self.force], axis=-1)
-        for i, row in enumerate(self.mixed):
-            rhs[:, i] -= sum(f(X) * V[:, k] for k, f in enumerate(row))
-        forces, power = self.dissipation(V)
-        with np.errstate(all="ignore"):
-            acceleration = np.linalg.solve(self.mass_matrix(X), (rhs + forces)[..., None])[..., 0]
-        return np.concatenate([V, acceleration, power[:, None]], axis=1).ravel()
+        Y = y.reshape(self.n_rows, -1)
+        V = Y[n:2 * n]
+        values = self._evaluate(Y[:2 * n])
+        out = np.empty_like(Y)
+        out[:n] = V
+        forces = None
+        if self.damping:
+            forces, power = self.dissipation(V)
+            out[2 * n] = power
+        if self.inverse is not None:
+            out[n:2 * n] = values
+            if forces is not None:
+                out[n:2 * n] += self.inverse @ forces
+            return out.ravel()
+        rhs = values[:n]
+        for m, (i, k) in enumerate(self.mixed):
+            rhs[i] -= values[n + m] * V[k]
+        if forces is not None:
+            rhs += forces
+        upper = values[n + len(self.mixed):]
+        if n == 1:
+            out[1] = rhs[0] / upper[0]
+        elif n == 2:  # Cramer's rule: a batched LU costs far more at this size
+            a, b, d = upper
+            det = a * d - b * b
+            out[2] = (d * rhs[0] - b * rhs[1]) / det
+            out[3] = (a * rhs[1] - b * rhs[0]) / det
+        else:
+            out[n:2 * n] = np.linalg.solve(self._assemble(upper), rhs.T[..., None])[..., 0].T
+        return out.ravel()
 
 
 def run(system: System, *, seed: int | None = None,
@@ -197,26 +261,32 @@ def run(system: System, *, seed: int | None = None,
     model = system.model
     theta = [system.theta[p] for p in model.parameters]
     n, n_traj = len(model.coordinates), len(system.initial)
-    times = sample_times(system.t_end, system.dt)
-    if len(times) * n_traj > system.max_samples:
-        raise ModelError(f"the run would write {len(times) * n_traj:,} samples, more than "
+    total = sample_count(system.t_end, system.dt) * n_traj
+    if total > system.max_samples:
+        size = f"{total:,.0f}" if math.isfinite(total) else "more than 2**53"
+        raise ModelError(f"the run would write {size} samples, more than "
                          f"max_samples = {system.max_samples:,}; raise it with --max-samples "
                          "or [simulate] max_samples if this is intended")
-    start = np.array([[s[v] for v in model.variables] + [0.0] for s in system.initial])
+    times = sample_times(system.t_end, system.dt)
     dynamics = _Dynamics(model, theta, system.damping)
-    _check_mass(dynamics, start[:, :2 * n], "initial state of trajectory")
+    start = np.zeros((n_traj, dynamics.n_rows))
+    start[:, :2 * n] = [[s[v] for v in model.variables] for s in system.initial]
+    _check_mass(dynamics, start[:, :2 * n].T, "initial state of trajectory")
 
     def escape(t: float, y: np.ndarray) -> float:
         if progress is not None:
             progress(min(t / times[-1], 1.0) if times[-1] > 0 else 1.0)
-        return _ESCAPE_BOUND - np.max(np.abs(y.reshape(n_traj, -1)[:, :2 * n]), initial=0.0)
+        return _ESCAPE_BOUND - np.max(np.abs(y[:2 * n * n_traj]), initial=0.0)
 
     escape.terminal = True  # type: ignore[attr-defined]
     with np.errstate(all="ignore"):
-        solution = solve_ivp(dynamics, (0.0, float(times[-1])), start.ravel(),
+        solution = solve_ivp(dynamics, (0.0, float(times[-1])), start.T.ravel(),
                              method=INTEGRATORS[system.method], t_eval=times,
                              rtol=system.rtol, atol=system.atol, events=escape)
-    states = solution.y.T.reshape(len(solution.t), n_traj, 2 * n + 1)
+    # states[i, j, k]: row i of the state (_Dynamics) of trajectory j at times[k]. solve_ivp
+    # stores its samples time by time; one copy puts them in the order of the output rows.
+    states = np.ascontiguousarray(solution.y.reshape(dynamics.n_rows, n_traj,
+                                                     len(solution.t)))
     if solution.status != 0 or len(solution.t) < len(times) or not np.all(np.isfinite(states)):
         # the joint run failed before the sample after the last one it kept
         t_stop = float(times[min(len(solution.t) + 1, len(times) - 1)])
@@ -235,35 +305,42 @@ def run(system: System, *, seed: int | None = None,
         _raise_escape(solution, n_traj, n, alone)
     if progress is not None:
         progress(1.0)
-    X = states[:, :, :2 * n]
-    if any(f for row in dynamics.mass for f in row if not _is_constant(f, model)):
-        _check_mass(dynamics, X.reshape(-1, 2 * n), "simulated state of the run, sample")
+    X = states[:2 * n]
+    if not dynamics.constant_mass:
+        # the label's sample number is the row of the output
+        _check_mass(dynamics, X.reshape(2 * n, -1), "simulated state of the run, sample")
 
-    energy = model.total_energy(X.reshape(-1, 2 * n), theta).reshape(len(times), n_traj)
-    balance = energy + states[:, :, -1]
-    scale = np.maximum(np.abs(energy[0]), np.finfo(float).tiny)
-    drift = np.max(np.abs(balance - balance[0]), axis=0) / scale
-    lost = states[-1, :, -1] / scale
+    total = Func.combine([model.E0, *model.phi], [1.0, *theta])
+    energy = Func.stack([total])(X)[0]
+    drained = states[2 * n] if dynamics.damping else np.zeros((n_traj, 1))
+    balance = energy + drained
+    scale = np.maximum(np.abs(energy[:, 0]), np.finfo(float).tiny)
+    drift = np.max(np.abs(balance - balance[:, :1]), axis=1) / scale
+    lost = drained[:, -1] / scale
 
-    clean = X.transpose(1, 0, 2).reshape(-1, 2 * n)
-    sigma = {v: system.noise.get(v, system.relative_noise * float(np.std(clean[:, i])))
+    clean = X.reshape(2 * n, -1)  # rows of the output: trajectory by trajectory
+    sigma = {v: system.noise[v] if v in system.noise else
+             system.relative_noise * float(np.std(clean[i])) if system.relative_noise else 0.0
              for i, v in enumerate(model.variables)}
     seed = system.seed if seed is None else seed
     if seed is None:
         seed = int(np.random.SeedSequence().entropy % 2**32)
-    rng = np.random.default_rng(seed)
-    noisy = clean + rng.standard_normal(clean.shape) * np.array([sigma[v] for v in
-                                                                  model.variables])
     columns = {"trajectory": np.repeat(np.arange(1, n_traj + 1), len(times)),
                "t": np.tile(times, n_traj)}
-    columns.update({v: noisy[:, i] for i, v in enumerate(model.variables)})
+    columns.update({v: clean[i] for i, v in enumerate(model.variables)})
+    if any(sigma.values()):
+        # one draw of shape (n_rows, 2N), so a seed gives the same noise as it always has
+        rng = np.random.default_rng(seed)
+        draw = rng.standard_normal((clean.shape[1], 2 * n))
+        columns.update({v: clean[i] + draw[:, i] * sigma[v]
+                        for i, v in enumerate(model.variables)})
     provenance = {
         "model": model.info(),
         "parameters": dict(system.theta),
         "damping": dict(system.damping),
         "initial": [dict(s) for s in system.initial],
         "trajectories": [
-            {"trajectory": j + 1, "energy": float(energy[0, j]),
+            {"trajectory": j + 1, "energy": float(energy[j, 0]),
              "energy_drift": float(drift[j]), "energy_dissipated": float(lost[j])}
             for j in range(n_traj)],
         "noise": {v: s for v, s in sigma.items() if s > 0} or None,
@@ -275,13 +352,16 @@ def run(system: System, *, seed: int | None = None,
     return columns, provenance
 
 
-def _is_constant(f: Func, model: Model) -> bool:
-    return all(f.diff(q).is_zero() for q in model.coordinates)
+def _is_constant(f: Func, coordinates: Sequence[str]) -> bool:
+    return all(f.diff(q).is_zero() for q in coordinates)
 
 
-def _check_mass(dynamics: _Dynamics, X: np.ndarray, label: str) -> None:
-    """The mass matrix must be positive definite, or the motion is not defined."""
-    eigenvalues = np.linalg.eigvalsh(dynamics.mass_matrix(X))
+def _check_mass(dynamics: _Dynamics, Xt: np.ndarray, label: str) -> None:
+    """The mass matrix must be positive definite, or the motion is not defined.
+
+    `Xt` holds the states with the variables on the first axis, shape (2N, n_states).
+    """
+    eigenvalues = np.linalg.eigvalsh(dynamics.mass_matrix(Xt))
     bad = np.flatnonzero(~(eigenvalues.min(axis=-1) > 0))
     if bad.size:
         raise ModelError(f"the kinetic energy is not positive definite at the {label} "
@@ -292,8 +372,8 @@ def _check_mass(dynamics: _Dynamics, X: np.ndarray, label: str) -> None:
 def _raise_escape(solution: Any, n_traj: int, n: int, alone: Callable[[int], Any]) -> None:
     if solution.t_events and len(solution.t_events[0]):
         t_fail = float(solution.t_events[0][0])
-        last = solution.y_events[0][0].reshape(n_traj, -1)[:, :2 * n]
-        size = np.where(np.isfinite(last), np.abs(last), np.inf).max(axis=1)
+        last = solution.y_events[0][0].reshape(-1, n_traj)[:2 * n]
+        size = np.where(np.isfinite(last), np.abs(last), np.inf).max(axis=0)
         j = int(np.argmax(size)) + 1
     else:
         # The integrator failed (the equations of motion stopped being finite). The samples

@@ -40,7 +40,7 @@ from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
+from scipy.special import stdtrit
 
 from hamid.errors import FitError
 
@@ -52,6 +52,7 @@ __all__ = [
     "bootstrap",
     "confidence_bounds",
     "covariance",
+    "t_quantile",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -437,6 +438,12 @@ def bartlett_bandwidth(
     return _andrews_bandwidth(_problem(G, lam, residuals, None, groups, 1))
 
 
+def t_quantile(df: float, level: float) -> float:
+    """The two-sided critical value of Student's t at `level` (scipy.special: the
+    distribution's inverse without importing scipy.stats, which costs a second at start)."""
+    return float(stdtrit(df, (1 + level) / 2))
+
+
 def confidence_bounds(
     estimate: npt.ArrayLike,
     stderr: npt.ArrayLike | None,
@@ -476,7 +483,7 @@ def confidence_bounds(
     se = np.full_like(est, np.nan) if stderr is None else np.asarray(stderr, dtype=np.float64)
     if np.any(se < 0):
         raise ValueError(f"`stderr` must be >= 0, got {np.nanmin(se)}")
-    half = stats.t.ppf((1 + level) / 2, df) * se
+    half = t_quantile(df, level) * se
     return est - half, est + half
 
 
