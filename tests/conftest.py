@@ -78,3 +78,30 @@ def with_noise(frame: pd.DataFrame, relative: float, seed: int) -> pd.DataFrame:
 
 def truth_of(system: dict[str, Any]) -> dict[str, float]:
     return dict(system["parameters"])
+
+
+def finite_difference_fit(frame: pd.DataFrame, model: Any) -> np.ndarray:
+    """The plain peer: least squares on Lagrange's equations with central-difference
+    accelerations from the recorded velocities."""
+    lag = model.lagrangian
+    N = len(model.coordinates)
+    A_rows, b_rows = [], []
+    for _, part in frame.groupby("trajectory"):
+        X = part[list(model.variables)].to_numpy()
+        dt = np.diff(part["t"].to_numpy())[0]
+        acc = (X[2:, N:] - X[:-2, N:]) / (2 * dt)
+        Xc = X[1:-1]
+        columns = []
+        for f in (lag.L0, *lag.L):
+            equations = []
+            for i in range(N):
+                dv = f.diff(model.velocities[i])
+                d_dt = sum(dv.diff(model.velocities[j])(Xc) * acc[:, j] for j in range(N))
+                d_dt = d_dt + sum(dv.diff(model.coordinates[k])(Xc) * Xc[:, N + k]
+                                  for k in range(N))
+                equations.append(d_dt - f.diff(model.coordinates[i])(Xc))
+            columns.append(np.concatenate(equations))
+        columns = np.array(columns).T
+        A_rows.append(columns[:, 1:])
+        b_rows.append(-columns[:, 0])
+    return np.linalg.lstsq(np.vstack(A_rows), np.concatenate(b_rows), rcond=None)[0]

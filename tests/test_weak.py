@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 import pytest
-from conftest import DUFFING, PENG, SYSTEMS, with_noise
+from conftest import DUFFING, PENG, SYSTEMS, finite_difference_fit, with_noise
 from scipy import integrate
 
 import hamid
@@ -82,33 +81,6 @@ def test_uneven_sampling(clean_records):
     assert weak == pytest.approx(PENG["parameters"], rel=2e-2)
 
 
-def _finite_difference_fit(frame: pd.DataFrame, model: hamid.api.Model) -> np.ndarray:
-    """The plain peer: least squares on Lagrange's equations with central-difference
-    accelerations from the recorded velocities."""
-    lag = model.lagrangian
-    N = len(model.coordinates)
-    A_rows, b_rows = [], []
-    for _, part in frame.groupby("trajectory"):
-        X = part[list(model.variables)].to_numpy()
-        dt = np.diff(part["t"].to_numpy())[0]
-        acc = (X[2:, N:] - X[:-2, N:]) / (2 * dt)
-        Xc = X[1:-1]
-        columns = []
-        for f in (lag.L0, *lag.L):
-            equations = []
-            for i in range(N):
-                dv = f.diff(model.velocities[i])
-                d_dt = sum(dv.diff(model.velocities[j])(Xc) * acc[:, j] for j in range(N))
-                d_dt = d_dt + sum(dv.diff(model.coordinates[k])(Xc) * Xc[:, N + k]
-                                  for k in range(N))
-                equations.append(d_dt - f.diff(model.coordinates[i])(Xc))
-            columns.append(np.concatenate(equations))
-        columns = np.array(columns).T
-        A_rows.append(columns[:, 1:])
-        b_rows.append(-columns[:, 0])
-    return np.linalg.lstsq(np.vstack(A_rows), np.concatenate(b_rows), rcond=None)[0]
-
-
 @pytest.mark.parametrize("noise", [0.01, 0.03])
 def test_joint_beats_energy_rows_and_finite_differences(clean_records, noise):
     clean = clean_records["peng-quadratic"]
@@ -120,7 +92,7 @@ def test_joint_beats_energy_rows_and_finite_differences(clean_records, noise):
         for method in ("joint", "energy"):
             estimate = np.array(list(hamid.fit(noisy, method=method).estimates.values()))
             errors[method].append(np.max(np.abs(estimate / truth - 1)))
-        errors["fd"].append(np.max(np.abs(_finite_difference_fit(noisy, model) / truth - 1)))
+        errors["fd"].append(np.max(np.abs(finite_difference_fit(noisy, model) / truth - 1)))
     median = {k: np.median(v) for k, v in errors.items()}
     assert median["joint"] < median["energy"] / 2, median
     assert median["joint"] < median["fd"], median

@@ -18,7 +18,7 @@ energy, weak, joint, auto
     script checks this on one record per system).
 fd
     Least squares on Lagrange's equations with central-difference accelerations from the
-    recorded velocities (the logic of ``_finite_difference_fit`` in tests/test_weak.py).
+    recorded velocities (``finite_difference_fit`` of tests/conftest.py).
 sindy-fd, sindy-sfd
     PySINDy 2.x: STLSQ with threshold 0 (every library term kept, then an unregularised
     least-squares refit, so this is plain least squares per equation), a library whose
@@ -52,6 +52,10 @@ import pandas as pd
 
 import hamid
 from hamid.model import Model, model_from_spec
+
+# The noise and the finite-difference peer are the test suite's own (tests/conftest.py).
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+from conftest import finite_difference_fit, with_noise  # noqa: I001
 
 try:
     import pysindy as ps
@@ -153,50 +157,11 @@ def log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
-def with_noise(frame: pd.DataFrame, relative: float, seed: int) -> pd.DataFrame:
-    """A copy with white noise of `relative` times each column's spread on the states
-    (as tests/conftest.py's helper)."""
-    rng = np.random.default_rng(seed)
-    noisy = frame.copy()
-    noisy.attrs = dict(frame.attrs)
-    for column in frame.columns[2:]:
-        noisy[column] = frame[column] + relative * frame[column].std() * rng.standard_normal(
-            len(frame))
-    return noisy
-
-
 def worst_relative_error(estimate: np.ndarray, truth: np.ndarray) -> float:
     return float(np.max(np.abs(np.asarray(estimate) / truth - 1)))
 
 
-# ----------------------------------------------------------------------------------------
-# The finite-difference peer (same logic as tests/test_weak.py::_finite_difference_fit).
 
-def finite_difference_fit(frame: pd.DataFrame, model: Model) -> np.ndarray:
-    """Least squares on Lagrange's equations, central-difference accelerations from the
-    recorded velocities; parameters in model order."""
-    lag = model.lagrangian
-    N = len(model.coordinates)
-    A_rows, b_rows = [], []
-    for _, part in frame.groupby("trajectory"):
-        X = part[list(model.variables)].to_numpy()
-        dt = np.diff(part["t"].to_numpy())[0]
-        acc = (X[2:, N:] - X[:-2, N:]) / (2 * dt)
-        Xc = X[1:-1]
-        columns = []
-        for f in (lag.L0, *lag.L):
-            equations = []
-            for i in range(N):
-                dv = f.diff(model.velocities[i])
-                d_dt = sum(dv.diff(model.velocities[j])(Xc) * acc[:, j] for j in range(N))
-                d_dt = d_dt + sum(dv.diff(model.coordinates[k])(Xc) * Xc[:, N + k]
-                                  for k in range(N))
-                equations.append(d_dt - f.diff(model.coordinates[i])(Xc))
-            columns.append(np.concatenate(equations))
-        columns = np.array(columns).T
-        A_rows.append(columns[:, 1:])
-        b_rows.append(-columns[:, 0])
-    return np.linalg.lstsq(np.vstack(A_rows), np.concatenate(b_rows), rcond=None)[0]
 
 
 # ----------------------------------------------------------------------------------------
