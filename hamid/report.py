@@ -416,6 +416,8 @@ def _method_section(result: Mapping[str, Any]) -> _Section:
     if method["noise"]:
         noise = ", ".join(f"{col} {_num(sigma)}" for col, sigma in method["noise"].items())
         rows.append(("noise σ", noise))
+        if method.get("weighting_rounds"):
+            rows.append(("weighting rounds", str(method["weighting_rounds"])))
     rows.append(("bias correction", "yes" if method["bias_correction"] else "no"))
     if method["weak_window"] is not None:
         rows.append(("weak window", f"{_num(method['weak_window'])} s"))

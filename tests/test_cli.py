@@ -860,3 +860,22 @@ def test_stdout_is_finite_json_numbers(runner):
     for p in parsed["parameters"]:
         for key in ("estimate", "stderr", "ci_low", "ci_high"):
             assert p[key] is None or math.isfinite(p[key])
+
+
+def test_fit_noise_options_reach_the_report(runner, tmp_path):
+    """--noise auto, --bias-correct and --velocity savgol from the command line."""
+    result = fit_json(runner, PENG_CSV, "--noise", "auto", "--bias-correct")
+    assert result["method"]["weighting"] == "noise"
+    assert set(result["method"]["noise"]) == {"u1", "u2", "v1", "v2"}
+    assert result["method"]["bias_correction"] is True
+    table = invoke(runner, ["fit", PENG_CSV, "--noise", "u1=0.001,v2=0.002"])
+    assert_ok(table)
+    assert "noise σ" in table.stdout and "weighting rounds" in table.stdout
+    positions = tmp_path / "positions.csv"
+    pd.read_csv(PENG_CSV, comment="#").drop(columns=["v1", "v2"]).to_csv(positions,
+                                                                         index=False)
+    derived = invoke(runner, ["fit", positions, "--model", "peng-quadratic", "--velocity",
+                              "savgol", "--window", "9", "--format", "json"])
+    assert_ok(derived)
+    data = json.loads(derived.stdout)["data"]
+    assert data["velocity_source"] == "savgol" and data["velocity_window"] == 9
