@@ -12,7 +12,14 @@ import numpy as np
 from hamid import __version__
 from hamid.design import Block, Records
 from hamid.errors import DataError, FitError, ModelError, UsageError
-from hamid.model import BUILTINS, Model, builtin_model, model_from_expression, model_from_spec
+from hamid.model import (
+    BUILTINS,
+    Model,
+    builtin_model,
+    damping_names,
+    model_from_expression,
+    model_from_spec,
+)
 from hamid.result import EnergyLevel, FitResult, ParameterEstimate
 
 if TYPE_CHECKING:
@@ -769,7 +776,11 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
     truth = {}
     if metadata and isinstance(metadata.get("model"), Mapping) \
             and metadata["model"].get("energy") == m.energy:
-        values = {**(metadata.get("parameters") or {}), **(metadata.get("damping") or {})}
+        # A simulated record had no damping but what its [damping] table lists.
+        undamped = dict.fromkeys(damping_names(m.coordinates), 0.0) \
+            if isinstance(metadata.get("damping"), Mapping) else {}
+        values = {**undamped, **(metadata.get("parameters") or {}),
+                  **(metadata.get("damping") or {})}
         truth = {k: float(v) for k, v in values.items() if isinstance(v, int | float)}
     data_info = {
         "sources": [name for name, _, _ in tables],
