@@ -150,3 +150,10 @@ def test_damping_bounds_cover_the_truth():
             hits[p.name] += p.ci_low <= truth[p.name] <= p.ci_high
     for name, count in hits.items():
         assert 0.85 <= count / n <= 0.99, (name, count / n)
+
+
+def test_joint_damped_fit_warns_about_its_damping_errors(damped_records):
+    joint = hamid.fit(damped_records["viscous 1-DOF"], damping="viscous")
+    assert any("accumulates measurement noise" in w for w in joint.warnings)
+    energy = hamid.fit(damped_records["viscous 1-DOF"], damping="viscous", method="energy")
+    assert not any("accumulates measurement noise" in w for w in energy.warnings)
