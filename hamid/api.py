@@ -188,11 +188,15 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     all_energy_rows = design.energy_block(m, records, damping=dissipation)
     _check_finite(all_energy_rows, loaded, names)
     energy_rows = _hold_fixed(all_energy_rows, free, fixed_values)
-    blocks, spans = [], None
+    spans = design.windows(records, window) if kind != "energy" else None
+    if spans is not None and spans.n_windows == 0 and method == "auto" and weak_window is None:
+        kind, kind_reason, window, spans = (
+            "energy", f"the records are too short for one weak-form window of {window:.3g} s;"
+            " fitted the energy rows", None, None)
+    blocks = []
     if kind == "energy":
         blocks.append(energy_rows)
     if kind in ("weak", "joint"):
-        spans = design.windows(records, window)
         if kind == "joint":
             blocks.append(_hold_fixed(design.energy_block(m, records, spans, dissipation),
                                       free, fixed_values))

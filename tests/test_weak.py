@@ -159,3 +159,12 @@ def test_joint_bounds_cover_the_truth():
             hits[p.name] += p.ci_low <= truth[p.name] <= p.ci_high
     for name, count in hits.items():
         assert 0.88 <= count / n <= 0.99, (name, count / n)
+
+
+def test_auto_falls_back_when_no_window_fits(monkeypatch, clean_records):
+    # A window longer than every record, as an automatic choice could give for a record
+    # shorter than the oscillation it holds.
+    monkeypatch.setattr(hamid.design, "dominant_period", lambda records, n: 1000.0)
+    result = hamid.fit(clean_records["duffing"])
+    assert result.method["kind"] == "energy"
+    assert "too short for one weak-form window" in result.method["kind_reason"]
