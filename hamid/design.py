@@ -425,3 +425,74 @@ def row_variance(block: Block, model: Model, records: Records, theta: npt.NDArra
         variance[:, i] = (dd2 @ (a**2 @ s2) + 2 * (cross @ ((a * b) @ s2))
                           + dp2 @ (b**2 @ s2))
     return variance.ravel()
+
+
+_POWER_SLOPES = {"viscous": lambda v: 2 * v, "coulomb": np.sign,
+                 "quadratic": lambda v: 3 * np.abs(v) * v}
+
+
+def propagated_covariance(blocks: list[Block], G: npt.NDArray[np.float64], model: Model,
+                          records: Records, theta: npt.NDArray[np.float64],
+                          sigma: npt.NDArray[np.float64], windows: Windows | None,
+                          damping: Damping | None) -> npt.NDArray[np.float64]:
+    """Covariance of the free parameters that white measurement noise alone would cause.
+
+    To first order theta_hat - theta = sum_s sum_c g_sc e_sc over the samples s and the
+    measured variables c, with g_sc = sum_rows G_row d(row)/d(y_sc); independent noise of
+    std sigma_c gives sum_sc sigma_c^2 g_sc g_sc'. Unlike a residual-based estimate, this
+    sees how the cumulative work of an energy balance carries a sample's noise into every
+    later row. `G` maps the stacked rows' errors to the free parameters; `theta` holds
+    every parameter (fixed ones at their values).
+    """
+    n, n_var = records.X.shape
+    N = len(model.coordinates)
+    p = G.shape[1]
+    n_energy = len(model.parameters)
+    g = np.zeros((n, n_var, p))
+    start = 0
+    for block in blocks:
+        G_block = G[start:start + block.n_rows]
+        start += block.n_rows
+        if block.kind == "energy":
+            spread = G_block if windows is None else _normalised_transpose(windows, G_block, n)
+            gradient = model.energy_gradient(records.X, theta[:n_energy])
+            g += gradient[:, :, None] * spread[:, None, :]
+            if damping is not None and damping.kinds:
+                _add_work_sensitivity(g, spread, records, theta, damping, n_energy, N)
+        else:
+            assert windows is not None
+            d_dv, d_dq = model.lagrangian.second_derivatives(records.X, theta[:n_energy])
+            if damping is not None:
+                for k, (_, i, _) in enumerate(damping.terms):
+                    d_dq[:, i, N + i] -= theta[n_energy + k] * _LAW_SLOPES[
+                        damping.kinds[k // N]](records.X[:, N + i])
+            for i in range(N):
+                rows = G_block[i::N]
+                via_dpsi = windows.Q_dpsi.T @ rows     # (n, p)
+                via_psi = windows.Q_psi.T @ rows
+                g += d_dv[:, i, :, None] * via_dpsi[:, None, :]
+                g += d_dq[:, i, :, None] * via_psi[:, None, :]
+    weighted = g * np.asarray(sigma)[None, :, None]
+    flat = weighted.reshape(-1, p)
+    return flat.T @ flat
+
+
+def _normalised_transpose(windows: Windows, G_block: np.ndarray, n: int) -> np.ndarray:
+    """P' G for the window-mean operator P (rows of Q_psi divided by their sums)."""
+    mass = windows.Q_psi @ np.ones(n)
+    return windows.Q_psi.T @ (G_block / mass[:, None])
+
+
+def _add_work_sensitivity(g: np.ndarray, spread: np.ndarray, records: Records,
+                          theta: np.ndarray, damping: Damping, n_energy: int,
+                          N: int) -> None:
+    """The noise of v_u at sample u enters the work of every later sample of its trajectory."""
+    assert records.t is not None
+    for start, stop in records.bounds():
+        t = records.t[start:stop]
+        weight = np.gradient(t) if stop - start > 1 else np.zeros(1)
+        # sum over later samples s > u of spread_s: a reversed cumulative sum
+        later = np.cumsum(spread[start:stop][::-1], axis=0)[::-1] - spread[start:stop]
+        for k, (_, i, _) in enumerate(damping.terms):
+            slope = _POWER_SLOPES[damping.kinds[k // N]](records.X[start:stop, N + i])
+            g[start:stop, N + i, :] += (theta[n_energy + k] * (slope * weight))[:, None] * later

@@ -152,8 +152,9 @@ def test_damping_bounds_cover_the_truth():
         assert 0.85 <= count / n <= 0.99, (name, count / n)
 
 
-def test_joint_damped_fit_warns_about_its_damping_errors(damped_records):
-    joint = hamid.fit(damped_records["viscous 1-DOF"], damping="viscous")
-    assert any("accumulates measurement noise" in w for w in joint.warnings)
-    energy = hamid.fit(damped_records["viscous 1-DOF"], damping="viscous", method="energy")
-    assert not any("accumulates measurement noise" in w for w in energy.warnings)
+def test_damped_fits_take_the_noise_propagated_variance_when_larger(damped_records):
+    frame = with_noise(damped_records["viscous 1-DOF"], 0.01, seed=21)
+    damped = hamid.fit(frame, damping="viscous")
+    assert "propagated from the measurement noise" in damped.method["covariance_description"]
+    plain = hamid.fit(frame)
+    assert "propagated" not in plain.method["covariance_description"]
