@@ -268,12 +268,13 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
 
     # Energy levels and energy residuals are reported for every method; with weak rows
     # alone the levels are the mean fitted energies and carry no standard error.
+    levels_centred = solve.centre([energy_rows], J)
+    mean_energy = levels_centred.level_means_A @ theta - levels_centred.level_means_b
     if kind == "weak":
-        levels_centred = solve.centre([energy_rows], J)
-        h = levels_centred.level_means_A @ theta - levels_centred.level_means_b
-        h_stderr = [None] * J
+        h, h_stderr = mean_energy, [None] * J
     else:
-        h = estimate.h
+        # A trajectory too short for any window of a joint fit: its mean fitted energy.
+        h = np.where(np.isnan(estimate.h), mean_energy, estimate.h)
         h_stderr = [_finite_or_none(np.sqrt(max(v, 0))) for v in h_var]
     energy_residual = energy_rows.A @ theta - energy_rows.b - h[energy_rows.group]
     bounds = records.bounds()
@@ -305,7 +306,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     }
     labels = np.asarray(records.labels, dtype=object)
     samples = {"trajectory": labels[energy_rows.group], "t": energy_rows.time,
-               "energy": m.total_energy(records.X, [estimates[n] for n in m.parameters]),
+               "energy": _fitted_energy(all_energy_rows, m, estimates),
                "residual": energy_residual,
                "weight": _sample_weights(kind, blocks, energy_rows, spans)}
     return FitResult(
@@ -467,18 +468,30 @@ def _covariance(cov: str, fit: _Estimate, units: Any, unit_group: Any) -> Any:
     grows with their autocorrelation: overlapping windows, and the long memory that the
     cumulative work of an energy balance brings.
     """
+    import dataclasses
+
     from hamid import uncertainty
 
+    # A trajectory too short for any window has no weak rows: number the ones present.
+    present, group = np.unique(fit.group, return_inverse=True)
     n_units = len(unit_group)
     if n_units == len(units) and np.array_equal(units, np.arange(n_units)):
-        return uncertainty.covariance(cov, fit.solution.G, fit.centred.level_weight,
-                                      fit.residual, fit.weight, fit.group,
-                                      df_resid=fit.df_resid)
-    order = np.argsort(fit.group, kind="stable")
-    return uncertainty.covariance(cov, fit.solution.G[order], fit.centred.level_weight[order],
-                                  fit.residual[order], fit.weight[order], fit.group[order],
-                                  df_resid=fit.df_resid,
-                                  units=units[order] if cov == "hac" else None)
+        c = uncertainty.covariance(cov, fit.solution.G, fit.centred.level_weight,
+                                   fit.residual, fit.weight, group, df_resid=fit.df_resid)
+    else:
+        order = np.argsort(group, kind="stable")
+        c = uncertainty.covariance(cov, fit.solution.G[order],
+                                   fit.centred.level_weight[order], fit.residual[order],
+                                   fit.weight[order], group[order], df_resid=fit.df_resid,
+                                   units=units[order] if cov == "hac" else None)
+    J = fit.centred.level_means_A.shape[0]
+    if len(present) == J:
+        return c
+    level = np.full(J, np.nan)
+    level[present] = c.level
+    theta_level = np.full((J, c.theta.shape[0]), np.nan)
+    theta_level[present] = c.theta_level
+    return dataclasses.replace(c, level=level, theta_level=theta_level)
 
 
 def _balance_blocks(blocks: list[Block], names: list[str], J: int, units: Any,
@@ -594,6 +607,13 @@ def _with_propagated_noise(theta_cov: Any, text: str, estimate: _Estimate,
     ratio = np.divide(new, old, out=np.ones_like(new), where=old > 0)
     return (theta_cov * np.outer(ratio, ratio),
             text + "; each variance at least the one propagated from the measurement noise")
+
+
+def _fitted_energy(rows: Block, model: Model, estimates: dict[str, float]) -> Any:
+    """E(x_i; theta) at every sample, from the energy rows already built (A theta - b)."""
+    n_energy = len(model.parameters)
+    theta = np.array([estimates[name] for name in model.parameters])
+    return rows.A[:, :n_energy] @ theta - rows.b
 
 
 def _sample_weights(kind: str, blocks: list[Block], energy_rows: Block, spans: Any) -> Any:

@@ -53,13 +53,15 @@ def centre(blocks: Sequence[Block], n_groups: int) -> Centred:
         raw_sq += np.einsum("ij,ij,i->j", A, A, w)
         if block.has_level:
             W = np.bincount(block.group, weights=w, minlength=n_groups)
-            means_b = np.bincount(block.group, weights=w * b, minlength=n_groups) / W
+            # A trajectory with no rows here (too short for a window) has no level: NaN.
+            inverse = np.divide(1.0, W, out=np.full(n_groups, np.nan), where=W > 0)
+            means_b = np.bincount(block.group, weights=w * b, minlength=n_groups) * inverse
             means_A = np.stack([np.bincount(block.group, weights=w * A[:, k],
                                             minlength=n_groups) for k in range(p)],
-                               axis=-1).reshape(n_groups, p) / W[:, None]
+                               axis=-1).reshape(n_groups, p) * inverse[:, None]
             A = A - means_A[block.group]
             b = b - means_b[block.group]
-            lam = w / W[block.group]
+            lam = w * inverse[block.group]
         sw = np.sqrt(w)
         A_parts.append(A * sw[:, None])
         b_parts.append(b * sw)
@@ -176,10 +178,13 @@ def conditioning(blocks: Sequence[Block], names: Sequence[str],
     pieces = []
     for block in blocks:
         sw = np.sqrt(block.weight)
-        for j in range(J):
-            rows = block.group == j
-            if not np.any(rows):
-                continue
+        # Rows of a block come grouped by trajectory: slice each run, never mask all rows.
+        edges = np.flatnonzero(np.diff(block.group)) + 1
+        starts = np.concatenate([[0], edges]) if block.n_rows else np.zeros(0, int)
+        stops = np.concatenate([edges, [block.n_rows]]) if block.n_rows else starts
+        for start, stop in zip(starts.tolist(), stops.tolist(), strict=True):
+            j = int(block.group[start])
+            rows = slice(start, stop)
             local = block.A[rows] * sw[rows, None]
             if block.has_level:
                 local = np.hstack([local, sw[rows, None]])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 from conftest import DUFFING, PENG, SYSTEMS, finite_difference_fit, with_noise
 from scipy import integrate
@@ -168,3 +169,17 @@ def test_auto_falls_back_when_no_window_fits(monkeypatch, clean_records):
     result = hamid.fit(clean_records["duffing"])
     assert result.method["kind"] == "energy"
     assert "too short for one weak-form window" in result.method["kind_reason"]
+
+
+@pytest.mark.parametrize("method", ["weak", "joint"])
+def test_a_trajectory_too_short_for_any_window(clean_records, method):
+    long = clean_records["duffing"]
+    short = long[long.trajectory == 1].iloc[:30].copy()
+    short["trajectory"] = 3
+    frame = pd.concat([long, short])
+    frame.attrs = dict(long.attrs)
+    result = hamid.fit(frame, method=method)
+    assert result.estimates == pytest.approx(DUFFING["parameters"], rel=1e-7)
+    level = {h.trajectory: h for h in result.energy_levels}[3]
+    assert level.h == pytest.approx(0.625, rel=1e-7)  # trajectory 1's energy: same start
+    assert level.stderr is None
