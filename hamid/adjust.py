@@ -168,10 +168,10 @@ def _energy_moments(block: Block, phi: list[Polynomial], minus_E0: Polynomial,
         np.zeros((len(Y), 0))
     target = unbiased(minus_E0, Y, sigma)
     w = block.weight
-    n_groups = int(block.group.max()) + 1
+    n_groups = int(sample_group.max()) + 1  # every trajectory, with windows or not
     W = np.bincount(block.group, weights=w, minlength=n_groups)
     if P is None:
-        self_weight = w * (1 - w / W[block.group])
+        self_weight = w * (1 - w / W[block.group])  # W > 0: every sample is a row
         A, b = columns, target
     else:
         A, b = P @ columns, P @ target

@@ -189,10 +189,18 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     _check_finite(all_energy_rows, loaded, names)
     energy_rows = _hold_fixed(all_energy_rows, free, fixed_values)
     spans = design.windows(records, window) if kind != "energy" else None
-    if spans is not None and spans.n_windows == 0 and method == "auto" and weak_window is None:
-        kind, kind_reason, window, spans = (
-            "energy", f"the records are too short for one weak-form window of {window:.3g} s;"
-            " fitted the energy rows", None, None)
+    # Windows are the independent units of the weak and joint errors: more are needed
+    # than unknowns (the levels count in joint).
+    needed = len(free) + (records.n_trajectories if kind == "joint" else 0) + 1
+    if spans is not None and spans.n_windows < needed:
+        shortage = (f"the records hold {spans.n_windows} weak-form windows of {window:.3g} s, "
+                    f"fewer than the {needed} that {needed - 1} unknowns need")
+        if method == "auto" and weak_window is None:
+            kind, kind_reason, window, spans = (
+                "energy", f"{shortage}; fitted the energy rows", None, None)
+        elif spans.n_windows > 0:
+            raise FitError(f"cannot determine {', '.join(free_names)}: {shortage}; use "
+                           "--method energy or a shorter --weak-window")
     blocks = []
     if kind == "energy":
         blocks.append(energy_rows)
@@ -579,7 +587,9 @@ def _bootstrap_covariance(blocks: list[Block], names: list[str], J: int, units: 
         estimate = _least_squares(sample, names, J)
         return np.concatenate([estimate.theta, estimate.h])
 
-    cov, _, description = uncertainty.bootstrap(refit, unit_group, n_boot=n_boot, seed=seed)
+    # Resample within the trajectories present (one too short for a window has no units).
+    dense = np.unique(unit_group, return_inverse=True)[1]
+    cov, _, description = uncertainty.bootstrap(refit, dense, n_boot=n_boot, seed=seed)
     return cov[:p, :p], np.diag(cov)[p:], description
 
 

@@ -10,7 +10,7 @@ from scipy import integrate
 
 import hamid
 from hamid import design
-from hamid.errors import DataError, UsageError
+from hamid.errors import DataError, FitError, UsageError
 
 
 @pytest.mark.parametrize("method", ["weak", "joint", "auto"])
@@ -168,7 +168,7 @@ def test_auto_falls_back_when_no_window_fits(monkeypatch, clean_records):
     monkeypatch.setattr(hamid.design, "dominant_period", lambda records, n: 1000.0)
     result = hamid.fit(clean_records["duffing"])
     assert result.method["kind"] == "energy"
-    assert "too short for one weak-form window" in result.method["kind_reason"]
+    assert "0 weak-form windows" in result.method["kind_reason"]
 
 
 @pytest.mark.parametrize("method", ["weak", "joint"])
@@ -183,3 +183,23 @@ def test_a_trajectory_too_short_for_any_window(clean_records, method):
     level = {h.trajectory: h for h in result.energy_levels}[3]
     assert level.h == pytest.approx(0.625, rel=1e-7)  # trajectory 1's energy: same start
     assert level.stderr is None
+
+
+def test_too_few_windows_for_the_unknowns(clean_records):
+    frame = clean_records["peng-quadratic"]
+    frame = frame[frame.t <= 4.0]  # a couple of windows: fewer than 6 parameters need
+    auto = hamid.fit(frame)
+    assert auto.method["kind"] == "energy"
+    assert "weak-form windows" in auto.method["kind_reason"]
+    with pytest.raises(FitError, match="6 weak-form windows of 2.5 s, fewer than the 7"):
+        hamid.fit(frame, method="weak", weak_window=2.5)
+
+
+def test_bootstrap_with_a_trajectory_too_short_for_any_window(clean_records):
+    long = clean_records["duffing"]
+    short = long[long.trajectory == 1].iloc[:30].copy()
+    short["trajectory"] = 3
+    frame = pd.concat([long, short])
+    frame.attrs = dict(long.attrs)
+    result = hamid.fit(frame, method="weak", cov="bootstrap", bootstrap=20, seed=1)
+    assert all(p.stderr is not None and p.stderr > 0 for p in result.parameters)
