@@ -188,37 +188,9 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     all_energy_rows = design.energy_block(m, records, damping=dissipation)
     _check_finite(all_energy_rows, loaded, names)
     energy_rows = _hold_fixed(all_energy_rows, free, fixed_values)
-    spans = design.windows(records, window) if kind != "energy" else None
-    # Windows are the independent units of the weak and joint errors: more are needed
-    # than unknowns (the levels count in joint).
-    needed = len(free) + (records.n_trajectories if kind == "joint" else 0) + 1
-    if spans is not None and spans.n_windows < needed:
-        shortage = (f"the records hold {spans.n_windows} weak-form windows of {window:.3g} s, "
-                    f"fewer than the {needed} that {needed - 1} unknowns need")
-        if method == "auto" and weak_window is None:
-            kind, kind_reason, window, spans = (
-                "energy", f"{shortage}; fitted the energy rows", None, None)
-        elif spans.n_windows > 0:
-            raise FitError(f"cannot determine {', '.join(free_names)}: {shortage}; use "
-                           "--method energy or a shorter --weak-window")
-    blocks = []
-    if kind == "energy":
-        blocks.append(energy_rows)
-    if kind in ("weak", "joint"):
-        if kind == "joint":
-            blocks.append(_hold_fixed(design.energy_block(m, records, spans, dissipation),
-                                      free, fixed_values))
-        weak = design.weak_block(m, records, spans, dissipation)
-        bad = np.flatnonzero(~np.all(np.isfinite(np.column_stack([weak.A, weak.b])), axis=1))
-        if bad.size:
-            raise DataError(f"the weak-form rows are not finite (window at t = "
-                            f"{weak.time[bad[0]]:g} of trajectory "
-                            f"{records.labels[weak.group[bad[0]]]}): the energy's derivatives "
-                            "are not finite there; use --method energy")
-        if weak.n_rows == 0:
-            raise DataError(f"the records are too short for one weak-form window of "
-                            f"{window:.4g} s; use --method energy or a shorter --weak-window")
-        blocks.append(_hold_fixed(weak, free, fixed_values))
+    kind, kind_reason, window, spans, blocks = _build_blocks(
+        kind, kind_reason, window, method, weak_window, m, records, energy_rows, dissipation,
+        free, fixed_values, free_names)
     J = records.n_trajectories
     units, unit_group = _resampling_units(blocks, kind)
     if sigma is None:
@@ -354,6 +326,50 @@ class _Loaded:
 def _check_choice(value: str, choices: tuple[str, ...], option: str) -> None:
     if value not in choices:
         raise UsageError(f"{option} must be one of {', '.join(choices)}, found {value!r}")
+
+
+def _build_blocks(kind: str, kind_reason: str, window: float | None, method: str,
+                  weak_window: float | None, m: Model, records: Records, energy_rows: Block,
+                  dissipation: Any, free: list[int], fixed_values: Any,
+                  free_names: list[str]) -> tuple[str, str, float | None, Any, list[Block]]:
+    """The row blocks of the chosen method (energy rows, weak rows, or both).
+
+    Windows are the independent units of the weak and joint errors, so more are needed
+    than unknowns (the levels count in joint); `auto` falls back to the energy rows when
+    the records hold too few.
+    """
+    from hamid import design
+
+    spans = design.windows(records, window) if kind != "energy" else None
+    needed = len(free) + (records.n_trajectories if kind == "joint" else 0) + 1
+    if spans is not None and spans.n_windows < needed:
+        shortage = (f"the records hold {spans.n_windows} weak-form windows of {window:.3g} s, "
+                    f"fewer than the {needed} that {needed - 1} unknowns need")
+        if method == "auto" and weak_window is None:
+            kind, kind_reason, window, spans = (
+                "energy", f"{shortage}; fitted the energy rows", None, None)
+        elif spans.n_windows > 0:
+            raise FitError(f"cannot determine {', '.join(free_names)}: {shortage}; use "
+                           "--method energy or a shorter --weak-window")
+    blocks = []
+    if kind == "energy":
+        blocks.append(energy_rows)
+    if kind in ("weak", "joint"):
+        if kind == "joint":
+            blocks.append(_hold_fixed(design.energy_block(m, records, spans, dissipation),
+                                      free, fixed_values))
+        weak = design.weak_block(m, records, spans, dissipation)
+        bad = np.flatnonzero(~np.all(np.isfinite(np.column_stack([weak.A, weak.b])), axis=1))
+        if bad.size:
+            raise DataError(f"the weak-form rows are not finite (window at t = "
+                            f"{weak.time[bad[0]]:g} of trajectory "
+                            f"{records.labels[weak.group[bad[0]]]}): the energy's derivatives "
+                            "are not finite there; use --method energy")
+        if weak.n_rows == 0:
+            raise DataError(f"the records are too short for one weak-form window of "
+                            f"{window:.4g} s; use --method energy or a shorter --weak-window")
+        blocks.append(_hold_fixed(weak, free, fixed_values))
+    return kind, kind_reason, window, spans, blocks
 
 
 def _choose_method(method: str, model: Model, records: Records,
