@@ -240,7 +240,8 @@ def dominant_period(records: Records, n_coordinates: int) -> float | None:
     return float(np.median(periods)) if periods else None
 
 
-def _window_ranges(t: npt.NDArray[np.float64], window: float) -> list[tuple[int, int]]:
+def _window_ranges(t: npt.NDArray[np.float64],
+                   window: float) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
     """First and last sample of each window (one every `WINDOW_STEP` windows), ends on samples.
 
     Ends on samples make the trapezoid rule spectrally accurate for the bump, whose
@@ -251,7 +252,8 @@ def _window_ranges(t: npt.NDArray[np.float64], window: float) -> list[tuple[int,
     starts = t[0] + np.arange(max(count, 0)) * step
     first = np.clip(np.searchsorted(t, starts), 0, len(t) - 1)
     last = np.clip(np.searchsorted(t, starts + window), 0, len(t) - 1)
-    return [(int(a), int(b)) for a, b in zip(first, last, strict=True) if b - a >= 2]
+    keep = last - first >= 2
+    return first[keep].astype(np.int64), last[keep].astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -325,39 +327,58 @@ def _quadrature_weights(nodes: npt.NDArray[np.float64]) -> npt.NDArray[np.float6
 def windows(records: Records, length: float, order: int | None = None) -> Windows:
     """Bumps psi = (1 - s^2)^p over overlapping windows of `length` seconds.
 
-    The integrals use the trapezoid rule on the recorded times (uneven sampling works),
-    with the window ends on samples.
+    The integrals use the trapezoid rule on the recorded times, with the window ends on
+    samples; a window with uneven sampling gets composite Simpson (`_quadrature_weights`).
+    All windows are built at once: a long record holds hundreds of thousands.
     """
     from scipy import sparse
 
     assert records.t is not None
+    t_all = records.t
     order = BUMP_ORDER if order is None else order
-    centres, groups, row_index, cols, values_psi, values_dpsi = [], [], [], [], [], []
-    firsts, lasts = [], []
-    for j, (start, stop) in enumerate(records.bounds()):
-        t = records.t[start:stop]
-        for first, last in _window_ranges(t, length):
-            firsts.append(start + first)
-            lasts.append(start + last)
-            lo, hi = t[first], t[last]
-            nodes = t[first:last + 1]
-            weights = _quadrature_weights(nodes)
-            s = (nodes - (lo + hi) / 2) / ((hi - lo) / 2)
-            base = np.clip(1 - s**2, 0.0, None)  # rounding can put s a hair past 1
-            row_index.append(np.full(len(nodes), len(centres)))
-            cols.append(np.arange(start + first, start + last + 1))
-            values_psi.append(base**order * weights)
-            values_dpsi.append(-2 * order * s * base ** (order - 1) / ((hi - lo) / 2) * weights)
-            centres.append((lo + hi) / 2)
-            groups.append(j)
-    shape = (len(centres), len(records.group))
-    index = (np.concatenate(row_index or [np.zeros(0, np.int64)]),
-             np.concatenate(cols or [np.zeros(0, np.int64)]))
-    operator = [sparse.csr_matrix((np.concatenate(v or [np.zeros(0)]), index), shape=shape)
+    parts = [(start + a, start + b, np.full(len(a), j, dtype=np.int64))
+             for j, (start, stop) in enumerate(records.bounds())
+             for a, b in [_window_ranges(t_all[start:stop], length)]]
+    first, last, group = (np.concatenate([p[k] for p in parts] or [np.zeros(0, np.int64)])
+                          for k in range(3))
+    sizes = last - first + 1
+    row = np.repeat(np.arange(len(first)), sizes)
+    offsets = np.cumsum(sizes) - sizes
+    col = np.arange(int(sizes.sum())) - np.repeat(offsets, sizes) + np.repeat(first, sizes)
+    nodes = t_all[col]
+    lo, hi = t_all[first], t_all[last]
+    half = ((hi - lo) / 2)[row]
+    s = (nodes - ((lo + hi) / 2)[row]) / half
+    base = np.clip(1 - s**2, 0.0, None)  # rounding can put s a hair past 1
+    weights = _window_weights(t_all, first, last, row, col)
+    values_psi = base**order * weights
+    values_dpsi = -2 * order * s * base ** (order - 1) / half * weights
+    shape = (len(first), len(records.group))
+    operator = [sparse.csr_matrix((v, (row, col)), shape=shape)
                 for v in (values_psi, values_dpsi)]
-    return Windows(operator[0], operator[1], np.asarray(centres, dtype=np.float64),
-                   np.asarray(groups, dtype=np.int64), length,
-                   np.asarray(firsts, dtype=np.int64), np.asarray(lasts, dtype=np.int64), order)
+    return Windows(operator[0], operator[1], (lo + hi) / 2, group, length, first, last, order)
+
+
+def _window_weights(t: np.ndarray, first: np.ndarray, last: np.ndarray, row: np.ndarray,
+                    col: np.ndarray) -> np.ndarray:
+    """Trapezoid weights of every window's nodes; Simpson where a window is unevenly sampled."""
+    step = np.diff(t)
+    left = np.where(col > first[row], step[np.maximum(col - 1, 0)], 0.0)
+    right = np.where(col < last[row], step[np.minimum(col, max(len(step) - 1, 0))], 0.0)
+    weights = (left + right) / 2
+    for w in np.flatnonzero(_uneven_windows(step, first, last)):
+        weights[row == w] = _quadrature_weights(t[int(first[w]):int(last[w]) + 1])
+    return weights
+
+
+def _uneven_windows(step: np.ndarray, first: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """Whether the time step changes (beyond rounding) anywhere inside each window."""
+    changes = np.zeros(len(step) + 1)
+    if len(step) > 1:
+        changes[2:] = np.abs(np.diff(step)) > 1e-9 * np.abs(step[1:])
+    count = np.cumsum(changes)   # count[k + 1]: changes at steps 1..k
+    # steps first..last-1 of a window; a change at step k means step k != step k-1
+    return count[last] - count[first + 1] > 0
 
 
 def weak_block(model: Model, records: Records, windows: Windows,
