@@ -248,13 +248,16 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
 
     # Energy levels and energy residuals are reported for every method; with weak rows
     # alone the levels are the mean fitted energies and carry no standard error.
-    levels_centred = solve.centre([energy_rows], J)
-    mean_energy = levels_centred.level_means_A @ theta - levels_centred.level_means_b
+    if kind == "weak" or np.any(np.isnan(estimate.h)):
+        # No level in the fit (weak rows, or a trajectory too short for any window of a
+        # joint fit): the mean fitted energy, without a standard error.
+        levels_centred = solve.centre([energy_rows], J)
+        mean_energy = levels_centred.level_means_A @ theta - levels_centred.level_means_b
     if kind == "weak":
         h, h_stderr = mean_energy, [None] * J
     else:
-        # A trajectory too short for any window of a joint fit: its mean fitted energy.
-        h = np.where(np.isnan(estimate.h), mean_energy, estimate.h)
+        h = np.where(np.isnan(estimate.h), mean_energy, estimate.h) if np.any(
+            np.isnan(estimate.h)) else estimate.h
         h_stderr = [_finite_or_none(np.sqrt(max(v, 0))) for v in h_var]
     energy_residual = energy_rows.A @ theta - energy_rows.b - h[energy_rows.group]
     bounds = records.bounds()

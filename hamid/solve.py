@@ -50,7 +50,7 @@ def centre(blocks: Sequence[Block], n_groups: int) -> Centred:
         w = block.weight
         A, b = block.A, block.b
         lam = np.zeros(block.n_rows)
-        raw_sq += np.einsum("ij,ij,i->j", A, A, w)
+        raw_sq += w @ (A * A)
         if block.has_level:
             W = np.bincount(block.group, weights=w, minlength=n_groups)
             # A trajectory with no rows here (too short for a window) has no level: NaN.
