@@ -277,7 +277,8 @@ def poly_spec(n_coordinates: int, degree: int,
     parameters = ["c_" + "_".join(map(str, e)) for e in monomials]
     kinetic = " + ".join(f"{v}**2/2" for v in velocities)
     potential = " + ".join(
-        "*".join([p, *(f"{q}**{k}" for q, k in zip(coordinates, e, strict=True) if k)])
+        "*".join([p, *(q if k == 1 else f"{q}**{k}"
+                       for q, k in zip(coordinates, e, strict=True) if k)])
         for p, e in zip(parameters, monomials, strict=True))
     return {"description": f"polynomial potential of degree {degree} in {n_coordinates} "
                            "coordinates, unit masses",
