@@ -1,0 +1,128 @@
+"""Large fit: hamid against a minimal read-centre-lstsq script, time and peak memory.
+
+Generates a Parquet file of 100 peng-quadratic trajectories (3,000,000 rows by default,
+1% noise), then runs each case in its own process (peak memory is per process):
+
+- baseline: read with pyarrow, build the six energy columns, centre each trajectory and
+  call one numpy.linalg.lstsq;
+- hamid fit --method energy, and hamid fit with the default method (auto: joint).
+
+Prints the wall time of each process (start-up and imports included) and its peak resident
+memory, the ratios to the baseline, and checks
+that the energy estimates equal the baseline's to 1e-6.
+
+    python tests/benchmarks/large_fit.py [--rows-per-trajectory 30000] [--repeat 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+BASELINE = r"""
+import json, resource, sys, time
+import numpy as np, pyarrow.parquet as pq
+start = time.perf_counter()
+table = pq.read_table(sys.argv[1])
+g = table.column("trajectory").to_numpy()
+u1, u2, v1, v2 = (table.column(c).to_numpy() for c in ("u1", "u2", "v1", "v2"))
+A = np.column_stack([u1**2 / 2, u2**2 / 2, -u1**3 / 3, -u1**2 * u2 / 2, -u1 * u2**2,
+                     -u2**3 / 3])
+b = -(v1**2 + v2**2) / 2
+_, index = np.unique(g, return_inverse=True)
+counts = np.bincount(index)
+A -= (np.stack([np.bincount(index, weights=A[:, k]) for k in range(6)], axis=1)
+      / counts[:, None])[index]
+b -= (np.bincount(index, weights=b) / counts)[index]
+theta = np.linalg.lstsq(A, b, rcond=None)[0]
+elapsed = time.perf_counter() - start
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(json.dumps({"seconds": elapsed, "peak_kb": peak, "theta": theta.tolist()}))
+"""
+
+HAMID = r"""
+import json, resource, sys, time
+start = time.perf_counter()
+import hamid
+result = hamid.fit(sys.argv[1], **json.loads(sys.argv[2]))
+elapsed = time.perf_counter() - start
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(json.dumps({"seconds": elapsed, "peak_kb": peak,
+                  "theta": list(result.estimates.values())}))
+"""
+
+
+def make_data(path: str, rows_per_trajectory: int) -> None:
+    import numpy as np
+
+    import hamid
+
+    rng = np.random.default_rng(0)
+    initial = [{"u1": float(a), "u2": float(b), "v1": 0.0, "v2": 0.0}
+               for a, b in rng.uniform(-0.3, 0.3, (100, 2))]
+    dt = 0.01
+    system = {
+        "model": {"builtin": "peng-quadratic"},
+        "parameters": {"w1sq": 1.0, "w2sq": 2.25, "a1": 0.3, "a2": -0.4, "a3": 0.25,
+                       "a6": 0.2},
+        "initial": initial,
+        "simulate": {"t_end": (rows_per_trajectory - 1) * dt, "dt": dt, "seed": 1},
+        "noise": {"relative": 0.01},
+    }
+    frame = hamid.simulate(system)
+    from hamid import io
+
+    io.write_table(frame, path, metadata=frame.attrs["hamid"])
+
+
+def run(code: str, *args: str) -> dict:
+    """One case in a fresh process; its wall time includes start-up and imports."""
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
+                          check=True)
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    result["seconds"] = time.perf_counter() - start
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rows-per-trajectory", type=int, default=30_000)
+    parser.add_argument("--repeat", type=int, default=2)
+    options = parser.parse_args()
+    with tempfile.TemporaryDirectory() as folder:
+        path = os.path.join(folder, "large.parquet")
+        start = time.perf_counter()
+        make_data(path, options.rows_per_trajectory)
+        print(f"data: 100 trajectories x {options.rows_per_trajectory} rows, "
+              f"{os.path.getsize(path) / 1e6:.0f} MB, made in {time.perf_counter() - start:.1f} s")
+        cases = {"baseline (pyarrow + centre + lstsq)": (BASELINE, path),
+                 "hamid --method energy": (HAMID, path, json.dumps({"method": "energy"})),
+                 "hamid (default, auto)": (HAMID, path, json.dumps({}))}
+        results = {}
+        for name, (code, *args) in cases.items():
+            runs = [run(code, *args) for _ in range(options.repeat)]
+            best = min(runs, key=lambda r: r["seconds"])
+            results[name] = best
+        base = results["baseline (pyarrow + centre + lstsq)"]
+        print(f"{'case':40s} {'seconds':>8s} {'ratio':>6s} {'peak MB':>8s} {'ratio':>6s}")
+        for name, r in results.items():
+            print(f"{name:40s} {r['seconds']:8.2f} {r['seconds'] / base['seconds']:6.2f} "
+                  f"{r['peak_kb'] / 1024:8.0f} {r['peak_kb'] / base['peak_kb']:6.2f}")
+        import numpy as np
+
+        energy = np.array(results["hamid --method energy"]["theta"])
+        difference = np.max(np.abs(energy / np.array(base["theta"]) - 1))
+        print(f"energy estimates against the baseline's: largest relative difference "
+              f"{difference:.1e} ({'ok' if difference < 1e-6 else 'DIFFERENT'})")
+        print("targets (issue 9): energy <= 1.5x, auto <= 2.5x the baseline's time; peak "
+              "memory <= the baseline's")
+
+
+if __name__ == "__main__":
+    main()
