@@ -163,9 +163,11 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                          "refits would not be corrected); use --cov hac")
     if cov == "bootstrap" and bootstrap < 10:
         raise UsageError(f"bootstrap needs at least 10 replicates, found {bootstrap}")
-    if weak_window is not None and not weak_window > 0:
+    if weak_window is not None and not 0 < weak_window < float("inf"):
         raise UsageError(f"--weak-window must be a positive number of seconds, "
                          f"found {weak_window!r}")
+    if velocity != "savgol" and (window is not None or order != SAVGOL_ORDER):
+        raise UsageError("--window and --order apply only to --velocity savgol")
 
     _check_choice(velocity, VELOCITY_SOURCES, "velocity")
     loaded = _load_data(data, model, columns=columns, time=time, trajectory=trajectory,
@@ -705,6 +707,9 @@ def _parse_damping(damping: str | Sequence[str]) -> tuple[str, ...]:
 
     items = damping.split(",") if isinstance(damping, str) else list(damping)
     kinds = [item.strip() for item in items if item.strip()]
+    if not kinds:
+        raise UsageError("--damping: empty value; expected none or any of "
+                         f"{', '.join(DAMPING_KINDS)} (comma separated)")
     if kinds == ["none"]:
         return ()
     for kind in kinds:

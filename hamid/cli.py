@@ -8,7 +8,6 @@ inside the commands so that `hamid --help` starts fast.
 
 from __future__ import annotations
 
-import math
 import os
 import sys
 import warnings
@@ -205,16 +204,6 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
 
     if seed is not None and cov != "bootstrap":
         raise click.UsageError("--seed applies only to --cov bootstrap")
-    if bias_correct and noise in (None, "none"):
-        raise click.UsageError("--bias-correct needs --noise (auto or COL=SIGMA,...)")
-    if velocity != "savgol" and (window is not None or order != 5):
-        raise click.UsageError("--window and --order apply only to --velocity savgol")
-    if weak_window is not None and not 0 < weak_window < math.inf:
-        raise click.UsageError(f"--weak-window must be a positive, finite number of seconds, "
-                               f"found {weak_window!r}")
-    if not damping.replace(",", "").strip():
-        raise click.UsageError("--damping: empty value; expected none or any of viscous, "
-                               "coulomb, quadratic (comma separated)")
     if residuals is not None:
         io.table_format(residuals)
         if output != "-" and os.path.realpath(output) == os.path.realpath(residuals):
