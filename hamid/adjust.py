@@ -127,7 +127,7 @@ def adjusted_moments(block: Block, model: Model, records: Records, sigma: np.nda
     if block.kind == "energy":
         functions = [[model.phi[k] for k in index]]
         target = [known(model.E0, model.phi)]
-        operators = [None if windows is None else _normalised(windows.Q_psi, len(Y))]
+        operators = [None if windows is None else windows.means]
         coordinates = [None]
     else:
         assert windows is not None
@@ -148,14 +148,6 @@ def adjusted_moments(block: Block, model: Model, records: Records, sigma: np.nda
 
 def _negate(f: Any) -> Polynomial:
     return Polynomial(f.variables, f.exponents, -f.coefficients)
-
-
-def _normalised(Q_psi: Any, n: int) -> Any:
-    """The window-mean operator: rows of Q_psi divided by their sums."""
-    from scipy import sparse
-
-    mass = Q_psi @ np.ones(n)
-    return sparse.diags(1.0 / mass) @ Q_psi
 
 
 def _energy_moments(block: Block, phi: list[Polynomial], minus_E0: Polynomial,

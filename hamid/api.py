@@ -657,8 +657,7 @@ def _sample_weights(kind: str, blocks: list[Block], energy_rows: Block, spans: A
         return blocks[0].weight
     if kind == "weak":
         return np.zeros(energy_rows.n_rows)
-    mass = spans.Q_psi @ np.ones(energy_rows.n_rows)
-    return spans.Q_psi.T @ (blocks[0].weight / mass)
+    return spans.means.T @ blocks[0].weight
 
 
 def _block_stats(residual: Any) -> dict[str, Any]:

@@ -9,6 +9,7 @@ column; the solver and the covariance estimators only see blocks.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -184,10 +185,8 @@ def energy_block(model: Model, records: Records, windows: Windows | None = None,
     if damping is not None and damping.kinds:
         Phi = np.hstack([Phi, _dissipated_work(records, damping)])
     if windows is not None:
-        mass = windows.Q_psi @ np.ones(len(E0))
-        return Block("energy", (windows.Q_psi @ Phi) / mass[:, None],
-                     -(windows.Q_psi @ E0) / mass, windows.group, windows.centre,
-                     np.ones(windows.n_windows), has_level=True)
+        return Block("energy", windows.means @ Phi, -(windows.means @ E0), windows.group,
+                     windows.centre, np.ones(windows.n_windows), has_level=True)
     time = records.t if records.t is not None else _sample_index(records)
     return Block("energy", Phi, -E0, records.group, time, np.ones(len(E0)), has_level=True)
 
@@ -276,6 +275,14 @@ class Windows:
     @property
     def n_windows(self) -> int:
         return len(self.centre)
+
+    @cached_property
+    def means(self) -> Any:
+        """Operator of the psi-weighted window means: rows of Q_psi divided by their sums."""
+        from scipy import sparse
+
+        mass = self.Q_psi @ np.ones(self.Q_psi.shape[1])
+        return sparse.diags(1.0 / mass) @ self.Q_psi
 
     def psi_at(self, t: npt.NDArray[np.float64], interval: npt.NDArray[np.int64],
                weights: npt.NDArray[np.float64], times: npt.NDArray[np.float64]) -> Any:
@@ -411,6 +418,20 @@ _LAW_SLOPES = {"viscous": lambda v: np.ones_like(v), "coulomb": np.zeros_like,
                "quadratic": lambda v: 2 * np.abs(v)}
 
 
+def _weak_sensitivities(model: Model, records: Records, theta: npt.NDArray[np.float64],
+                        damping: Damping | None) -> tuple[np.ndarray, np.ndarray]:
+    """d(dL/dv_i)/dx_c and d(dL/dq_i + F_i)/dx_c at every sample: how a weak row's
+    integrands move with the noise of each measured variable (shape (n, N, 2N))."""
+    n_energy = len(model.parameters)
+    d_dv, d_dq = model.lagrangian.second_derivatives(records.X, theta[:n_energy])
+    N = len(model.coordinates)
+    if damping is not None:
+        for k, (_, i, _) in enumerate(damping.terms):
+            slope = _LAW_SLOPES[damping.kinds[k // N]](records.X[:, N + i])
+            d_dq[:, i, N + i] -= theta[n_energy + k] * slope
+    return d_dv, d_dq
+
+
 def row_variance(block: Block, model: Model, records: Records, theta: npt.NDArray[np.float64],
                  sigma: npt.NDArray[np.float64], windows: Windows | None = None,
                  damping: Damping | None = None) -> npt.NDArray[np.float64]:
@@ -421,23 +442,15 @@ def row_variance(block: Block, model: Model, records: Records, theta: npt.NDArra
     force) times the noise of each sample. The cumulative work of an energy balance is left
     out: its noise is spread over the whole record.
     """
-    n_energy = len(model.parameters)
-    theta_energy = theta[:n_energy]
     s2 = np.asarray(sigma, dtype=np.float64) ** 2
     if block.kind == "energy":
-        g = (model.energy_gradient(records.X, theta_energy) ** 2) @ s2
+        g = (model.energy_gradient(records.X, theta[:len(model.parameters)]) ** 2) @ s2
         if windows is None:
             return g
-        mass = windows.Q_psi @ np.ones(len(g))
-        return (windows.Q_psi.multiply(windows.Q_psi) @ g) / mass**2
+        return windows.means.multiply(windows.means) @ g
     assert windows is not None
-    d_dv, d_dq = model.lagrangian.second_derivatives(records.X, theta_energy)
+    d_dv, d_dq = _weak_sensitivities(model, records, theta, damping)
     N = len(model.coordinates)
-    if damping is not None:
-        for k, (_, i, _) in enumerate(damping.terms):
-            kind = damping.kinds[k // N]
-            coefficient = theta[n_energy + k]
-            d_dq[:, i, N + i] -= coefficient * _LAW_SLOPES[kind](records.X[:, N + i])
     dd, dp = windows.Q_dpsi, windows.Q_psi
     dd2, cross, dp2 = dd.multiply(dd), dd.multiply(dp), dp.multiply(dp)
     variance = np.zeros((windows.n_windows, N))
@@ -475,18 +488,14 @@ def propagated_covariance(blocks: list[Block], G: npt.NDArray[np.float64], model
         G_block = G[start:start + block.n_rows]
         start += block.n_rows
         if block.kind == "energy":
-            spread = G_block if windows is None else _normalised_transpose(windows, G_block, n)
+            spread = G_block if windows is None else windows.means.T @ G_block
             gradient = model.energy_gradient(records.X, theta[:n_energy])
             g += gradient[:, :, None] * spread[:, None, :]
             if damping is not None and damping.kinds:
                 _add_work_sensitivity(g, spread, records, theta, damping, n_energy, N)
         else:
             assert windows is not None
-            d_dv, d_dq = model.lagrangian.second_derivatives(records.X, theta[:n_energy])
-            if damping is not None:
-                for k, (_, i, _) in enumerate(damping.terms):
-                    d_dq[:, i, N + i] -= theta[n_energy + k] * _LAW_SLOPES[
-                        damping.kinds[k // N]](records.X[:, N + i])
+            d_dv, d_dq = _weak_sensitivities(model, records, theta, damping)
             for i in range(N):
                 rows = G_block[i::N]
                 via_dpsi = windows.Q_dpsi.T @ rows     # (n, p)
@@ -496,12 +505,6 @@ def propagated_covariance(blocks: list[Block], G: npt.NDArray[np.float64], model
     weighted = g * np.asarray(sigma)[None, :, None]
     flat = weighted.reshape(-1, p)
     return flat.T @ flat
-
-
-def _normalised_transpose(windows: Windows, G_block: np.ndarray, n: int) -> np.ndarray:
-    """P' G for the window-mean operator P (rows of Q_psi divided by their sums)."""
-    mass = windows.Q_psi @ np.ones(n)
-    return windows.Q_psi.T @ (G_block / mass[:, None])
 
 
 def _add_work_sensitivity(g: np.ndarray, spread: np.ndarray, records: Records,
