@@ -76,6 +76,17 @@ def with_noise(frame: pd.DataFrame, relative: float, seed: int) -> pd.DataFrame:
     return noisy
 
 
+def coverage(clean: pd.DataFrame, truth: dict[str, float], relative: float, n: int,
+             **fit_options: Any) -> dict[str, float]:
+    """Fraction of `n` noise realizations whose bounds hold each parameter's true value."""
+    hits = dict.fromkeys(truth, 0)
+    for seed in range(n):
+        result = hamid.fit(with_noise(clean, relative, seed), **fit_options)
+        for p in result.parameters:
+            hits[p.name] += p.ci_low <= truth[p.name] <= p.ci_high
+    return {name: count / n for name, count in hits.items()}
+
+
 def truth_of(system: dict[str, Any]) -> dict[str, float]:
     return dict(system["parameters"])
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import DUFFING, PENG, with_noise
+from conftest import DUFFING, PENG, coverage, with_noise
 
 import hamid
 from hamid.errors import UsageError
@@ -142,14 +142,9 @@ def test_damping_bounds_cover_the_truth():
     system, _ = DAMPED["viscous 1-DOF"]
     clean = hamid.simulate({**system, "simulate": {"t_end": 60.0, "dt": 0.02}})
     truth = {**system["parameters"], **system["damping"]}
-    hits = dict.fromkeys(truth, 0)
-    n = 100
-    for seed in range(n):
-        result = hamid.fit(with_noise(clean, 0.01, seed), damping="viscous")
-        for p in result.parameters:
-            hits[p.name] += p.ci_low <= truth[p.name] <= p.ci_high
-    for name, count in hits.items():
-        assert 0.85 <= count / n <= 0.99, (name, count / n)
+    covered = coverage(clean, truth, 0.01, 100, damping="viscous")
+    for name, fraction in covered.items():
+        assert 0.85 <= fraction <= 0.99, (name, fraction)
 
 
 def test_damped_fits_take_the_noise_propagated_variance_when_larger(damped_records):

@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import DUFFING, PENG, SYSTEMS, with_noise
+from conftest import DUFFING, PENG, SYSTEMS, coverage, with_noise
 
 import hamid
 from hamid.errors import FitError, UsageError
@@ -266,13 +266,7 @@ def test_bad_options(clean_records, kwargs, message):
 @pytest.mark.slow
 def test_confidence_bounds_cover_the_truth():
     """Over 200 noise realizations, 95% bounds cover each true value 90-99% of the time."""
-    clean = hamid.simulate(DUFFING)
-    truth = DUFFING["parameters"]
-    hits = {name: 0 for name in truth}
-    n = 200
-    for seed in range(n):
-        result = hamid.fit(with_noise(clean, 0.002, seed), method="energy")
-        for p in result.parameters:
-            hits[p.name] += p.ci_low <= truth[p.name] <= p.ci_high
-    for name, count in hits.items():
-        assert 0.90 <= count / n <= 0.99, (name, count / n)
+    covered = coverage(hamid.simulate(DUFFING), DUFFING["parameters"], 0.002, 200,
+                       method="energy")
+    for name, fraction in covered.items():
+        assert 0.90 <= fraction <= 0.99, (name, fraction)

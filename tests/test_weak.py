@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import DUFFING, PENG, SYSTEMS, finite_difference_fit, with_noise
+from conftest import DUFFING, PENG, SYSTEMS, coverage, finite_difference_fit, with_noise
 from scipy import integrate
 
 import hamid
@@ -151,15 +151,9 @@ def test_bad_weak_window(clean_records, window):
 def test_joint_bounds_cover_the_truth():
     """Over 100 noise realizations, joint 95% bounds cover each true value 88-99%."""
     clean = hamid.simulate({**DUFFING, "simulate": {"t_end": 60.0, "dt": 0.02}})
-    truth = DUFFING["parameters"]
-    hits = {name: 0 for name in truth}
-    n = 100
-    for seed in range(n):
-        result = hamid.fit(with_noise(clean, 0.003, seed), method="joint")
-        for p in result.parameters:
-            hits[p.name] += p.ci_low <= truth[p.name] <= p.ci_high
-    for name, count in hits.items():
-        assert 0.88 <= count / n <= 0.99, (name, count / n)
+    covered = coverage(clean, DUFFING["parameters"], 0.003, 100, method="joint")
+    for name, fraction in covered.items():
+        assert 0.88 <= fraction <= 0.99, (name, fraction)
 
 
 def test_auto_falls_back_when_no_window_fits(monkeypatch, clean_records):

@@ -55,7 +55,14 @@ from hamid.model import Model, model_from_spec
 
 # The noise and the finite-difference peer are the test suite's own (tests/conftest.py).
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-from conftest import finite_difference_fit, with_noise  # noqa: I001
+from conftest import (  # noqa: I001
+    DUFFING,
+    ELASTIC_PENDULUM,
+    PENG,
+    TWO_MASS,
+    finite_difference_fit,
+    with_noise,
+)
 
 try:
     import pysindy as ps
@@ -65,43 +72,18 @@ except ImportError:   # the benchmark runs without it; the PySINDy columns are s
 T_END, DT = 100.0, 0.02
 SIMULATE = {"t_end": T_END, "dt": DT}
 
+# The test suite's systems (tests/conftest.py) on a longer record; peng-quadratic with
+# three larger swings, so that its cubic terms matter.
 SYSTEMS: dict[str, dict[str, Any]] = {
-    "peng-quadratic": {
-        "model": {"builtin": "peng-quadratic"},
-        "parameters": {"w1sq": 1.0, "w2sq": 2.25, "a1": 0.3, "a2": -0.4, "a3": 0.25,
-                       "a6": 0.2},
-        "initial": [{"u1": 0.45, "u2": -0.2, "v1": 0.0, "v2": 0.2},
-                    {"u1": -0.3, "u2": 0.35, "v1": 0.2, "v2": 0.0},
-                    {"u1": 0.2, "u2": 0.4, "v1": -0.1, "v2": 0.1}],
-        "simulate": SIMULATE,
-    },
-    "duffing": {
-        "model": {"builtin": "duffing"},
-        "parameters": {"k": 1.0, "k3": 0.5},
-        "initial": [{"x": 1.0, "v": 0.0}, {"x": 0.4, "v": 0.3}],
-        "simulate": SIMULATE,
-    },
+    "peng-quadratic": {**PENG, "simulate": SIMULATE,
+                       "initial": [{"u1": 0.45, "u2": -0.2, "v1": 0.0, "v2": 0.2},
+                                   {"u1": -0.3, "u2": 0.35, "v1": 0.2, "v2": 0.0},
+                                   {"u1": 0.2, "u2": 0.4, "v1": -0.1, "v2": 0.1}]},
+    "duffing": {**DUFFING, "simulate": SIMULATE},
     # Two masses on springs, the second mass unknown (a parameter in the kinetic energy).
-    "two-mass": {
-        "model": {"name": "two-mass", "coordinates": ["x1", "x2"], "velocities": ["v1", "v2"],
-                  "energy": "(v1**2 + m*v2**2)/2 + k1*x1**2/2 + k2*(x2 - x1)**2/2"
-                            " + k3*(x2 - x1)**4/4"},
-        "parameters": {"m": 2.0, "k1": 1.5, "k2": 0.8, "k3": 0.3},
-        "initial": [{"x1": 0.5, "x2": -0.3, "v1": 0.0, "v2": 0.2},
-                    {"x1": -0.2, "x2": 0.6, "v1": 0.3, "v2": 0.0}],
-        "simulate": SIMULATE,
-    },
+    "two-mass": {**TWO_MASS, "simulate": SIMULATE},
     # A non-polynomial energy (evaluated through sympy).
-    "elastic-pendulum": {
-        "model": {"name": "elastic-pendulum", "coordinates": ["x", "y"],
-                  "velocities": ["vx", "vy"],
-                  "energy": "(vx**2 + vy**2)/2 + k*(x**2 + y**2)/2 - kL*sqrt(x**2 + y**2)"
-                            " + g*y"},
-        "parameters": {"k": 12.0, "kL": 12.0, "g": 2.0},
-        "initial": [{"x": 0.4, "y": -1.1, "vx": 0.0, "vy": 0.2},
-                    {"x": -0.2, "y": -1.3, "vx": 0.5, "vy": 0.0}],
-        "simulate": SIMULATE,
-    },
+    "elastic-pendulum": {**ELASTIC_PENDULUM, "simulate": SIMULATE},
 }
 DEFAULT_SYSTEMS = ["peng-quadratic", "duffing", "two-mass", "elastic-pendulum"]
 NOISE_LEVELS = [0.001, 0.01, 0.03, 0.05]
