@@ -596,10 +596,12 @@ def _bootstrap_covariance(blocks: list[Block], names: list[str], J: int, units: 
 
     p = len(names)
     offsets = np.cumsum([0] + [b.n_rows for b in blocks])
-    rows_of_unit = [np.flatnonzero(units == u) for u in range(len(unit_group))]
+    # Rows of each unit, found by one sort (a scan per unit would be quadratic in rows).
+    by_unit = np.argsort(units, kind="stable")
+    first_row = np.searchsorted(units[by_unit], np.arange(len(unit_group) + 1))
 
     def refit(index: Any) -> Any:
-        rows = np.concatenate([rows_of_unit[u] for u in index])
+        rows = np.concatenate([by_unit[first_row[u]:first_row[u + 1]] for u in index])
         sample = []
         for b, lo, hi in zip(blocks, offsets[:-1], offsets[1:], strict=True):
             mine = rows[(rows >= lo) & (rows < hi)] - lo
