@@ -187,7 +187,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     kind, kind_reason, window = _choose_method(method, m, records, weak_window)
 
     fixed_values = np.array([fixed.get(name, 0.0) for name in names])
-    all_energy_rows = design.energy_block(m, records, damping=dissipation)
+    all_energy_rows = design.energy_block(m, records, dissipation)
     _check_finite(all_energy_rows, loaded, names)
     energy_rows = _hold_fixed(all_energy_rows, free, fixed_values)
     kind, kind_reason, window, spans, blocks = _build_blocks(
@@ -361,8 +361,7 @@ def _build_blocks(kind: str, kind_reason: str, window: float | None, method: str
         blocks.append(energy_rows)
     if kind in ("weak", "joint"):
         if kind == "joint":
-            blocks.append(_hold_fixed(design.energy_block(m, records, spans, dissipation),
-                                      free, fixed_values))
+            blocks.append(design.window_means(energy_rows, spans))
         weak = design.weak_block(m, records, spans, dissipation)
         bad = np.flatnonzero(~np.all(np.isfinite(np.column_stack([weak.A, weak.b])), axis=1))
         if bad.size:

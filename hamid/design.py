@@ -17,8 +17,8 @@ import numpy.typing as npt
 
 from hamid.model import DAMPING_KINDS, Model
 
-__all__ = [
-    "Damping","Block", "Records", "dominant_period", "energy_block", "weak_block", "windows"]
+__all__ = ["Block", "Damping", "Records", "dominant_period", "energy_block", "weak_block",
+           "window_means", "windows"]
 
 
 @dataclass(frozen=True)
@@ -172,23 +172,24 @@ def _dissipated_work(records: Records, damping: Damping) -> npt.NDArray[np.float
     return work
 
 
-def energy_block(model: Model, records: Records, windows: Windows | None = None,
-                 damping: Damping | None = None) -> Block:
+def energy_block(model: Model, records: Records, damping: Damping | None = None) -> Block:
     """The energy rows: E0(x_i) + sum_k theta_k phi_k(x_i) - h_j = r_i, one per sample.
 
     With `damping`, the energy balance: the work dissipated since the start of the
-    trajectory is added, one column per damping coefficient. With `windows`, one row per
-    window instead of per sample: the psi-weighted mean of the same equation, which
-    averages the noise of the measured terms before they enter the fit.
+    trajectory is added, one column per damping coefficient.
     """
     E0, Phi = model.energy_basis(records.X)
     if damping is not None and damping.kinds:
         Phi = np.hstack([Phi, _dissipated_work(records, damping)])
-    if windows is not None:
-        return Block("energy", windows.means @ Phi, -(windows.means @ E0), windows.group,
-                     windows.centre, np.ones(windows.n_windows), has_level=True)
     time = records.t if records.t is not None else _sample_index(records)
     return Block("energy", Phi, -E0, records.group, time, np.ones(len(E0)), has_level=True)
+
+
+def window_means(block: Block, windows: Windows) -> Block:
+    """Energy rows as psi-weighted window means, one row per window: averaging the noise of
+    the measured terms before they enter the fit (the energy rows of a joint fit)."""
+    return Block(block.kind, windows.means @ block.A, windows.means @ block.b, windows.group,
+                 windows.centre, np.ones(windows.n_windows), has_level=True)
 
 
 def _sample_index(records: Records) -> npt.NDArray[np.float64]:
