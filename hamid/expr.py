@@ -318,28 +318,12 @@ class Polynomial(Func):
 
     def __call__(self, X: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         X = np.asarray(X, dtype=np.float64)
-        out = np.zeros(X.shape[:-1])
-        if not len(self.coefficients):
-            return out
-        powers = self._powers(X)
-        for coefficient, row in zip(self.coefficients, self.exponents, strict=True):
-            term = np.full(X.shape[:-1], coefficient)
-            for j in np.flatnonzero(row):
-                term *= powers[j][row[j]]
-            out += term
-        return out
+        return self._evaluator(np.moveaxis(X, -1, 0))[0]
 
-    def _powers(self, X: npt.NDArray[np.float64]) -> list[list[Any]]:
-        """X[..., j]**e for every exponent e used, computed once per call."""
-        highest = self.exponents.max(axis=0)
-        table = []
-        for j, top in enumerate(highest):
-            column = X[..., j]
-            row = [None, column]
-            for _ in range(2, top + 1):
-                row.append(row[-1] * column)
-            table.append(row)
-        return table
+    @cached_property
+    def _evaluator(self) -> _PolynomialStack:
+        """The table-of-monomials evaluation of `Func.stack`, built once per polynomial."""
+        return _PolynomialStack([self])
 
     def diff(self, name: str) -> Polynomial:
         j = self.variables.index(name)

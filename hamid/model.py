@@ -146,10 +146,13 @@ class Model:
         E0 : ndarray, shape (n,)
         Phi : ndarray, shape (n, n_parameters)
         """
-        Phi = np.empty((X.shape[0], len(self.phi)))
-        for k, f in enumerate(self.phi):
-            Phi[:, k] = f(X)
-        return self.E0(X), Phi
+        values = self._energy_terms(np.asarray(X, dtype=np.float64).T)
+        return values[0], values[1:].T
+
+    @cached_property
+    def _energy_terms(self) -> Any:
+        """E0 and every phi_k evaluated together (their monomials shared)."""
+        return expr.Func.stack([self.E0, *self.phi])
 
     def total_energy(self, X: npt.NDArray[np.float64], theta: Sequence[float]) -> np.ndarray:
         """E(x; theta) at the states X."""
