@@ -90,9 +90,16 @@ class Lagrangian:
         dLdv, dLdq : ndarray, shape (n_samples, n_coordinates, 1 + n_parameters)
             Index 0 of the last axis is the parameter-free part L0, then one per parameter.
         """
+        n, N, parts = len(X), len(self.coordinates), 1 + len(self.L)
+        values = self._gradient_stack(np.asarray(X, dtype=np.float64).T)
+        # rows of the stack: (dv or dq, part, coordinate)
+        both = values.reshape(2, parts, N, n).transpose(0, 3, 2, 1)
+        return both[0], both[1]
+
+    @cached_property
+    def _gradient_stack(self) -> Any:
         dv, dq = self._gradients
-        return (np.stack([np.stack([f(X) for f in row], axis=-1) for row in dv], axis=-1),
-                np.stack([np.stack([f(X) for f in row], axis=-1) for row in dq], axis=-1))
+        return expr.Func.stack([f for table in (dv, dq) for row in table for f in row])
 
     @cached_property
     def _second(self) -> tuple[list[list[list[expr.Func]]], ...]:
