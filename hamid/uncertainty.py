@@ -48,6 +48,7 @@ __all__ = [
     "DESCRIPTIONS",
     "ESTIMATORS",
     "Covariance",
+    "ScoreSums",
     "bartlett_bandwidth",
     "bootstrap",
     "confidence_bounds",
@@ -211,88 +212,137 @@ def _problem(
     return _Problem(G, lam, r, w, labels, starts, stops, int(df_resid))
 
 
-def _blocks(prob: _Problem, meat: Callable[[slice], FloatArray]) -> FloatArray:
-    """Helper stacking one (p+1, p+1) meat block per trajectory, indexed by label."""
-    out = np.zeros((prob.n_groups, prob.p + 1, prob.p + 1))
-    for j, rows in prob.groups():
-        out[j] = meat(rows)
-    return out
+class ScoreSums:
+    """The per-trajectory sums an estimator needs, fed with rows piece by piece.
 
-
-def _classical(prob: _Problem, bandwidth: int | None) -> _Estimate:
-    """Errors independent with variance s^2 / w_i."""
-    s2 = float(np.sum(prob.w * prob.r**2)) / prob.df_resid
-
-    def meat(rows: slice) -> FloatArray:
-        z = prob.z(rows)
-        return (z / prob.w[rows, None]).T @ z
-
-    return s2 * _blocks(prob, meat), DESCRIPTIONS["classical"], prob.df_resid
-
-
-def _hc(prob: _Problem, bandwidth: int | None) -> _Estimate:
-    """White's sandwich with the HC1 factor n / df_resid."""
-
-    def meat(rows: slice) -> FloatArray:
-        s = prob.scores(rows)
-        return s.T @ s
-
-    factor = prob.n / prob.df_resid
-    return factor * _blocks(prob, meat), DESCRIPTIONS["hc"], prob.df_resid
-
-
-def _bartlett_meat(s: FloatArray, bandwidth: int) -> FloatArray:
-    """Helper: sum_{t,u} (1 - |t-u|/(L+1))_+ s_t s_u^T of one trajectory.
-
-    The Bartlett kernel is the self-convolution of a box of L + 1 samples, so the sum equals
-    sum_k B_k B_k^T / (L + 1) over all (also partial) windows B_k of L + 1 consecutive scores:
-    one pass over the rows, whatever the bandwidth.
+    The meat of every estimator is a sum over the rows of each trajectory, so it can be
+    accumulated from pieces of rows (a file read in chunks) as well as from all rows at
+    once; both give the same blocks. Feed each trajectory's rows in time order with `add`,
+    a trajectory's pieces in sequence. Newey-West with the automatic bandwidth needs the
+    rows twice: the first pass gives `andrews_bandwidth`, and the second feeds a
+    `ScoreSums` made with that bandwidth.
     """
-    n_rows = s.shape[0]
-    cum = np.zeros((n_rows + 1, s.shape[1]))
-    np.cumsum(s, axis=0, out=cum[1:])
-    first = np.arange(-bandwidth, n_rows)
-    box = cum[np.minimum(first + bandwidth + 1, n_rows)] - cum[np.maximum(first, 0)]
-    return box.T @ box / (bandwidth + 1)
+
+    def __init__(self, kind: str, p: int, n_groups: int, bandwidth: int | None = None) -> None:
+        if kind not in ESTIMATORS:
+            raise ValueError(f"`kind` must be one of {', '.join(ESTIMATORS)}, got {kind!r}")
+        self.kind, self.p, self.bandwidth = kind, p, bandwidth
+        k = p + 1
+        self.meat = np.zeros((n_groups, k, k))
+        self.sizes = np.zeros(n_groups, dtype=np.int64)
+        self.weighted_squares = 0.0
+        # Andrews' sums of lag-1 and lag-0 products, pooled over trajectories.
+        self._lagged, self._square = np.zeros(k), np.zeros(k)
+        self._last: dict[int, FloatArray] = {}
+        # Newey-West: per open trajectory, the last L + 1 cumulative sums of the scores.
+        self._tail: dict[int, FloatArray] = {}
+
+    @property
+    def needs_bandwidth(self) -> bool:
+        """Whether this pass only finds the bandwidth (hac without one given)."""
+        return self.kind == "hac" and self.bandwidth is None
+
+    def add(self, j: int, z: FloatArray, r: FloatArray, w: FloatArray) -> None:
+        """Rows of trajectory `j` that follow its earlier ones: influence rows z = [G, lam],
+        residuals r and weights w."""
+        if len(r) == 0:
+            return
+        self.sizes[j] += len(r)
+        self.weighted_squares += float(w @ r**2)
+        if self.kind == "classical":
+            self.meat[j] += (z / w[:, None]).T @ z
+            return
+        s = z * r[:, None]
+        if self.kind == "hc":
+            self.meat[j] += s.T @ s
+        elif self.needs_bandwidth:
+            previous = self._last.get(j)
+            before = s[:-1] if previous is None else np.vstack([previous, s[:-1]])
+            after = s[1:] if previous is None else s
+            self._lagged += np.einsum("ij,ij->j", after, before)
+            self._square += np.einsum("ij,ij->j", before, before)
+            self._last[j] = s[-1]
+        else:
+            self._add_boxes(j, s)
+
+    def _add_boxes(self, j: int, s: FloatArray) -> None:
+        """Bartlett meat: sum_{t,u} (1 - |t-u|/(L+1))_+ s_t s_u^T of each trajectory.
+
+        The Bartlett kernel is the self-convolution of a box of L + 1 samples, so the sum
+        equals sum_k B_k B_k^T / (L + 1) over all (also partial) windows B_k of L + 1
+        consecutive scores. Here the boxes ending at each new row; `close` adds those
+        that run past the trajectory's last row.
+        """
+        L = int(self.bandwidth or 0)
+        tail = self._tail.get(j, np.zeros((1, s.shape[1])))
+        seen = int(self.sizes[j]) - len(s)           # rows of j before this piece
+        first = max(seen - L, 0)                     # index of tail[0] in cum[0..]
+        cum = np.vstack([tail, tail[-1] + np.cumsum(s, axis=0)])
+        end = np.arange(seen + 1, seen + len(s) + 1)
+        box = cum[end - first] - cum[np.maximum(end - L - 1, 0) - first]
+        self.meat[j] += box.T @ box / (L + 1)
+        self._tail[j] = cum[max(seen + len(s) - L, 0) - first:]
+
+    def close(self, j: int) -> None:
+        """End trajectory `j` (hac: add the boxes that run past its last row)."""
+        tail = self._tail.pop(j, None)
+        if tail is None:
+            return
+        L = int(self.bandwidth or 0)
+        n = int(self.sizes[j])
+        # Boxes k = n-L .. n-1 reach from cum[max(k, 0)] to cum[n].
+        starts = np.maximum(np.arange(n - L, n), 0) - max(n - L, 0)
+        box = tail[-1] - tail[starts]
+        self.meat[j] += box.T @ box / (L + 1)
+
+    def andrews_bandwidth(self) -> int:
+        """Andrews' AR(1) plug-in bandwidth from the first pass (see `bartlett_bandwidth`)."""
+        usable = self._square > 0
+        present = self.sizes[self.sizes > 0]
+        if not np.any(usable):
+            return 0
+        rho = np.clip(self._lagged[usable] / self._square[usable], -_RHO_MAX, _RHO_MAX)
+        # Andrews' weights w_a = sigma_a^-4 make every score column count alike, so that
+        # the bandwidth does not depend on the units of the parameters or of the energy.
+        alpha = np.sum(4 * rho**2 / ((1 - rho) ** 6 * (1 + rho) ** 2)) / np.sum(
+            1 / (1 - rho) ** 4)
+        bandwidth = math.ceil(_ANDREWS_BARTLETT * (alpha * float(np.median(present))) ** (1 / 3))
+        return int(min(max(bandwidth, 0), int(present.max()) - 1))
+
+    def estimate(self, df_resid: int, automatic: bool = False) -> _Estimate:
+        """The scaled meat blocks, the description and the t degrees of freedom."""
+        for j in list(self._tail):
+            self.close(j)
+        n = int(self.sizes.sum())
+        if self.kind == "classical":
+            return (self.weighted_squares / df_resid * self.meat, DESCRIPTIONS["classical"],
+                    df_resid)
+        if self.kind == "hc":
+            return n / df_resid * self.meat, DESCRIPTIONS["hc"], df_resid
+        description = DESCRIPTIONS["hac"].format(bandwidth=self.bandwidth,
+                                                 how=", automatic" if automatic else "")
+        return n / df_resid * self.meat, description, df_resid
 
 
-def _andrews_bandwidth(prob: _Problem) -> int:
-    """Helper computing Andrews' AR(1) plug-in bandwidth (see `bartlett_bandwidth`)."""
-    k = prob.p + 1
-    lagged = np.zeros(k)
-    square = np.zeros(k)
-    for _, rows in prob.groups():
-        s = prob.scores(rows)
-        lagged += np.einsum("ij,ij->j", s[1:], s[:-1])
-        square += np.einsum("ij,ij->j", s[:-1], s[:-1])
-    usable = square > 0
-    if not np.any(usable):
-        return 0
-    rho = np.clip(lagged[usable] / square[usable], -_RHO_MAX, _RHO_MAX)
-    # Andrews' weights w_a = sigma_a^-4 make every score column count alike, so that the
-    # bandwidth does not depend on the units of the parameters or of the energy.
-    alpha = np.sum(4 * rho**2 / ((1 - rho) ** 6 * (1 + rho) ** 2)) / np.sum(1 / (1 - rho) ** 4)
-    sizes = prob.stops - prob.starts
-    n_eff = float(np.median(sizes))
-    bandwidth = math.ceil(_ANDREWS_BARTLETT * (alpha * n_eff) ** (1 / 3))
-    return int(min(max(bandwidth, 0), int(sizes.max()) - 1))
+def _feed(sums: ScoreSums, prob: _Problem) -> ScoreSums:
+    """Helper feeding every trajectory's rows of `prob` at once."""
+    for j, rows in prob.groups():
+        sums.add(j, prob.z(rows), prob.r[rows], prob.w[rows])
+        sums.close(j)
+    return sums
 
 
-def _hac(prob: _Problem, bandwidth: int | None) -> _Estimate:
-    """Newey-West sandwich with lags inside each trajectory, times n / df_resid."""
-    automatic = bandwidth is None
-    lags = _andrews_bandwidth(prob) if automatic else int(bandwidth)
-    blocks = _blocks(prob, lambda rows: _bartlett_meat(prob.scores(rows), lags))
-    how = ", automatic" if automatic else ""
-    description = DESCRIPTIONS["hac"].format(bandwidth=lags, how=how)
-    return prob.n / prob.df_resid * blocks, description, prob.df_resid
+def _estimate(prob: _Problem, kind: str, bandwidth: int | None) -> _Estimate:
+    """Helper running one estimator on all rows (two passes for the automatic bandwidth)."""
+    sums = _feed(ScoreSums(kind, prob.p, prob.n_groups, bandwidth), prob)
+    if not sums.needs_bandwidth:
+        return sums.estimate(prob.df_resid)
+    lags = sums.andrews_bandwidth()
+    return _feed(ScoreSums(kind, prob.p, prob.n_groups, lags), prob).estimate(
+        prob.df_resid, automatic=True)
 
 
-ESTIMATORS: dict[str, Callable[[_Problem, int | None], _Estimate]] = {
-    "classical": _classical,
-    "hc": _hc,
-    "hac": _hac,
-}
+ESTIMATORS = ("classical", "hc", "hac")
 
 
 def _by_unit(prob: _Problem, units: npt.ArrayLike) -> _Problem:
@@ -386,7 +436,7 @@ def covariance(
             raise ValueError(f"`units` applies only to kind 'hac', not {kind!r}")
         prob = _by_unit(prob, units)
 
-    blocks, description, df = ESTIMATORS[kind](prob, bandwidth)
+    blocks, description, df = _estimate(prob, kind, bandwidth)
     if units is not None:
         description += f", on the summed scores of {prob.n} units of rows"
     p = prob.p
@@ -435,7 +485,8 @@ def bartlett_bandwidth(
     int
         The highest lag with nonzero weight.
     """
-    return _andrews_bandwidth(_problem(G, lam, residuals, None, groups, 1))
+    prob = _problem(G, lam, residuals, None, groups, 1)
+    return _feed(ScoreSums("hac", prob.p, prob.n_groups), prob).andrews_bandwidth()
 
 
 def t_quantile(df: float, level: float) -> float:

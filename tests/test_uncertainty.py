@@ -17,6 +17,7 @@ from hamid.uncertainty import (
     DESCRIPTIONS,
     ESTIMATORS,
     Covariance,
+    ScoreSums,
     bartlett_bandwidth,
     bootstrap,
     confidence_bounds,
@@ -245,6 +246,38 @@ def test_trajectory_order_only_relabels_levels(kind, order):
     np.testing.assert_allclose(moved.theta, base.theta, rtol=1e-9)
     np.testing.assert_allclose(moved.theta_level, base.theta_level[list(order)], rtol=1e-9)
     np.testing.assert_allclose(moved.level, base.level[list(order)], rtol=1e-9)
+
+
+@settings(max_examples=15, deadline=None)
+@given(kind=st.sampled_from(sorted(ESTIMATORS)), seed=st.integers(0, 2**16),
+       bandwidth=st.sampled_from([None, 0, 3, 200]))
+def test_sums_fed_in_pieces_equal_the_estimate_on_all_rows(kind, seed, bandwidth):
+    """A file read in chunks feeds each trajectory's rows in pieces: the blocks must not move."""
+    if kind != "hac" and bandwidth is not None:
+        return
+    data, fit = _reference()
+    whole = covariance(kind, fit.G, fit.lam, fit.r, data.w, data.groups,
+                       df_resid=fit.df_resid, bandwidth=bandwidth)
+    rng = np.random.default_rng(seed)
+    cuts = np.sort(rng.choice(np.arange(1, len(fit.r)), size=12, replace=False))
+    z = np.column_stack([fit.G, fit.lam])
+
+    def one_pass(lags):
+        sums = ScoreSums(kind, fit.G.shape[1], len(SIZES), lags)
+        for rows in np.split(np.arange(len(fit.r)), cuts):
+            for j in np.unique(data.groups[rows]):
+                mine = rows[data.groups[rows] == j]
+                sums.add(int(j), z[mine], fit.r[mine], data.w[mine])
+        return sums
+
+    sums = one_pass(bandwidth)
+    if sums.needs_bandwidth:
+        sums = one_pass(sums.andrews_bandwidth())
+    blocks, description, _ = sums.estimate(fit.df_resid, automatic=bandwidth is None)
+    p = fit.G.shape[1]
+    np.testing.assert_allclose(blocks[:, :p, :p].sum(axis=0), whole.theta, rtol=1e-10)
+    np.testing.assert_allclose(blocks[:, p, p], whole.level, rtol=1e-10)
+    assert description == whole.description
 
 
 def test_covariance_arrays_are_read_only():
