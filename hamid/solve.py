@@ -16,8 +16,9 @@ import numpy.typing as npt
 from hamid.design import Block
 from hamid.errors import FitError
 
-__all__ = ["Centred", "Conditioning", "Solution", "centre", "conditioning", "solve",
-           "solve_adjusted"]
+__all__ = ["Centred", "Conditioning", "Factor", "Solution", "centre", "conditioning",
+           "factor_conditioning", "solve",
+           "solve_adjusted", "solve_factor"]
 
 # A scaled singular value below this (a condition number above 1e10) leaves a direction
 # undetermined at double precision for any data with noise in them.
@@ -72,31 +73,110 @@ def centre(blocks: Sequence[Block], n_groups: int) -> Centred:
                    np.sqrt(raw_sq))
 
 
+class Factor:
+    """Triangular factors of the weighted rows, accumulated piece by piece (tall-skinny QR).
+
+    Each trajectory's level rows give R_j of [sqrt(w), sqrt(w) A, sqrt(w) b]: its lower
+    right block is the factor of the rows centred within the trajectory, so the levels are
+    eliminated without a pass to find the means first. Rows without a level (weak form)
+    share one factor of [sqrt(w) A, sqrt(w) b]. Feeding the rows at once or in chunks
+    gives the same factors, up to rounding.
+    """
+
+    def __init__(self, p: int, n_groups: int) -> None:
+        self.p = p
+        self.level: list[npt.NDArray[np.float64] | None] = [None] * n_groups
+        self.free: npt.NDArray[np.float64] | None = None
+        self.weighted_A = np.zeros((n_groups, p))
+        self.weighted_b = np.zeros(n_groups)
+        self.total_weight = np.zeros(n_groups)
+        self.raw_squares = np.zeros(p)
+        self.n_rows = 0
+
+    def add(self, block: Block) -> None:
+        """Rows of any trajectories, each one's after its earlier rows."""
+        sw = np.sqrt(block.weight)
+        rows = np.column_stack([block.A, block.b]) * sw[:, None]
+        self.n_rows += block.n_rows
+        self.raw_squares += np.sum(rows[:, :self.p] ** 2, axis=0)
+        if not block.has_level:
+            self.free = _stack_qr(self.free, rows)
+            return
+        edges = np.flatnonzero(np.diff(block.group)) + 1
+        starts = np.concatenate([[0], edges]).astype(int) if block.n_rows else []
+        stops = np.concatenate([edges, [block.n_rows]]).astype(int) if block.n_rows else []
+        for start, stop in zip(starts, stops, strict=True):  # one run per trajectory
+            j = int(block.group[start])
+            w = block.weight[start:stop]
+            self.total_weight[j] += w.sum()
+            self.weighted_A[j] += w @ block.A[start:stop]
+            self.weighted_b[j] += w @ block.b[start:stop]
+            self.level[j] = _stack_qr(self.level[j],
+                                      np.column_stack([sw[start:stop], rows[start:stop]]))
+
+    @property
+    def level_means(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Weighted means of A and b in each trajectory (NaN for one without level rows)."""
+        inverse = np.divide(1.0, self.total_weight, out=np.full(len(self.total_weight), np.nan),
+                            where=self.total_weight > 0)
+        return self.weighted_A * inverse[:, None], self.weighted_b * inverse
+
+    def centred(self) -> npt.NDArray[np.float64]:
+        """The factor R of all rows, centred [sqrt(w) A, sqrt(w) b], shape (p + 1, p + 1)."""
+        pieces = [R[1:, 1:] for R in self.level if R is not None]
+        if self.free is not None:
+            pieces.append(self.free)
+        return _stack_qr(None, np.vstack(pieces))
+
+
+def _stack_qr(R: npt.NDArray[np.float64] | None,
+              rows: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """The triangular factor of an earlier factor stacked on new rows."""
+    return np.linalg.qr(rows if R is None else np.vstack([R, rows]), mode="r")
+
+
 @dataclass(frozen=True)
 class Solution:
     """Parameters of the centred problem and the linear map from row errors to them.
 
     theta - theta_true = G.T @ e  for row errors e (unweighted), so every covariance
-    estimator works from G and the residuals.
+    estimator works from G and the residuals; G_i = w_i (a_i - mean_j a) @ inverse, with
+    `inverse` that of the centred weighted normal matrix.
     """
 
     theta: npt.NDArray[np.float64]
-    G: npt.NDArray[np.float64]                 # (n_rows, p)
+    inverse: npt.NDArray[np.float64]           # (p, p)
     singular_values: npt.NDArray[np.float64]   # of the column-scaled centred design
+    G: npt.NDArray[np.float64] | None = None   # (n_rows, p), when the rows are in memory
 
 
 def solve(centred: Centred, names: Sequence[str], *, n_levels: int = 0) -> Solution:
     """Least squares of the centred rows; a FitError names undetermined parameters."""
-    A, b = centred.A, centred.b
-    n, p = A.shape
-    if n <= p + n_levels:
-        raise FitError(f"cannot determine {', '.join(names)}: {n} rows for {p + n_levels} "
+    import dataclasses
+
+    R = np.linalg.qr(np.column_stack([centred.A, centred.b]), mode="r")
+    solution = solve_factor(R, centred.raw_norms, len(centred.b), names, n_levels=n_levels)
+    G = centred.sqrt_w[:, None] * (centred.A @ solution.inverse)
+    return dataclasses.replace(solution, G=G)
+
+
+def solve_factor(R: npt.NDArray[np.float64], raw_norms: npt.NDArray[np.float64], n_rows: int,
+                 names: Sequence[str], *, n_levels: int = 0) -> Solution:
+    """Least squares from the triangular factor R of the centred rows [A, b].
+
+    The SVD of the column-scaled factor is that of the column-scaled design, so rank and
+    conditioning are judged exactly as on all rows.
+    """
+    p = len(names)
+    if n_rows <= p + n_levels:
+        raise FitError(f"cannot determine {', '.join(names)}: {n_rows} rows for {p + n_levels} "
                        f"unknowns ({p} parameters"
                        + (f" and {n_levels} energy level{'s' if n_levels > 1 else ''})"
                           if n_levels else ")")
                        + ", which leaves nothing to estimate their errors from")
+    A, b = R[:, :p], R[:, p]
     scale = np.linalg.norm(A, axis=0)
-    varies = scale > _VARIES * centred.raw_norms
+    varies = scale > _VARIES * raw_norms
     still = [name for name, v in zip(names, varies, strict=True) if not v]
     if still:
         subject, pronoun = ("its term does", "it") if len(still) == 1 else (
@@ -108,8 +188,8 @@ def solve(centred: Centred, names: Sequence[str], *, n_levels: int = 0) -> Solut
     if s[-1] <= tolerance or not np.all(np.isfinite(s)):
         _raise_rank_deficient(s, Vt, names, tolerance)
     theta = (Vt.T @ ((U.T @ b) / s)) / scale
-    G = (centred.sqrt_w[:, None] * U) @ ((Vt.T / s).T / scale)
-    return Solution(theta, G, s)
+    inverse = (Vt.T / s**2) @ Vt / np.outer(scale, scale)
+    return Solution(theta, inverse, s)
 
 
 def solve_adjusted(centred: Centred, AA: npt.NDArray[np.float64], Ab: npt.NDArray[np.float64],
@@ -140,7 +220,7 @@ def solve_adjusted(centred: Centred, AA: npt.NDArray[np.float64], Ab: npt.NDArra
     inverse = (V / eigenvalues) @ V.T / np.outer(scale, scale)
     theta = inverse @ moment
     G = centred.sqrt_w[:, None] * (A @ inverse)
-    return Solution(theta, G, np.sqrt(eigenvalues[::-1]))
+    return Solution(theta, inverse, np.sqrt(eigenvalues[::-1]), G)
 
 
 def _raise_rank_deficient(s: np.ndarray, Vt: np.ndarray, names: Sequence[str],
@@ -169,31 +249,27 @@ STATUS_LIMITS = (("ok", 30.0), ("moderate", 1000.0))
 
 def conditioning(blocks: Sequence[Block], names: Sequence[str],
                  labels: Sequence[str | int]) -> Conditioning:
-    """Singular values of [A, level columns], scaled to unit column norms.
+    """Singular values of [A, level columns], scaled to unit column norms."""
+    factor = Factor(len(names), len(labels))
+    for block in blocks:
+        factor.add(block)
+    return factor_conditioning(factor, names, labels)
 
-    Each trajectory's rows are first reduced to a small triangular factor (QR), so the
-    level columns never have to be formed densely for all samples.
-    """
+
+def factor_conditioning(factor: Factor, names: Sequence[str],
+                        labels: Sequence[str | int]) -> Conditioning:
+    """`conditioning` from the rows' triangular factors: the level columns of each
+    trajectory enter through its small factor, never densely for all samples."""
     J, p = len(labels), len(names)
     pieces = []
-    for block in blocks:
-        sw = np.sqrt(block.weight)
-        # Rows of a block come grouped by trajectory: slice each run, never mask all rows.
-        edges = np.flatnonzero(np.diff(block.group)) + 1
-        starts = np.concatenate([[0], edges]) if block.n_rows else np.zeros(0, int)
-        stops = np.concatenate([edges, [block.n_rows]]) if block.n_rows else starts
-        for start, stop in zip(starts.tolist(), stops.tolist(), strict=True):
-            j = int(block.group[start])
-            rows = slice(start, stop)
-            local = block.A[rows] * sw[rows, None]
-            if block.has_level:
-                local = np.hstack([local, sw[rows, None]])
-            R = np.linalg.qr(local, mode="r")
-            full = np.zeros((R.shape[0], p + J))
-            full[:, :p] = R[:, :p]
-            if block.has_level:
-                full[:, p + j] = R[:, p]
+    for j, R in enumerate(factor.level):
+        if R is not None:
+            full = np.zeros((min(R.shape[0], p + 1), p + J))
+            full[:, :p] = R[:p + 1, 1:p + 1]
+            full[:, p + j] = R[:p + 1, 0]
             pieces.append(full)
+    if factor.free is not None:
+        pieces.append(np.hstack([factor.free[:p, :p], np.zeros((min(len(factor.free), p), J))]))
     stacked = np.vstack(pieces)
     norms = np.linalg.norm(stacked, axis=0)
     used = norms > 0
