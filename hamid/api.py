@@ -266,7 +266,9 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     levels = tuple(EnergyLevel(label, float(h[j]), h_stderr[j], stop - start)
                    for j, (label, (start, stop)) in enumerate(zip(records.labels, bounds,
                                                                   strict=True)))
-    stats = _residual_stats(energy_residual, energy_rows, h, bounds, records.labels)
+    sums = _ResidualSums(h)
+    sums.add(energy_rows, energy_residual)
+    stats = sums.stats(records.labels)
     stats["blocks"] = {b.kind: _block_stats(r) for b, r in
                        zip(blocks, np.split(estimate.residual,
                                             np.cumsum([b.n_rows for b in blocks])[:-1]),
@@ -666,34 +668,64 @@ def _block_stats(residual: Any) -> dict[str, Any]:
             "max_abs": float(np.max(np.abs(residual)))}
 
 
-def _residual_stats(residual: Any, block: Block, h: Any, bounds: list[tuple[int, int]],
-                    labels: tuple[str | int, ...]) -> dict[str, Any]:
-    """Residual summary of the energy rows (SPEC section 4, residuals)."""
-    rms = float(np.sqrt(np.mean(residual**2)))
-    mean_level = float(np.mean(np.abs(h)))
-    centred_b = np.concatenate([block.b[a:b] - block.b[a:b].mean() for a, b in bounds])
-    total = float(np.sum(centred_b**2))
-    lagged = sum(float(residual[a:b - 1] @ residual[a + 1:b]) for a, b in bounds)
-    drift = []
-    for (a, b), label, level in zip(bounds, labels, h, strict=True):
-        t, r = block.time[a:b], residual[a:b]
-        span = t[-1] - t[0]
-        # The trend in closed form, on time scaled to the record (no LAPACK on tiny steps).
-        u = (t - t.mean()) / span if b - a > 2 and span > 0 else np.zeros(b - a)
-        spread_u, spread_r = float(u @ u), float(np.sum((r - r.mean()) ** 2))
-        change = float(u @ r) / spread_u if spread_u > 0 else 0.0  # over the whole record
-        explained = change**2 * spread_u / spread_r if spread_r > 0 else 0.0
-        drift.append({"trajectory": label,
-                      "relative_change": change / abs(level) if level else None,
-                      "trend_share": explained})
-    return {
-        "rms": rms,
-        "max_abs": float(np.max(np.abs(residual))),
-        "relative_rms": rms / mean_level if mean_level > 0 else None,
-        "r_squared": 1 - float(np.sum(residual**2)) / total if total > 0 else None,
-        "lag1_autocorrelation": lagged / float(residual @ residual) if rms > 0 else None,
-        "drift": drift,
-    }
+class _ResidualSums:
+    """Sums over the energy rows that the residual summary needs (SPEC section 4,
+    residuals), fed with each trajectory's rows in time order, in one piece or many."""
+
+    def __init__(self, h: Any) -> None:
+        J = len(h)
+        self.h = h
+        self.n = np.zeros(J)
+        self.origin = np.full((J, 3), np.nan)   # first t, b and r: sums are taken about them
+        self.sums = np.zeros((J, 8))   # t, t^2, r, r^2, t r, b, b^2, r_k r_k+1
+        self.max_abs = 0.0
+        self.last = np.full(J, np.nan)
+        self.end = np.zeros(J)   # last t, from the first
+
+    def add(self, block: Block, residual: Any) -> None:
+        edges = np.flatnonzero(np.diff(block.group)) + 1
+        for start, stop in zip([0, *edges], [*edges, block.n_rows], strict=True):
+            j = int(block.group[start])
+            t, b, r = block.time[start:stop], block.b[start:stop], residual[start:stop]
+            if self.n[j] == 0:
+                self.origin[j] = t[0], b[0], 0.0
+                self.last[j] = r[0]
+            t, b = t - self.origin[j, 0], b - self.origin[j, 1]
+            lagged = self.last[j] * r[0] + r[1:] @ r[:-1] if self.n[j] else r[1:] @ r[:-1]
+            self.sums[j] += [t.sum(), t @ t, r.sum(), r @ r, t @ r, b.sum(), b @ b, lagged]
+            self.n[j] += len(r)
+            self.last[j] = r[-1]
+            self.end[j] = t[-1]
+            self.max_abs = max(self.max_abs, float(np.max(np.abs(r))))
+
+    def stats(self, labels: tuple[str | int, ...]) -> dict[str, Any]:
+        n = self.n
+        st, stt, sr, srr, str_, sb, sbb, lagged = self.sums.T
+        total_squares = float(srr.sum())
+        rms = float(np.sqrt(total_squares / n.sum()))
+        mean_level = float(np.mean(np.abs(self.h)))
+        total = float(np.sum(sbb - sb**2 / n))
+        drift = []
+        for j, label in enumerate(labels):
+            # The trend in closed form, on time u scaled to the record (change over it).
+            span = float(self.end[j])
+            spread_t = float(stt[j] - st[j] ** 2 / n[j])
+            spread_u = spread_t / span**2 if n[j] > 2 and span > 0 else 0.0
+            spread_r = float(srr[j] - sr[j] ** 2 / n[j])
+            product = float(str_[j] - st[j] * sr[j] / n[j]) / span if spread_u > 0 else 0.0
+            change = product / spread_u if spread_u > 0 else 0.0
+            explained = change**2 * spread_u / spread_r if spread_r > 0 else 0.0
+            drift.append({"trajectory": label,
+                          "relative_change": change / abs(self.h[j]) if self.h[j] else None,
+                          "trend_share": explained})
+        return {
+            "rms": rms,
+            "max_abs": self.max_abs,
+            "relative_rms": rms / mean_level if mean_level > 0 else None,
+            "r_squared": 1 - total_squares / total if total > 0 else None,
+            "lag1_autocorrelation": float(lagged.sum()) / total_squares if rms > 0 else None,
+            "drift": drift,
+        }
 
 
 # A drift is reported when the energy changes by more than this fraction over the record

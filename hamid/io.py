@@ -341,6 +341,134 @@ def _check_unique(names: Sequence[str], name: str) -> None:
         raise DataError(f"{name}: duplicated column {noun} {listed}")
 
 
+class TableChunks:
+    """A CSV, TSV or Parquet file read in chunks of rows, for data larger than memory.
+
+    Opening reads the column names and the hamid metadata only; `chunks` reads the named
+    columns chunk by chunk (Parquet batches, blocks of delimited text), each time from the
+    start of the file, so a fit can take several passes in bounded memory.
+    """
+
+    def __init__(self, source: str | os.PathLike[str], *, format: str | None = None) -> None:
+        self.path = source
+        self.name = os.fsdecode(source)
+        fmt = _check_format(format) if format is not None else _format_from_suffix(source)
+        with _opened(source, self.name) as stream:
+            head = stream.read(len(_PARQUET_MAGIC))
+        if not head:
+            raise DataError(f"{self.name}: file is empty")
+        self.format: Format = fmt or ("parquet" if head == _PARQUET_MAGIC else "csv")
+        if self.format == "parquet":
+            self._open_parquet()
+        else:
+            self._open_text(fmt)
+
+    def _open_parquet(self) -> None:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        try:
+            schema = pq.ParquetFile(self.path).schema_arrow
+        except (pa.ArrowException, OSError) as exc:
+            raise DataError(f"{self.name}: is not a valid Parquet file "
+                            f"({_first_line(exc)})") from exc
+        self.columns = [str(name) for name in schema.names]
+        _check_unique(self.columns, self.name)
+        raw = (schema.metadata or {}).get(_METADATA_KEY)
+        self.metadata = _parse_metadata(raw, self.name) if raw is not None else None
+
+    def _open_text(self, fmt: Format | None) -> None:
+        head = b""
+        with _opened(self.path, self.name) as stream:
+            for line in stream:   # comment and blank lines, then the header line
+                head += line
+                text = line.removeprefix(_UTF8_BOM) if head == line else line
+                if text.strip() and not text.startswith(b"#"):
+                    break
+        if head.startswith(_GZIP_MAGIC):
+            raise DataError(f"{self.name}: is gzip-compressed; decompress it first")
+        start = len(_UTF8_BOM) if head.startswith(_UTF8_BOM) else 0
+        self.offset, self.metadata = _skip_comments(head, start, self.name)
+        if self.offset >= len(head):
+            raise DataError(f"{self.name}: has comment lines but no header line")
+        self.delimiter = _DELIMITERS[fmt] if fmt is not None else _sniff_delimiter(
+            head, self.offset)
+        try:
+            header = head[self.offset:].rstrip(b"\r\n").decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise _not_utf8(head, self.name) from exc
+        raw = [cell.strip('"') for cell in header.split(self.delimiter)]
+        self.columns = [cell.strip() for cell in raw]
+        self._raw = dict(zip(self.columns, raw, strict=True))
+        _check_unique(self.columns, self.name)
+
+    def chunks(self, columns: Sequence[str], rows: int) -> Iterator[dict[str, Any]]:
+        """The named columns, about `rows` rows at a time, as numpy arrays."""
+        with _arrow_reading(self.name):
+            for batch in self._batches(list(dict.fromkeys(columns)), rows):
+                yield {name: batch.column(name).to_numpy(zero_copy_only=False)
+                       if batch.column(name).null_count == 0 else
+                       _with_nulls(batch.column(name)) for name in batch.schema.names}
+
+    def _batches(self, columns: list[str], rows: int) -> Iterator[Any]:
+        import pyarrow.csv as pacsv
+        import pyarrow.parquet as pq
+
+        if self.format == "parquet":
+            yield from pq.ParquetFile(self.path).iter_batches(batch_size=rows, columns=columns)
+            return
+        stream = open(self.path, "rb")  # noqa: SIM115 (closed below, after the last batch)
+        try:
+            stream.seek(self.offset)
+            reader = pacsv.open_csv(
+                stream,
+                read_options=pacsv.ReadOptions(block_size=max(rows * 64, 1 << 12)),
+                parse_options=pacsv.ParseOptions(delimiter=self.delimiter),
+                convert_options=pacsv.ConvertOptions(
+                    null_values=[""], include_columns=[self._raw[c] for c in columns]))
+            for batch in reader:
+                yield batch.rename_columns([c.strip() for c in batch.schema.names])
+        finally:
+            stream.close()
+
+
+def _with_nulls(column: Any) -> Any:
+    """Helper: a column with missing cells as floats with NaN (numbers) or None (text)."""
+    import pyarrow as pa
+
+    if pa.types.is_integer(column.type) or pa.types.is_floating(column.type):
+        return column.cast(pa.float64()).to_numpy(zero_copy_only=False)
+    return column.to_numpy(zero_copy_only=False)
+
+
+@contextlib.contextmanager
+def _opened(source: str | os.PathLike[str], name: str) -> Iterator[IO[bytes]]:
+    """Helper opening a file for reading, with file errors as DataError."""
+    try:
+        stream = open(source, "rb")  # noqa: SIM115 (closed below)
+    except FileNotFoundError as exc:
+        raise DataError(f"{name}: no such file") from exc
+    except IsADirectoryError as exc:
+        raise DataError(f"{name}: is a folder, not a file") from exc
+    except OSError as exc:
+        raise DataError(f"{name}: cannot read: {_reason(exc)}") from exc
+    with stream:
+        yield stream
+
+
+@contextlib.contextmanager
+def _arrow_reading(name: str) -> Iterator[None]:
+    """Helper turning pyarrow's errors while reading chunks into a DataError."""
+    import pyarrow as pa
+
+    try:
+        yield
+    except UnicodeDecodeError as exc:
+        raise DataError(f"{name}: is not UTF-8 text") from exc
+    except (pa.ArrowException, OSError) as exc:
+        raise DataError(f"{name}: cannot read ({_first_line(exc)})") from exc
+
+
 # ---------------------------------------------------------------------------------------------
 # Checking a column
 
