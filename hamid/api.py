@@ -710,7 +710,8 @@ class _ResidualSums:
             # The trend in closed form, on time u scaled to the record (change over it).
             span = float(self.end[j])
             spread_t = float(stt[j] - st[j] ** 2 / n[j])
-            spread_u = spread_t / span**2 if n[j] > 2 and span > 0 else 0.0
+            spread_u = (np.sqrt(max(spread_t, 0.0)) / span) ** 2 if n[j] > 2 and span > 0 \
+                else 0.0
             spread_r = float(srr[j] - sr[j] ** 2 / n[j])
             product = float(str_[j] - st[j] * sr[j] / n[j]) / span if spread_u > 0 else 0.0
             change = product / spread_u if spread_u > 0 else 0.0
