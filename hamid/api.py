@@ -149,8 +149,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     >>> result.estimates
     {'k': 1.0..., 'k3': 0.5...}
     """
-    from hamid import design, solve, uncertainty
-    from hamid.result import _finite
+    from hamid import design, solve
 
     _check_choice(method, METHODS, "method")
     _check_choice(cov, COVARIANCE_KINDS, "cov")
@@ -230,24 +229,6 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         Abar = estimate.centred.level_means_A
         h_var = (c.level - 2 * np.einsum("jp,jp->j", Abar, c.theta_level)
                  + np.einsum("jp,pq,jq->j", Abar, c.theta, Abar))
-    stderr = np.sqrt(np.clip(np.diag(theta_cov), 0, None))
-    low, high = uncertainty.confidence_bounds(theta, stderr, df, level)
-
-    truth = loaded.truth
-    estimates = dict(fixed)
-    parameters = []
-    for k, name in enumerate(names):
-        role = "energy" if k < len(m.parameters) else "damping"
-        if name in fixed:
-            parameters.append(ParameterEstimate(name, role, fixed[name], None, None, None,
-                                                truth.get(name), True))
-            continue
-        i = free.index(k)
-        estimates[name] = float(theta[i])
-        parameters.append(ParameterEstimate(
-            name, role, float(theta[i]), _finite_or_none(stderr[i]),
-            _finite_or_none(low[i]), _finite_or_none(high[i]), truth.get(name), False))
-
     # Energy levels and energy residuals are reported for every method; with weak rows
     # alone the levels are the mean fitted energies and carry no standard error.
     if kind == "weak" or np.any(np.isnan(estimate.h)):
@@ -256,16 +237,12 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         levels_centred = solve.centre([energy_rows], J)
         mean_energy = levels_centred.level_means_A @ theta - levels_centred.level_means_b
     if kind == "weak":
-        h, h_stderr = mean_energy, [None] * J
+        h, h_stderr = mean_energy, np.full(J, np.nan)
     else:
         h = np.where(np.isnan(estimate.h), mean_energy, estimate.h) if np.any(
             np.isnan(estimate.h)) else estimate.h
-        h_stderr = [_finite_or_none(np.sqrt(max(v, 0))) for v in h_var]
+        h_stderr = np.sqrt(np.clip(h_var, 0, None))
     energy_residual = energy_rows.A @ theta - energy_rows.b - h[energy_rows.group]
-    bounds = records.bounds()
-    levels = tuple(EnergyLevel(label, float(h[j]), h_stderr[j], stop - start)
-                   for j, (label, (start, stop)) in enumerate(zip(records.labels, bounds,
-                                                                  strict=True)))
     sums = _ResidualSums(h)
     sums.add(energy_rows, energy_residual)
     stats = sums.stats(records.labels)
@@ -274,8 +251,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                                             np.cumsum([b.n_rows for b in blocks])[:-1]),
                            strict=True)}
     cond = solve.conditioning(blocks, free_names, records.labels)
-    warnings = [*loaded.notes,
-                *_warnings(parameters, stats, cond, df, level, cov, kind, dissipation.kinds)]
+    block_conditions = {b.kind: solve.conditioning([b], free_names, records.labels)
+                        .condition_number for b in blocks} if len(blocks) > 1 else None
     method_info = {
         "kind": kind, "kind_reason": kind_reason, "weak_window": window,
         "damping": list(dissipation.kinds),
@@ -284,30 +261,72 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         "covariance_description": cov_text, "level": level, "fixed": dict(fixed),
         "block_variance": block_variance,
     }
-    conditioning_info = {
-        "condition_number": cond.condition_number,
-        "singular_values": list(cond.singular_values),
-        "weakest_direction": cond.weakest_direction, "status": cond.status,
-        "blocks": {b.kind: solve.conditioning([b], free_names, records.labels).condition_number
-                   for b in blocks} if len(blocks) > 1 else None,
-    }
+    estimates = {**fixed, **dict(zip(free_names, theta.tolist(), strict=True))}
     labels = np.asarray(records.labels, dtype=object)
     samples = {"trajectory": labels[energy_rows.group], "t": energy_rows.time,
                "energy": _fitted_energy(all_energy_rows, m, estimates),
                "residual": energy_residual,
                "weight": _sample_weights(kind, blocks, energy_rows, spans)}
+    sizes = [stop - start for start, stop in records.bounds()]
+    return _result(
+        m, names, fixed, theta, theta_cov, df, truth=loaded.truth,
+        levels=_levels(records.labels, h, h_stderr, sizes), stats=stats, cond=cond,
+        block_conditions=block_conditions, notes=loaded.notes, data_info=loaded.data_info,
+        method_info=method_info,
+        dissipation=_dissipation_summary(m, records, dissipation, estimates,
+                                         all_energy_rows, h),
+        samples=samples)
+
+
+def _levels(labels: tuple[str | int, ...], h: Any, stderr: Any,
+            sizes: list[int]) -> tuple[EnergyLevel, ...]:
+    return tuple(EnergyLevel(label, float(level), _finite_or_none(error), size)
+                 for label, level, error, size in zip(labels, h, stderr, sizes, strict=True))
+
+
+def _result(m: Model, names: list[str], fixed: dict[str, float], theta: Any, theta_cov: Any,
+            df: int, *, truth: dict[str, float], levels: tuple[EnergyLevel, ...],
+            stats: dict[str, Any], cond: Any, block_conditions: dict[str, float] | None,
+            notes: tuple[str, ...], data_info: dict[str, Any], method_info: dict[str, Any],
+            dissipation: dict[str, Any] | None, samples: dict[str, Any] | None) -> FitResult:
+    """The fit's report: estimates with bounds, levels, residuals, conditioning, warnings."""
+    from hamid import uncertainty
+    from hamid.result import _finite
+
+    stderr = np.sqrt(np.clip(np.diag(theta_cov), 0, None))
+    low, high = uncertainty.confidence_bounds(theta, stderr, df, method_info["level"])
+    parameters = []
+    free_index = 0
+    for k, name in enumerate(names):
+        role = "energy" if k < len(m.parameters) else "damping"
+        if name in fixed:
+            parameters.append(ParameterEstimate(name, role, fixed[name], None, None, None,
+                                                truth.get(name), True))
+            continue
+        i, free_index = free_index, free_index + 1
+        parameters.append(ParameterEstimate(
+            name, role, float(theta[i]), _finite_or_none(stderr[i]),
+            _finite_or_none(low[i]), _finite_or_none(high[i]), truth.get(name), False))
+    warnings = [*notes, *_warnings(parameters, stats, cond, df, method_info["level"],
+                                   method_info["covariance"], method_info["kind"],
+                                   tuple(method_info["damping"]))]
+    conditioning_info = {
+        "condition_number": cond.condition_number,
+        "singular_values": list(cond.singular_values),
+        "weakest_direction": cond.weakest_direction, "status": cond.status,
+        "blocks": block_conditions,
+    }
     return FitResult(
         hamid_version=__version__,
         model=m.info(),
-        data=_finite(loaded.data_info),
+        data=_finite(data_info),
         method=_finite(method_info),
         parameters=tuple(parameters),
         energy_levels=levels,
         residuals=_finite(stats),
         conditioning=_finite(conditioning_info),
         warnings=tuple(warnings),
-        dissipation=_finite(_dissipation_summary(m, records, dissipation, estimates,
-                                                 all_energy_rows, h)),
+        dissipation=_finite(dissipation),
         samples=samples,
     )
 
