@@ -183,7 +183,9 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     if not free:
         raise UsageError("every parameter is fixed; nothing is left to fit")
     free_names = [names[k] for k in free]
-    kind, kind_reason, window = _choose_method(method, m, records, weak_window)
+    scales = None if records.t is None or method == "energy" else design.trajectory_scales(
+        records, len(m.coordinates))
+    kind, kind_reason, window = _choose_method(method, m, scales, weak_window)
 
     fixed_values = np.array([fixed.get(name, 0.0) for name in names])
     all_energy_rows = design.energy_block(m, records, dissipation)
@@ -397,27 +399,31 @@ def _build_blocks(kind: str, kind_reason: str, window: float | None, method: str
     return kind, kind_reason, window, spans, blocks
 
 
-def _choose_method(method: str, model: Model, records: Records,
+def _choose_method(method: str, model: Model, scales: list[tuple[float | None, float]] | None,
                    weak_window: float | None) -> tuple[str, str, float | None]:
-    """Which rows to fit, why, and the weak-form window (SPEC section 1, --method)."""
+    """Which rows to fit, why, and the weak-form window (SPEC section 1, --method).
+
+    `scales` holds each trajectory's period and time step (`design.trajectory_scales`),
+    None without a time column.
+    """
     from hamid import design
 
     if method == "energy":
         return "energy", "asked for with --method energy", None
     obstacle = None
     window = weak_window
-    if records.t is None:
+    if scales is None:
         obstacle = "the data have no time column"
     elif not model.is_natural:
         obstacle = "the energy is not natural (E = T + V), so Lagrange's equations do not apply"
     elif window is None:
-        period = design.dominant_period(records, len(model.coordinates))
-        if period is None:
+        periods = [period for period, _ in scales if period is not None]
+        if not periods:
             obstacle = "no oscillation was found in the coordinates to size the windows"
         else:
-            window = period / 2
+            window = float(np.median(periods)) / 2
     if obstacle is None:
-        dt = float(np.median(np.diff(records.t))) if len(records.t) > 1 else np.inf
+        dt = float(np.median([step for _, step in scales]))
         per_window = window / dt
         if per_window < design.MIN_SAMPLES_PER_WINDOW:
             obstacle = (f"a weak-form window of {window:.3g} s holds only {per_window:.0f} "

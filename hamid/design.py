@@ -17,7 +17,8 @@ import numpy.typing as npt
 
 from hamid.model import DAMPING_KINDS, Model
 
-__all__ = ["Block", "Damping", "Records", "dominant_period", "energy_block", "weak_block",
+__all__ = ["Block", "Damping", "Records", "dominant_period", "energy_block", "trajectory_scales",
+           "weak_block",
            "window_means", "windows"]
 
 
@@ -211,33 +212,38 @@ _PAD = 8
 
 
 def dominant_period(records: Records, n_coordinates: int) -> float | None:
-    """Period of the strongest oscillation of the coordinates, from their spectrum.
+    """Period of the strongest oscillation of the coordinates: the median of the
+    trajectories' peak periods (`trajectory_scales`), None when none can tell."""
+    periods = [period for period, _ in trajectory_scales(records, n_coordinates)
+               if period is not None]
+    return float(np.median(periods)) if periods else None
 
-    Each trajectory's coordinates (standardised, so units do not matter) are summed into
-    one power spectrum; the median of the trajectories' peak periods is returned, or None
-    when no trajectory has enough samples to tell.
+
+def trajectory_scales(records: Records, n_coordinates: int) -> list[tuple[float | None, float]]:
+    """Each trajectory's dominant period (None if it cannot tell) and median time step.
+
+    The period is the peak of one power spectrum of the coordinates (standardised, so
+    units do not matter, and zero-padded to refine the frequency grid).
     """
     if records.t is None:
-        return None
-    periods = []
+        return []
+    scales = []
     for start, stop in records.bounds():
         t = records.t[start:stop]
-        if stop - start < 8:
-            continue
-        dt = (t[-1] - t[0]) / (len(t) - 1)
+        step = float(np.median(np.diff(t))) if stop - start > 1 else np.inf
         q = records.X[start:stop, :n_coordinates]
         spread = q.std(axis=0)
         q = (q[:, spread > 0] - q[:, spread > 0].mean(axis=0)) / spread[spread > 0]
-        if q.shape[1] == 0:
-            continue
-        # Zero-padding refines the frequency grid beyond 1/duration.
-        padded = _PAD * len(t)
-        power = np.sum(np.abs(np.fft.rfft(q, n=padded, axis=0)) ** 2, axis=1)
-        power[:_PAD] = 0.0
-        peak = int(np.argmax(power))
-        if peak > 0:
-            periods.append(padded * dt / peak)
-    return float(np.median(periods)) if periods else None
+        period = None
+        if stop - start >= 8 and q.shape[1] > 0:
+            dt = (t[-1] - t[0]) / (len(t) - 1)
+            padded = _PAD * len(t)
+            power = np.sum(np.abs(np.fft.rfft(q, n=padded, axis=0)) ** 2, axis=1)
+            power[:_PAD] = 0.0
+            peak = int(np.argmax(power))
+            period = padded * dt / peak if peak > 0 else None
+        scales.append((period, step))
+    return scales
 
 
 def _window_ranges(t: npt.NDArray[np.float64],

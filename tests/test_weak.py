@@ -159,7 +159,8 @@ def test_joint_bounds_cover_the_truth():
 def test_auto_falls_back_when_no_window_fits(monkeypatch, clean_records):
     # A window longer than every record, as an automatic choice could give for a record
     # shorter than the oscillation it holds.
-    monkeypatch.setattr(hamid.design, "dominant_period", lambda records, n: 1000.0)
+    monkeypatch.setattr(hamid.design, "trajectory_scales",
+                        lambda records, n: [(2000.0, 0.01)] * records.n_trajectories)
     result = hamid.fit(clean_records["duffing"])
     assert result.method["kind"] == "energy"
     assert "0 weak-form windows" in result.method["kind_reason"]
