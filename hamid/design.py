@@ -246,20 +246,31 @@ def trajectory_scales(records: Records, n_coordinates: int) -> list[tuple[float 
     return scales
 
 
-def _window_ranges(t: npt.NDArray[np.float64],
-                   window: float) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+def window_ranges(t: npt.NDArray[np.float64], window: float, *, origin: float | None = None,
+                  skip: int = 0, ended: bool = True) -> tuple[npt.NDArray[np.int64],
+                                                             npt.NDArray[np.int64], int]:
     """First and last sample of each window (one every `WINDOW_STEP` windows), ends on samples.
 
-    Ends on samples make the trapezoid rule spectrally accurate for the bump, whose
-    derivatives vanish at both ends.
+    Windows are counted from `origin` (the trajectory's first time, by default t[0]) and
+    returned from number `skip` on; the third value is the number of the first window not
+    returned. With ``ended=False`` (a trajectory whose later samples are still to come)
+    only windows that have a sample at or after their end are returned. Ends on samples
+    make the trapezoid rule spectrally accurate for the bump, whose derivatives vanish at
+    both ends.
     """
-    span, step = t[-1] - t[0], window * WINDOW_STEP
+    origin = t[0] if origin is None else origin
+    span, step = t[-1] - origin, window * WINDOW_STEP
     count = int(np.floor((span - window) / step * (1 + 1e-12))) + 1
-    starts = t[0] + np.arange(max(count, 0)) * step
+    number = np.arange(skip, max(count, skip))
+    starts = origin + number * step
+    ends = np.searchsorted(t, starts + window)
+    if not ended:
+        number, starts, ends = (x[ends < len(t)] for x in (number, starts, ends))
     first = np.clip(np.searchsorted(t, starts), 0, len(t) - 1)
-    last = np.clip(np.searchsorted(t, starts + window), 0, len(t) - 1)
+    last = np.clip(ends, 0, len(t) - 1)
     keep = last - first >= 2
-    return first[keep].astype(np.int64), last[keep].astype(np.int64)
+    following = int(number[-1]) + 1 if len(number) else skip
+    return first[keep].astype(np.int64), last[keep].astype(np.int64), following
 
 
 @dataclass(frozen=True)
@@ -343,18 +354,25 @@ def windows(records: Records, length: float, order: int | None = None) -> Window
 
     The integrals use the trapezoid rule on the recorded times, with the window ends on
     samples; a window with uneven sampling gets composite Simpson (`_quadrature_weights`).
-    All windows are built at once: a long record holds hundreds of thousands.
     """
+    assert records.t is not None
+    parts = [(start + a, start + b, np.full(len(a), j, dtype=np.int64))
+             for j, (start, stop) in enumerate(records.bounds())
+             for a, b, _ in [window_ranges(records.t[start:stop], length)]]
+    first, last, group = (np.concatenate([p[k] for p in parts] or [np.zeros(0, np.int64)])
+                          for k in range(3))
+    return windows_at(records, first, last, group, length, order)
+
+
+def windows_at(records: Records, first: npt.NDArray[np.int64], last: npt.NDArray[np.int64],
+               group: npt.NDArray[np.int64], length: float, order: int | None = None) -> Windows:
+    """Windows over given sample ranges (`window_ranges`), all built at once: a long record
+    holds hundreds of thousands."""
     from scipy import sparse
 
     assert records.t is not None
     t_all = records.t
     order = BUMP_ORDER if order is None else order
-    parts = [(start + a, start + b, np.full(len(a), j, dtype=np.int64))
-             for j, (start, stop) in enumerate(records.bounds())
-             for a, b in [_window_ranges(t_all[start:stop], length)]]
-    first, last, group = (np.concatenate([p[k] for p in parts] or [np.zeros(0, np.int64)])
-                          for k in range(3))
     sizes = last - first + 1
     row = np.repeat(np.arange(len(first)), sizes)
     offsets = np.cumsum(sizes) - sizes
