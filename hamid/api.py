@@ -96,7 +96,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         fix: Mapping[str, float] | None = None, method: str = "auto",
         weak_window: float | None = None, damping: str | Sequence[str] = "none",
         cov: str = "hac", level: float = 0.95, bootstrap: int = 200,
-        seed: int | None = None, format: str | None = None) -> FitResult:
+        seed: int | None = None, format: str | None = None,
+        chunk_rows: int | None = None) -> FitResult:
     """Fit the energy of recorded free oscillations.
 
     Parameters
@@ -138,6 +139,10 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         Replicates and seed of the block bootstrap (``cov="bootstrap"``).
     format : str, optional
         Input format when it cannot be told from the file name.
+    chunk_rows : int, optional
+        Read the file in chunks of this many rows, in memory that does not grow with the
+        file's length (`hamid.stream`); a file over 256 MB is read so by default. Needs one
+        file, measured velocities, no noise weighting or damping, and an analytic `cov`.
 
     Returns
     -------
@@ -169,6 +174,16 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         raise UsageError("--window and --order apply only to --velocity savgol")
 
     _check_choice(velocity, VELOCITY_SOURCES, "velocity")
+    in_memory = _needs_memory(data, velocity, noise, damping, cov)
+    if chunk_rows is not None and (chunk_rows < 1 or in_memory):
+        raise UsageError(f"--chunk-rows: {in_memory or 'must be a positive number of rows'}")
+    if chunk_rows is not None or (not in_memory and os.path.getsize(data) > STREAM_BYTES):
+        from hamid import stream
+
+        return stream.fit_file(data, model, columns=columns, time=time,
+                               trajectory=trajectory, format=format, fix=fix or {},
+                               method=method, weak_window=weak_window, cov=cov, level=level,
+                               chunk_rows=chunk_rows or CHUNK_ROWS)
     loaded = _load_data(data, model, columns=columns, time=time, trajectory=trajectory,
                         format=format, velocity=velocity, window=window, order=order)
     m, records = loaded.model, loaded.records
@@ -189,7 +204,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
 
     fixed_values = np.array([fixed.get(name, 0.0) for name in names])
     all_energy_rows = design.energy_block(m, records, dissipation)
-    _check_finite(all_energy_rows, loaded, names)
+    _check_finite(all_energy_rows, loaded.locate, names)
     energy_rows = _hold_fixed(all_energy_rows, free, fixed_values)
     kind, kind_reason, window, spans, blocks = _build_blocks(
         kind, kind_reason, window, method, weak_window, m, records, energy_rows, dissipation,
@@ -228,9 +243,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
             theta_cov, cov_text = _with_propagated_noise(
                 theta_cov, cov_text, estimate, blocks, m, records, sigma, free, fixed_values,
                 spans, dissipation)
-        Abar = estimate.centred.level_means_A
-        h_var = (c.level - 2 * np.einsum("jp,jp->j", Abar, c.theta_level)
-                 + np.einsum("jp,pq,jq->j", Abar, c.theta, Abar))
+        h_var = _level_variance(c, estimate.centred.level_means_A)
     # Energy levels and energy residuals are reported for every method; with weak rows
     # alone the levels are the mean fitted energies and carry no standard error.
     if kind == "weak" or np.any(np.isnan(estimate.h)):
@@ -351,6 +364,28 @@ class _Loaded:
         return source, row - first + 1
 
 
+# Files larger than this are read in chunks when the options allow it.
+STREAM_BYTES = 256 << 20
+CHUNK_ROWS = 1 << 20
+
+
+def _needs_memory(data: Any, velocity: str, noise: Any, damping: str | Sequence[str],
+                  cov: str) -> str:
+    """Why the fit needs all the data in memory, or "" when it can read them in chunks."""
+    if not isinstance(data, str | os.PathLike) or os.fspath(data) == "-" \
+            or not os.path.isfile(data):
+        return "chunks need one file (not standard input, a list or a DataFrame)"
+    if velocity != "measured":
+        return "derived velocities (--velocity savgol) need the data in memory"
+    if noise not in (None, "none"):
+        return "noise weighting (--noise) needs the data in memory"
+    if _parse_damping(damping):
+        return "damping (--damping) needs the data in memory"
+    if cov == "bootstrap":
+        return "--cov bootstrap needs the data in memory"
+    return ""
+
+
 def _check_choice(value: str, choices: tuple[str, ...], option: str) -> None:
     if value not in choices:
         raise UsageError(f"{option} must be one of {', '.join(choices)}, found {value!r}")
@@ -452,7 +487,8 @@ def _check_fixed(fix: Mapping[str, float], parameters: tuple[str, ...]) -> dict[
     return {name: float(value) for name, value in fix.items()}
 
 
-def _check_finite(block: Block, loaded: _Loaded, names: list[str]) -> None:
+def _check_finite(block: Block, locate: Callable[[int], tuple[str, int]],
+                  names: list[str]) -> None:
     """Energy terms must be finite at every sample (data inside the energy's domain)."""
     values = np.column_stack([block.b, block.A])
     bad = np.flatnonzero(~np.all(np.isfinite(values), axis=1))
@@ -461,7 +497,7 @@ def _check_finite(block: Block, loaded: _Loaded, names: list[str]) -> None:
     row = int(bad[0])
     column = int(np.flatnonzero(~np.isfinite(values[row]))[0])
     term = "the parameter-free part" if column == 0 else f"the term of {names[column - 1]!r}"
-    source, local = loaded.locate(row)
+    source, local = locate(row)
     raise DataError(f"{source}: row {local}: {term} of the energy is not finite there "
                     "(the data are outside the energy's domain, or too large)")
 
@@ -610,6 +646,12 @@ def _resampling_units(blocks: list[Block], kind: str) -> tuple[Any, Any]:
     unit_group = np.zeros(units.max() + 1, dtype=np.int64)
     unit_group[units] = group
     return units, unit_group
+
+
+def _level_variance(c: Any, Abar: Any) -> Any:
+    """Var(h_j) from a covariance's blocks (see `hamid.uncertainty`)."""
+    return (c.level - 2 * np.einsum("jp,jp->j", Abar, c.theta_level)
+            + np.einsum("jp,pq,jq->j", Abar, c.theta, Abar))
 
 
 def _bootstrap_covariance(blocks: list[Block], names: list[str], J: int, units: Any,
@@ -882,7 +924,8 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
     elif metadata and isinstance(metadata.get("model"), Mapping):
         m = _model_from_metadata(metadata["model"], first_name)
     else:
-        m = _assumed_model(first_table, first_name, columns, time, trajectory)
+        m = _assumed_model([str(c) for c in first_table.columns], first_name, columns,
+                           time, trajectory)
         notes.append(f"no model given: assumed {m.name} over the coordinates "
                      f"{', '.join(m.coordinates)} (pick one with --model)")
 
@@ -919,15 +962,7 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
     derivation = None
     if velocity == "savgol":
         records, derivation = _derive_velocities(records, m, window, order)
-    truth = {}
-    if metadata and isinstance(metadata.get("model"), Mapping) \
-            and metadata["model"].get("energy") == m.energy:
-        # A simulated record had no damping but what its [damping] table lists.
-        undamped = dict.fromkeys(damping_names(m.coordinates), 0.0) \
-            if isinstance(metadata.get("damping"), Mapping) else {}
-        values = {**undamped, **(metadata.get("parameters") or {}),
-                  **(metadata.get("damping") or {})}
-        truth = {k: float(v) for k, v in values.items() if isinstance(v, int | float)}
+    truth = _truth(metadata, m)
     data_info = {
         "sources": [name for name, _, _ in tables],
         "n_samples": int(len(records.group)),
@@ -945,6 +980,19 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
     return _Loaded(m, records, truth, data_info, tuple(notes),
                    derivation[1] if derivation else None,
                    tuple((name, int(f)) for (name, _, _), f in zip(tables, firsts, strict=True)))
+
+
+def _truth(metadata: Mapping[str, Any] | None, m: Model) -> dict[str, float]:
+    """The true parameters a simulated file records for this model, else none."""
+    if not (metadata and isinstance(metadata.get("model"), Mapping)
+            and metadata["model"].get("energy") == m.energy):
+        return {}
+    # A simulated record had no damping but what its [damping] table lists.
+    undamped = dict.fromkeys(damping_names(m.coordinates), 0.0) \
+        if isinstance(metadata.get("damping"), Mapping) else {}
+    values = {**undamped, **(metadata.get("parameters") or {}),
+              **(metadata.get("damping") or {})}
+    return {k: float(v) for k, v in values.items() if isinstance(v, int | float)}
 
 
 def _derive_velocities(records: Records, model: Model, window: int | None,
@@ -1060,13 +1108,12 @@ def _model_from_metadata(info: Mapping[str, Any], source: str) -> Model:
                         "give one with --model") from exc
 
 
-def _assumed_model(frame: Any, source: str, columns: Mapping[str, str] | None,
+def _assumed_model(names: list[str], source: str, columns: Mapping[str, str] | None,
                    time: str | None, trajectory: str | None) -> Model:
     """poly:N:3 over every column that has a velocity column (SPEC section 3, fit)."""
     from hamid import io
     from hamid.model import poly_model_over
 
-    names = [str(c) for c in frame.columns]
     exclude = {c for c in (time or io.default_time_column(names),
                            trajectory or io.default_trajectory_column(names)) if c}
     pairs = io.find_coordinates(names, exclude=exclude)

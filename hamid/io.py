@@ -38,6 +38,7 @@ __all__ = [
     "find_coordinates",
     "find_velocity",
     "numeric_column",
+    "numeric_values",
     "parse_float_mapping",
     "parse_mapping",
     "read_json",
@@ -510,19 +511,31 @@ def numeric_column(table: pd.DataFrame, column: str, *, source: str) -> npt.NDAr
         raise DataError(f"{source}: no column {column!r} (columns: {listed})")
     series = table[column]
     if getattr(series.dtype, "kind", "O") in "iuf":
-        values = series.to_numpy(dtype=np.float64, na_value=np.nan)
+        return numeric_values(series.to_numpy(dtype=np.float64, na_value=np.nan), column,
+                              source)
+    return numeric_values(series.to_numpy(dtype=object), column, source)
+
+
+def numeric_values(values: npt.NDArray[Any], column: str, source: str, *,
+                   first_row: int = 1) -> npt.NDArray[np.float64]:
+    """Cells of one column (numbers, or text and other objects) as finite floats; errors
+    name the row, counting the first of `values` as `first_row`."""
+    import numpy as np
+
+    if values.dtype.kind in "iuf":
+        values = values.astype(np.float64, copy=False)
     else:
-        values = _parse_cells(series.to_numpy(dtype=object), column, source)
+        values = _parse_cells(values, column, source, first_row)
     bad = ~np.isfinite(values)
     if bad.any():
         row = int(np.argmax(bad))
         problem = "missing value" if np.isnan(values[row]) else "infinite value"
-        raise DataError(f"{source}: column {column!r}, row {row + 1}: {problem}")
+        raise DataError(f"{source}: column {column!r}, row {row + first_row}: {problem}")
     return values
 
 
 def _parse_cells(
-    cells: npt.NDArray[np.object_], column: str, source: str
+    cells: npt.NDArray[np.object_], column: str, source: str, first_row: int = 1
 ) -> npt.NDArray[np.float64]:
     """Helper function converting cells of a text or mixed column to numbers."""
     import numpy as np
@@ -553,7 +566,7 @@ def _parse_cells(
             values[row:] = np.nan  # the caller reports the earlier missing or infinite value
             return values
         raise DataError(
-            f"{source}: column {column!r}, row {row + 1}: {_cell(text)} is not a number"
+            f"{source}: column {column!r}, row {row + first_row}: {_cell(text)} is not a number"
         )
     return values
 

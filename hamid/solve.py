@@ -93,8 +93,19 @@ class Factor:
         self.raw_squares = np.zeros(p)
         self.n_rows = 0
 
+    def grow(self, n_groups: int) -> None:
+        """Make room for trajectories up to `n_groups` (a chunked read finds them as it goes)."""
+        extra = n_groups - len(self.level)
+        if extra > 0:
+            self.level += [None] * extra
+            self.weighted_A = np.vstack([self.weighted_A, np.zeros((extra, self.p))])
+            self.weighted_b = np.concatenate([self.weighted_b, np.zeros(extra)])
+            self.total_weight = np.concatenate([self.total_weight, np.zeros(extra)])
+
     def add(self, block: Block) -> None:
         """Rows of any trajectories, each one's after its earlier rows."""
+        if block.n_rows:
+            self.grow(int(block.group.max()) + 1)
         sw = np.sqrt(block.weight)
         rows = np.column_stack([block.A, block.b]) * sw[:, None]
         self.n_rows += block.n_rows

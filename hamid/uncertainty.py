@@ -309,6 +309,11 @@ class ScoreSums:
         bandwidth = math.ceil(_ANDREWS_BARTLETT * (alpha * float(np.median(present))) ** (1 / 3))
         return int(min(max(bandwidth, 0), int(present.max()) - 1))
 
+    def covariance(self, df_resid: int, automatic: bool = False) -> Covariance:
+        """The covariance from the sums (`automatic`: the bandwidth was Andrews')."""
+        blocks, description, df = self.estimate(df_resid, automatic)
+        return _covariance(blocks, self.kind, description, df)
+
     def estimate(self, df_resid: int, automatic: bool = False) -> _Estimate:
         """The scaled meat blocks, the description and the t degrees of freedom."""
         for j in list(self._tail):
@@ -439,7 +444,12 @@ def covariance(
     blocks, description, df = _estimate(prob, kind, bandwidth)
     if units is not None:
         description += f", on the summed scores of {prob.n} units of rows"
-    p = prob.p
+    return _covariance(blocks, kind, description, df)
+
+
+def _covariance(blocks: FloatArray, kind: str, description: str, df: int) -> Covariance:
+    """Helper assembling a Covariance from the scaled meat blocks."""
+    p = blocks.shape[1] - 1
     theta = blocks[:, :p, :p].sum(axis=0)
     theta = (theta + theta.T) / 2  # exact symmetry, lost in summation order
     theta_level = blocks[:, p, :p].copy()

@@ -1,0 +1,354 @@
+"""Fits of a file read in chunks of rows, so that memory does not grow with its length.
+
+Every pass reads the file again, chunk by chunk (Parquet batches, blocks of CSV text):
+
+- ``energy``: the first pass accumulates each trajectory's triangular factor of its
+  energy rows (`solve.Factor`), which gives the parameters and levels; the second the
+  residual summary and the sums of the standard errors (`uncertainty.ScoreSums`); ``hac``
+  takes a third, with the bandwidth found in the second.
+- ``weak`` and ``joint``: the first pass finds each trajectory's period and time step,
+  the second builds the window rows, carrying each trajectory's unfinished windows into
+  the next chunk; the window rows (one per window and coordinate, a small fraction of the
+  samples) are then fitted in memory as `hamid.api.fit` does, and a last pass gives the
+  residual summary of the energy rows.
+
+The estimates equal those of the fit in memory up to rounding (tested to 1e-10).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator, Mapping
+from typing import Any
+
+import numpy as np
+
+from hamid import api, design, io, solve, uncertainty
+from hamid.design import Block, Records
+from hamid.errors import DataError
+from hamid.model import Model
+from hamid.result import FitResult
+
+__all__ = ["fit_file"]
+
+
+class _Reader:
+    """Chunks of a file as Records, trajectories numbered in order of appearance; checks
+    that every trajectory's rows are contiguous and its times increasing."""
+
+    def __init__(self, table: io.TableChunks, model: Model, mapping: Mapping[str, str],
+                 time: str | None, trajectory: str | None, chunk_rows: int) -> None:
+        self.table, self.model, self.mapping = table, model, mapping
+        self.time, self.trajectory, self.chunk_rows = time, trajectory, chunk_rows
+        self.labels: dict[Any, int] = {}
+
+    def __iter__(self) -> Iterator[tuple[Records, int]]:
+        """Each chunk's records and the file row (0-based) of its first row."""
+        name = self.table.name
+        wanted = [self.mapping[v] for v in self.model.variables]
+        extra = [c for c in (self.time, self.trajectory) if c is not None]
+        row, previous, last_t, closed = 0, None, None, set()
+        for chunk in self.table.chunks([*wanted, *extra], self.chunk_rows):
+            n = len(chunk[wanted[0]])
+            X = np.column_stack([io.numeric_values(chunk[c], c, name, first_row=row + 1)
+                                 for c in wanted])
+            t = (io.numeric_values(chunk[self.time], self.time, name, first_row=row + 1)
+                 if self.time else None)
+            group = self._keys(chunk, n, row) if self.trajectory else np.zeros(n, np.int64)
+            if not self.trajectory:
+                self.labels.setdefault(1, 0)
+            # Contiguous trajectories, increasing times, also across the chunk boundary.
+            starts = np.flatnonzero(np.diff(group, prepend=-1 if previous is None
+                                            else previous))
+            for start in starts:
+                if int(group[start]) in closed:
+                    raise DataError(f"{name}: column {self.trajectory!r}, row {row + start + 1}"
+                                    ": a trajectory resumes after rows of another; sort the "
+                                    "file by trajectory then time")
+                if previous is not None:
+                    closed.add(previous)
+                previous = int(group[start])
+            if t is not None:
+                before = np.concatenate([[np.nan if last_t is None else last_t], t[:-1]])
+                same = np.ones(n, dtype=bool)
+                same[starts] = False
+                bad = np.flatnonzero(same & ~(t > before))
+                if bad.size:
+                    k = int(bad[0])
+                    raise DataError(f"{name}: column {self.time!r}, row {row + k + 1}: time "
+                                    f"does not increase ({before[k]:g} then {t[k]:g})")
+                last_t = float(t[-1])
+            previous = int(group[-1])
+            yield Records(X, t, group, ()), row
+            row += n
+
+    def _keys(self, chunk: dict[str, Any], n: int, row: int) -> np.ndarray:
+        values = chunk[self.trajectory]
+        change = np.flatnonzero(values[1:] != values[:-1]) + 1
+        keys = np.empty(n, dtype=np.int64)
+        for start, stop in zip([0, *change], [*change, n], strict=True):
+            label = values[start]
+            if label is None or (isinstance(label, float) and np.isnan(label)):
+                raise DataError(f"{self.table.name}: column {self.trajectory!r}, row "
+                                f"{row + start + 1}: missing trajectory label")
+            label = label.item() if hasattr(label, "item") else label
+            label = int(label) if isinstance(label, float) and label.is_integer() else label
+            keys[start:stop] = self.labels.setdefault(label, len(self.labels))
+        return keys
+
+    def label_tuple(self) -> tuple[Any, ...]:
+        return tuple(self.labels)
+
+
+def _runs(group: np.ndarray) -> Iterator[tuple[int, int, int]]:
+    """(trajectory, start, stop) of each run of rows of one trajectory."""
+    edges = np.flatnonzero(np.diff(group)) + 1
+    for start, stop in zip([0, *edges], [*edges, len(group)], strict=True):
+        yield int(group[start]), int(start), int(stop)
+
+
+def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: str | None,
+             trajectory: str | None, format: str | None, fix: Mapping[str, float],
+             method: str, weak_window: float | None, cov: str, level: float,
+             chunk_rows: int) -> FitResult:
+    """`hamid.api.fit` of one file, read in chunks of `chunk_rows` rows (see module)."""
+    table = io.TableChunks(path, format=format)
+    m, notes = _model(table, model, columns, time, trajectory)
+    mapping = io.resolve_columns(table.columns, m.coordinates, m.velocities, mapping=columns,
+                                 source=table.name)
+    time_col = api._optional_column(table.columns, time, io.default_time_column(table.columns),
+                                    "--time", table.name)
+    traj_col = api._optional_column(table.columns, trajectory,
+                                    io.default_trajectory_column(table.columns),
+                                    "--trajectory", table.name)
+    reader = _Reader(table, m, mapping, time_col, traj_col, chunk_rows)
+    names = list(m.parameters)
+    fixed = api._check_fixed(fix, tuple(names))
+    free = [k for k, name in enumerate(names) if name not in fixed]
+    if not free:
+        raise api.UsageError("every parameter is fixed; nothing is left to fit")
+    free_names = [names[k] for k in free]
+    fixed_values = np.array([fixed.get(name, 0.0) for name in names])
+
+    scales = _scales(reader, m) if method != "energy" and time_col is not None else None
+    kind, kind_reason, window = api._choose_method(method, m, scales, weak_window)
+
+    def energy_rows(records: Records, first_row: int) -> Block:
+        rows = design.energy_block(m, records)
+        api._check_finite(rows, lambda r: (table.name, first_row + r + 1), names)
+        return api._hold_fixed(rows, free, fixed_values)
+
+    if kind == "energy":
+        fitted = _energy(reader, energy_rows, free_names, cov)
+    else:
+        fitted = _windowed(reader, energy_rows, m, kind, window, method, weak_window, free,
+                           fixed_values, free_names, cov)
+        if isinstance(fitted, str):   # too few windows: auto falls back to the energy rows
+            kind, kind_reason, window = "energy", fitted, None
+            fitted = _energy(reader, energy_rows, free_names, cov)
+    theta, theta_cov, cov_text, df, h, h_stderr, stats, cond, block_conditions, \
+        block_variance, sizes = fitted
+    labels = reader.label_tuple()
+    method_info = {
+        "kind": kind, "kind_reason": kind_reason, "weak_window": window, "damping": [],
+        "weighting": "none", "noise": None, "weighting_rounds": 0, "bias_correction": False,
+        "covariance": cov, "covariance_description": cov_text, "level": level,
+        "fixed": dict(fixed), "block_variance": block_variance,
+    }
+    data_info = {"sources": [table.name], "n_samples": int(sum(sizes)),
+                 "n_trajectories": len(labels), "columns": dict(mapping),
+                 "velocity_source": "measured"}
+    return api._result(m, names, fixed, theta, theta_cov, df,
+                       truth=api._truth(table.metadata, m), levels=api._levels(
+                           labels, h, h_stderr, [int(s) for s in sizes]),
+                       stats=stats, cond=cond, block_conditions=block_conditions,
+                       notes=notes, data_info=data_info, method_info=method_info,
+                       dissipation=None, samples=None)
+
+
+def _model(table: io.TableChunks, model: Any, columns: Mapping[str, str] | None,
+           time: str | None, trajectory: str | None) -> tuple[Model, tuple[str, ...]]:
+    """The model as `hamid.api.fit` settles it, from the file's names and metadata."""
+    metadata = table.metadata
+    if isinstance(model, Model):
+        return model, ()
+    if model is not None:
+        return api.load_model(model), ()
+    if metadata and isinstance(metadata.get("model"), Mapping):
+        return api._model_from_metadata(metadata["model"], table.name), ()
+    m = api._assumed_model(table.columns, table.name, columns, time, trajectory)
+    return m, (f"no model given: assumed {m.name} over the coordinates "
+               f"{', '.join(m.coordinates)} (pick one with --model)",)
+
+
+def _scales(reader: _Reader, m: Model) -> list[tuple[float | None, float]]:
+    """Each trajectory's period and time step: its coordinates are held until it ends
+    (memory grows with the longest trajectory, not with the file)."""
+    scales: list[tuple[float | None, float]] = []
+    held: list[Records] = []
+    N = len(m.coordinates)
+
+    def finish() -> None:
+        if held:
+            t = np.concatenate([r.t for r in held])
+            X = np.vstack([r.X[:, :N] for r in held])
+            scales.extend(design.trajectory_scales(
+                Records(X, t, np.zeros(len(t), np.int64), (0,)), N))
+            held.clear()
+
+    for records, _ in reader:
+        for j, start, stop in _runs(records.group):
+            if held and held[-1].group[0] != j:
+                finish()
+            held.append(Records(records.X[start:stop], records.t[start:stop],
+                                records.group[start:stop], ()))
+    finish()
+    return scales
+
+
+def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> tuple:
+    """The energy method in three passes: factor, residuals and bandwidth, meat."""
+    p = len(names)
+    factor = solve.Factor(p, 0)
+    for records, row in reader:
+        factor.add(energy_rows(records, row))
+    J = len(reader.labels)
+    factor.grow(J)
+    solution = solve.solve_factor(factor.centred(), np.sqrt(factor.raw_squares),
+                                  factor.n_rows, names, n_levels=J)
+    theta = solution.theta
+    means_A, means_b = factor.level_means
+    h = means_A @ theta - means_b
+    df = factor.n_rows - p - J
+    residuals = api._ResidualSums(h)
+
+    def score_pass(sums: uncertainty.ScoreSums, summarise: bool) -> uncertainty.ScoreSums:
+        for records, row in reader:
+            block = energy_rows(records, row)
+            r = block.A @ theta - block.b - h[block.group]
+            if summarise:
+                residuals.add(block, r)
+            for j, start, stop in _runs(block.group):
+                w = block.weight[start:stop]
+                G = w[:, None] * ((block.A[start:stop] - means_A[j]) @ solution.inverse)
+                z = np.column_stack([G, w / factor.total_weight[j]])
+                sums.add(j, z, r[start:stop], w)
+                if stop < len(block.group):   # the trajectory ended inside this chunk
+                    sums.close(j)
+        return sums
+
+    sums = score_pass(uncertainty.ScoreSums(cov, p, J), summarise=True)
+    automatic = sums.needs_bandwidth
+    if automatic:
+        sums = score_pass(uncertainty.ScoreSums(cov, p, J, sums.andrews_bandwidth()),
+                          summarise=False)
+    c = sums.covariance(df, automatic=automatic)
+    stats = residuals.stats(reader.label_tuple())
+    stats["blocks"] = {"energy": {"n_rows": int(residuals.n.sum()), "rms": stats["rms"],
+                                  "max_abs": stats["max_abs"]}}
+    cond = solve.factor_conditioning(factor, names, reader.label_tuple())
+    h_stderr = np.sqrt(np.clip(api._level_variance(c, means_A), 0, None))
+    return (theta, c.theta, c.description, c.df, h, h_stderr, stats, cond, None, None,
+            residuals.n)
+
+
+def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: float,
+              method: str, weak_window: float | None, free: list[int], fixed_values: Any,
+              names: list[str], cov: str) -> tuple | str:
+    """Weak and joint fits: window rows built chunk by chunk, then fitted in memory; the
+    reason to fall back to the energy rows when there are too few windows for `auto`."""
+    means, weak = [], []
+    held: dict[str, Any] = {}
+    totals: dict[int, np.ndarray] = {}
+
+    def emit(buffer: Records, j: int, ended: bool) -> Records | None:
+        first, last, following = design.window_ranges(
+            buffer.t, window, origin=held["origin"], skip=held["next"], ended=ended)
+        if len(first):
+            spans = design.windows_at(buffer, first, last, np.full(len(first), j), window)
+            rows = energy_rows(buffer, held["row"])
+            if kind == "joint":
+                means.append(design.window_means(rows, spans))
+            weak.append(api._hold_fixed(design.weak_block(m, buffer, spans), free,
+                                        fixed_values))
+        held["next"] = following
+        if ended:
+            return None
+        keep = int(np.searchsorted(buffer.t, held["origin"] + following * window
+                                   * design.WINDOW_STEP))
+        held["row"] += keep
+        return Records(buffer.X[keep:], buffer.t[keep:], buffer.group[keep:], ())
+
+    sizes: dict[int, int] = {}
+    for records, row in reader:
+        rows = energy_rows(records, row)
+        for j, start, stop in _runs(records.group):
+            sizes[j] = sizes.get(j, 0) + stop - start
+            total = totals.setdefault(j, np.zeros(rows.A.shape[1] + 2))
+            total += np.r_[rows.A[start:stop].sum(axis=0), rows.b[start:stop].sum(),
+                           stop - start]
+            piece = Records(records.X[start:stop], records.t[start:stop],
+                            records.group[start:stop], ())
+            if held.get("j") != j:
+                if "buffer" in held and held["buffer"] is not None:
+                    emit(held["buffer"], held["j"], ended=True)
+                held.update(j=j, origin=float(piece.t[0]), next=0, row=row + start,
+                            buffer=None)
+            buffer = piece if held["buffer"] is None else Records(
+                np.vstack([held["buffer"].X, piece.X]),
+                np.concatenate([held["buffer"].t, piece.t]),
+                np.concatenate([held["buffer"].group, piece.group]), ())
+            held["buffer"] = emit(buffer, j, ended=False)
+            if held["buffer"] is None:
+                held["buffer"] = buffer
+    if held.get("buffer") is not None:
+        emit(held["buffer"], held["j"], ended=True)
+    J = len(reader.labels)
+    n_windows = sum(b.n_rows for b in weak) // len(m.coordinates)
+    needed = len(free) + (J if kind == "joint" else 0) + 1
+    if n_windows < needed:
+        shortage = (f"the records hold {n_windows} weak-form windows of {window:.3g} s, "
+                    f"fewer than the {needed} that {needed - 1} unknowns need")
+        if method == "auto" and weak_window is None:
+            return f"{shortage}; fitted the energy rows"
+        raise api.FitError(f"cannot determine {', '.join(names)}: {shortage}; use "
+                           "--method energy or a shorter --weak-window")
+    blocks = ([_concatenate(means)] if kind == "joint" else []) + [_concatenate(weak)]
+    units, unit_group = api._resampling_units(blocks, kind)
+    blocks, block_variance = api._balance_blocks(blocks, names, J, units, unit_group)
+    estimate = api._least_squares(blocks, names, J)
+    theta = estimate.theta
+    c = api._covariance(cov, estimate, units, unit_group)
+    level_A = np.array([totals[j][:-2] / totals[j][-1] for j in range(J)])
+    level_b = np.array([totals[j][-2] / totals[j][-1] for j in range(J)])
+    mean_energy = level_A @ theta - level_b
+    if kind == "weak":
+        h, h_stderr = mean_energy, np.full(J, np.nan)
+    else:
+        h = np.where(np.isnan(estimate.h), mean_energy, estimate.h)
+        h_stderr = np.sqrt(np.clip(api._level_variance(c, estimate.centred.level_means_A),
+                                   0, None))
+    residuals = api._ResidualSums(h)
+    for records, row in reader:
+        block = energy_rows(records, row)
+        residuals.add(block, block.A @ theta - block.b - h[block.group])
+    stats = residuals.stats(reader.label_tuple())
+    stats["blocks"] = {b.kind: api._block_stats(r) for b, r in
+                       zip(blocks, np.split(estimate.residual,
+                                            np.cumsum([b.n_rows for b in blocks])[:-1]),
+                           strict=True)}
+    labels = reader.label_tuple()
+    cond = solve.conditioning(blocks, names, labels)
+    block_conditions = {b.kind: solve.conditioning([b], names, labels).condition_number
+                        for b in blocks} if len(blocks) > 1 else None
+    return (theta, c.theta, c.description, c.df, h, h_stderr, stats, cond, block_conditions,
+            block_variance, np.array([sizes[j] for j in range(J)]))
+
+
+def _concatenate(blocks: list[Block]) -> Block:
+    first = blocks[0]
+    return dataclasses.replace(
+        first, A=np.vstack([b.A for b in blocks]), b=np.concatenate([b.b for b in blocks]),
+        group=np.concatenate([b.group for b in blocks]),
+        time=np.concatenate([b.time for b in blocks]),
+        weight=np.concatenate([b.weight for b in blocks]))
