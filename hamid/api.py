@@ -174,6 +174,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         raise UsageError("--window and --order apply only to --velocity savgol")
 
     _check_choice(velocity, VELOCITY_SOURCES, "velocity")
+    if isinstance(data, list | tuple) and len(data) == 1:
+        data = data[0]
     in_memory = _needs_memory(data, velocity, noise, damping, cov)
     if chunk_rows is not None and (chunk_rows < 1 or in_memory):
         raise UsageError(f"--chunk-rows: {in_memory or 'must be a positive number of rows'}")

@@ -191,19 +191,25 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
               help="Report format (default: from -o's extension, else table).")
 @click.option("-o", "--output", default="-", metavar="FILE", help="Write the report here.")
 @click.option("--residuals", metavar="FILE", help="Write per-sample residuals (CSV/Parquet).")
+@click.option("--chunk-rows", type=click.IntRange(min=1), metavar="ROWS",
+              help="Read the file in chunks of ROWS rows, in bounded memory (default for "
+                   "files over 256 MB).")
 def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         time_column: str | None, trajectory: str | None, format_in: str | None,
         velocity: str, window: int | None, order: int, noise: str | None,
         bias_correct: bool, method: str,
         weak_window: float | None, damping: str, fix: str | None, cov: str, level: float,
         n_boot: int,
-        seed: int | None, fmt: str | None, output: str, residuals: str | None) -> None:
+        seed: int | None, fmt: str | None, output: str, residuals: str | None,
+        chunk_rows: int | None) -> None:
     """Fit the energy of the recorded motion in DATA (CSV, TSV, Parquet; '-' for stdin)."""
     from hamid import io
     from hamid.api import fit as run_fit
 
     if seed is not None and cov != "bootstrap":
         raise click.UsageError("--seed applies only to --cov bootstrap")
+    if residuals is not None and chunk_rows is not None:
+        raise click.UsageError("--residuals needs the data in memory; leave out --chunk-rows")
     if residuals is not None:
         io.table_format(residuals)
         if output != "-" and os.path.realpath(output) == os.path.realpath(residuals):
@@ -221,7 +227,10 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
                      fix=_parse_floats(fix, "--fix"),
                      method=method, weak_window=weak_window, damping=damping, cov=cov,
                      level=level,
-                     bootstrap=n_boot, seed=seed, format=format_in)
+                     bootstrap=n_boot, seed=seed, format=format_in, chunk_rows=chunk_rows)
+    if residuals is not None and result.samples is None:
+        raise click.UsageError("--residuals needs the data in memory, and this file is over "
+                               "256 MB, so it was read in chunks")
 
     def write_residuals() -> None:
         import pandas as pd

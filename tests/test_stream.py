@@ -1,0 +1,197 @@
+"""Fits of files read in chunks (hamid.stream) against the same fits with the data in memory."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from click.testing import CliRunner
+from conftest import with_noise
+
+import hamid
+from hamid import io
+from hamid.cli import cli
+from hamid.errors import DataError, UsageError
+
+
+@pytest.fixture(scope="module")
+def noisy_files(clean_records, tmp_path_factory):
+    """Noisy peng-quadratic records (3 trajectories) as Parquet and CSV files."""
+    frame = with_noise(clean_records["peng-quadratic"], 0.01, seed=5)
+    folder = tmp_path_factory.mktemp("stream")
+    paths = {}
+    for suffix in ("parquet", "csv"):
+        paths[suffix] = str(folder / f"peng.{suffix}")
+        io.write_table(frame, paths[suffix], metadata=frame.attrs["hamid"])
+    return frame, paths
+
+
+def _compare(memory, streamed):
+    names = list(memory.estimates)
+    assert list(streamed.estimates) == names
+    theta = np.array([memory.estimates[n] for n in names])
+    np.testing.assert_allclose([streamed.estimates[n] for n in names], theta, rtol=1e-10)
+    stderr = [np.nan if p.stderr is None else p.stderr for p in memory.parameters]
+    np.testing.assert_allclose([np.nan if p.stderr is None else p.stderr
+                                for p in streamed.parameters], stderr, rtol=1e-9)
+    np.testing.assert_allclose([h.h for h in streamed.energy_levels],
+                               [h.h for h in memory.energy_levels], rtol=1e-10)
+    assert [h.n_samples for h in streamed.energy_levels] == \
+        [h.n_samples for h in memory.energy_levels]
+    assert streamed.method == memory.method
+    assert streamed.residuals["rms"] == pytest.approx(memory.residuals["rms"], rel=1e-9)
+    assert streamed.conditioning["condition_number"] == pytest.approx(
+        memory.conditioning["condition_number"], rel=1e-8)
+    assert streamed.data["n_samples"] == memory.data["n_samples"]
+
+
+@pytest.mark.parametrize("method", ["energy", "joint", "weak", "auto"])
+@pytest.mark.parametrize("cov", ["hac", "hc", "classical"])
+def test_chunked_parquet_equals_the_fit_in_memory(noisy_files, method, cov):
+    frame, paths = noisy_files
+    memory = hamid.fit(frame, method=method, cov=cov)
+    streamed = hamid.fit(paths["parquet"], method=method, cov=cov, chunk_rows=377)
+    assert streamed.samples is None
+    _compare(memory, streamed)
+
+
+@pytest.mark.parametrize("method", ["energy", "auto"])
+def test_chunked_csv_equals_the_fit_in_memory(noisy_files, method):
+    frame, paths = noisy_files
+    _compare(hamid.fit(frame, method=method),
+             hamid.fit(paths["csv"], method=method, chunk_rows=100))
+
+
+def test_the_file_really_passes_in_many_chunks(noisy_files, monkeypatch):
+    """Windows straddle the chunk boundaries: each of many chunks is shorter than a window."""
+    frame, paths = noisy_files
+    sizes = []
+    original = io.TableChunks.chunks
+
+    def counted(self, columns, rows):
+        for chunk in original(self, columns, rows):
+            sizes.append(len(next(iter(chunk.values()))))
+            yield chunk
+
+    monkeypatch.setattr(io.TableChunks, "chunks", counted)
+    streamed = hamid.fit(paths["parquet"], chunk_rows=30)
+    assert streamed.method["kind"] == "joint"
+    window_samples = streamed.method["weak_window"] / float(np.diff(frame.t)[0])
+    assert max(sizes) == 30 < window_samples
+    assert sum(sizes) >= 3 * len(frame)   # three passes over the file
+    _compare(hamid.fit(frame), streamed)
+
+
+def test_fixed_parameters_stream(noisy_files):
+    frame, paths = noisy_files
+    _compare(hamid.fit(frame, fix={"a6": 0.2}),
+             hamid.fit(paths["parquet"], fix={"a6": 0.2}, chunk_rows=500))
+
+
+def test_no_time_column_falls_back_to_energy_rows(noisy_files, tmp_path):
+    frame, _ = noisy_files
+    path = str(tmp_path / "untimed.parquet")
+    io.write_table(frame.drop(columns="t"), path)
+    memory = hamid.fit(frame.drop(columns="t"), model="peng-quadratic")
+    streamed = hamid.fit(path, model="peng-quadratic", chunk_rows=300)
+    assert streamed.method["kind"] == "energy"
+    _compare(memory, streamed)
+
+
+def test_auto_falls_back_when_windows_are_too_few(noisy_files, tmp_path):
+    frame, _ = noisy_files
+    short = frame[frame.t <= 4.0]
+    path = str(tmp_path / "short.parquet")
+    io.write_table(short, path, metadata=frame.attrs["hamid"])
+    memory = hamid.fit(short)
+    streamed = hamid.fit(path, chunk_rows=64)
+    assert streamed.method["kind"] == "energy"
+    assert "weak-form windows" in streamed.method["kind_reason"]
+    _compare(memory, streamed)
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"noise": "auto"}, "noise weighting"),
+    ({"damping": "viscous"}, "damping"),
+    ({"cov": "bootstrap"}, "bootstrap"),
+    ({"velocity": "savgol"}, "derived velocities"),
+    ({"chunk_rows": 0}, "positive number"),
+])
+def test_options_that_need_the_data_in_memory(noisy_files, options, message):
+    _, paths = noisy_files
+    with pytest.raises(UsageError, match=message):
+        hamid.fit(paths["parquet"], **{"chunk_rows": 100, **options})
+
+
+def test_a_data_frame_cannot_be_chunked(noisy_files):
+    frame, _ = noisy_files
+    with pytest.raises(UsageError, match="one file"):
+        hamid.fit(frame, chunk_rows=100)
+
+
+def _csv(tmp_path, frame, name="bad.csv"):
+    path = str(tmp_path / name)
+    frame.to_csv(path, index=False)
+    return path
+
+
+def test_bad_cell_in_a_later_chunk_is_named(noisy_files, tmp_path):
+    frame, _ = noisy_files
+    bad = frame.astype({"u2": object})
+    bad.iloc[1234, bad.columns.get_loc("u2")] = "oops"
+    path = _csv(tmp_path, bad)
+    with pytest.raises(DataError) as memory_error:
+        hamid.fit(path, model="peng-quadratic")
+    with pytest.raises(DataError) as chunk_error:
+        hamid.fit(path, model="peng-quadratic", chunk_rows=100)
+    assert "row 1235" in str(memory_error.value)
+    # pyarrow's block reader names the column and the cell, not the row.
+    assert "column #3" in str(chunk_error.value) and "'oops'" in str(chunk_error.value)
+
+
+def test_a_trajectory_that_resumes_in_a_later_chunk(noisy_files, tmp_path):
+    frame, _ = noisy_files
+    first = frame[frame.trajectory == 1]
+    moved = pd.concat([frame.drop(first.index[-10:]), first.iloc[-10:]])
+    path = _csv(tmp_path, moved)
+    with pytest.raises(DataError, match=rf"row {len(frame) - 9}: a trajectory resumes"):
+        hamid.fit(path, model="peng-quadratic", chunk_rows=100)
+
+
+def test_time_going_back_across_a_chunk_boundary(noisy_files, tmp_path):
+    frame, _ = noisy_files
+    bad = frame.copy()
+    bad.iloc[700, bad.columns.get_loc("t")] = bad.t.iloc[698]
+    path = str(tmp_path / "back.parquet")
+    io.write_table(bad, path)
+    with pytest.raises(DataError, match="column 't', row 701: time does not increase"):
+        hamid.fit(path, model="peng-quadratic", chunk_rows=700)
+
+
+def test_non_finite_energy_names_the_file_row(noisy_files, tmp_path):
+    frame, _ = noisy_files
+    bad = frame.copy()
+    bad.iloc[900, bad.columns.get_loc("u1")] = 1e200
+    path = str(tmp_path / "huge.parquet")
+    io.write_table(bad, path)
+    with pytest.raises(DataError, match="row 901: the .* of the energy is not finite"):
+        hamid.fit(path, model="peng-quadratic", chunk_rows=256)
+
+
+def test_cli_chunk_rows(noisy_files, tmp_path):
+    frame, paths = noisy_files
+    runner = CliRunner()
+    done = runner.invoke(cli, ["fit", paths["parquet"], "--chunk-rows", "200", "--format",
+                               "json"])
+    assert done.exit_code == 0, done.output
+    import json
+
+    report = json.loads(done.stdout)
+    memory = hamid.fit(frame)
+    assert [p["estimate"] for p in report["parameters"]] == pytest.approx(
+        list(memory.estimates.values()), rel=1e-10)
+    refused = runner.invoke(cli, ["fit", paths["parquet"], "--chunk-rows", "200",
+                                  "--residuals", str(tmp_path / "r.csv")])
+    assert refused.exit_code == 2
+    assert "--residuals needs the data in memory" in refused.stderr
+    assert refused.stdout == ""
