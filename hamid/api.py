@@ -752,9 +752,9 @@ class _ResidualSums:
         self.end = np.zeros(J)   # last t, from the first
 
     def add(self, block: Block, residual: Any) -> None:
-        edges = np.flatnonzero(np.diff(block.group)) + 1
-        for start, stop in zip([0, *edges], [*edges, block.n_rows], strict=True):
-            j = int(block.group[start])
+        from hamid.design import runs
+
+        for j, start, stop in runs(block.group):
             t, b, r = block.time[start:stop], block.b[start:stop], residual[start:stop]
             if self.n[j] == 0:
                 self.origin[j] = t[0], b[0], 0.0

@@ -17,8 +17,8 @@ import numpy.typing as npt
 
 from hamid.model import DAMPING_KINDS, Model
 
-__all__ = ["Block", "Damping", "Records", "dominant_period", "energy_block", "trajectory_scales",
-           "weak_block",
+__all__ = ["Block", "Damping", "Records", "dominant_period", "energy_block", "runs",
+           "trajectory_scales", "weak_block",
            "window_means", "windows"]
 
 
@@ -43,10 +43,16 @@ class Records:
 
     def bounds(self) -> list[tuple[int, int]]:
         """(start, stop) row range of each trajectory."""
-        edges = np.flatnonzero(np.diff(self.group)) + 1
-        starts = np.concatenate([[0], edges])
-        stops = np.concatenate([edges, [len(self.group)]])
-        return list(zip(starts.tolist(), stops.tolist(), strict=True))
+        return [(start, stop) for _, start, stop in runs(self.group)]
+
+
+def runs(group: npt.NDArray[np.int64]) -> list[tuple[int, int, int]]:
+    """(trajectory, start, stop) of each run of consecutive rows of one trajectory."""
+    if len(group) == 0:
+        return []
+    edges = (np.flatnonzero(np.diff(group)) + 1).tolist()
+    return [(int(group[start]), start, stop)
+            for start, stop in zip([0, *edges], [*edges, len(group)], strict=True)]
 
 
 @dataclass(frozen=True)

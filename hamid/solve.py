@@ -13,12 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from hamid.design import Block
+from hamid.design import Block, runs
 from hamid.errors import FitError
 
 __all__ = ["Centred", "Conditioning", "Factor", "Solution", "centre", "conditioning",
-           "factor_conditioning", "solve",
-           "solve_adjusted", "solve_factor"]
+           "factor_conditioning", "solve", "solve_adjusted", "solve_factor"]
 
 # A scaled singular value below this (a condition number above 1e10) leaves a direction
 # undetermined at double precision for any data with noise in them.
@@ -113,11 +112,7 @@ class Factor:
         if not block.has_level:
             self.free = _stack_qr(self.free, rows)
             return
-        edges = np.flatnonzero(np.diff(block.group)) + 1
-        starts = np.concatenate([[0], edges]).astype(int) if block.n_rows else []
-        stops = np.concatenate([edges, [block.n_rows]]).astype(int) if block.n_rows else []
-        for start, stop in zip(starts, stops, strict=True):  # one run per trajectory
-            j = int(block.group[start])
+        for j, start, stop in runs(block.group):
             w = block.weight[start:stop]
             self.total_weight[j] += w.sum()
             self.weighted_A[j] += w @ block.A[start:stop]

@@ -100,13 +100,6 @@ class _Reader:
         return tuple(self.labels)
 
 
-def _runs(group: np.ndarray) -> Iterator[tuple[int, int, int]]:
-    """(trajectory, start, stop) of each run of rows of one trajectory."""
-    edges = np.flatnonzero(np.diff(group)) + 1
-    for start, stop in zip([0, *edges], [*edges, len(group)], strict=True):
-        yield int(group[start]), int(start), int(stop)
-
-
 def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: str | None,
              trajectory: str | None, format: str | None, fix: Mapping[str, float],
              method: str, weak_window: float | None, cov: str, level: float,
@@ -197,7 +190,7 @@ def _scales(reader: _Reader, m: Model) -> list[tuple[float | None, float]]:
             held.clear()
 
     for records, _ in reader:
-        for j, start, stop in _runs(records.group):
+        for j, start, stop in design.runs(records.group):
             if held and held[-1].group[0] != j:
                 finish()
             held.append(Records(records.X[start:stop], records.t[start:stop],
@@ -228,7 +221,7 @@ def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> tu
             r = block.A @ theta - block.b - h[block.group]
             if summarise:
                 residuals.add(block, r)
-            for j, start, stop in _runs(block.group):
+            for j, start, stop in design.runs(block.group):
                 w = block.weight[start:stop]
                 G = w[:, None] * ((block.A[start:stop] - means_A[j]) @ solution.inverse)
                 z = np.column_stack([G, w / factor.total_weight[j]])
@@ -282,7 +275,7 @@ def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: fl
     sizes: dict[int, int] = {}
     for records, row in reader:
         rows = energy_rows(records, row)
-        for j, start, stop in _runs(records.group):
+        for j, start, stop in design.runs(records.group):
             sizes[j] = sizes.get(j, 0) + stop - start
             total = totals.setdefault(j, np.zeros(rows.A.shape[1] + 2))
             total += np.r_[rows.A[start:stop].sum(axis=0), rows.b[start:stop].sum(),

@@ -141,10 +141,6 @@ class _Problem:
         """Helper returning the augmented influence rows [G_i, lam_i]."""
         return np.column_stack((self.G[rows], self.lam[rows]))
 
-    def scores(self, rows: slice) -> FloatArray:
-        """Helper returning the augmented scores [G_i, lam_i] r_i."""
-        return self.z(rows) * self.r[rows, None]
-
 
 def _group_runs(groups: npt.ArrayLike, n: int) -> tuple[IntArray, IntArray, IntArray]:
     """Helper checking `groups` and returning each run's label, start and stop."""
