@@ -263,13 +263,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     sums = _ResidualSums(h)
     sums.add(energy_rows, energy_residual)
     stats = sums.stats(records.labels)
-    stats["blocks"] = {b.kind: _block_stats(r) for b, r in
-                       zip(blocks, np.split(estimate.residual,
-                                            np.cumsum([b.n_rows for b in blocks])[:-1]),
-                           strict=True)}
-    cond = solve.conditioning(blocks, free_names, records.labels)
-    block_conditions = {b.kind: solve.conditioning([b], free_names, records.labels)
-                        .condition_number for b in blocks} if len(blocks) > 1 else None
+    stats["blocks"], cond, block_conditions = _block_report(
+        blocks, estimate.residual, free_names, records.labels)
     method_info = {
         "kind": kind, "kind_reason": kind_reason, "weak_window": window,
         "damping": list(dissipation.kinds),
@@ -730,6 +725,20 @@ def _sample_weights(kind: str, blocks: list[Block], energy_rows: Block, spans: A
     if kind == "weak":
         return np.zeros(energy_rows.n_rows)
     return spans.means.T @ blocks[0].weight
+
+
+def _block_report(blocks: list[Block], residual: Any, names: list[str],
+                  labels: tuple[str | int, ...]) -> tuple[dict[str, Any], Any,
+                                                         dict[str, float] | None]:
+    """Residual summary of each block, the conditioning of all, and of each block alone
+    (when there are several)."""
+    from hamid import solve
+
+    pieces = np.split(residual, np.cumsum([b.n_rows for b in blocks])[:-1])
+    stats = {b.kind: _block_stats(r) for b, r in zip(blocks, pieces, strict=True)}
+    each = {b.kind: solve.conditioning([b], names, labels).condition_number
+            for b in blocks} if len(blocks) > 1 else None
+    return stats, solve.conditioning(blocks, names, labels), each
 
 
 def _block_stats(residual: Any) -> dict[str, Any]:

@@ -193,8 +193,7 @@ def _scales(reader: _Reader, m: Model) -> list[tuple[float | None, float]]:
         for j, start, stop in design.runs(records.group):
             if held and held[-1].group[0] != j:
                 finish()
-            held.append(Records(records.X[start:stop], records.t[start:stop],
-                                records.group[start:stop], ()))
+            held.append(_records_slice(records, start, stop))
     finish()
     return scales
 
@@ -251,51 +250,45 @@ def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: fl
     """Weak and joint fits: window rows built chunk by chunk, then fitted in memory; the
     reason to fall back to the energy rows when there are too few windows for `auto`."""
     means, weak = [], []
-    held: dict[str, Any] = {}
-    totals: dict[int, np.ndarray] = {}
+    totals: dict[int, np.ndarray] = {}   # sums of A, b and the count of each trajectory
+    held: _Held | None = None
 
-    def emit(buffer: Records, j: int, ended: bool) -> Records | None:
-        first, last, following = design.window_ranges(
-            buffer.t, window, origin=held["origin"], skip=held["next"], ended=ended)
+    def emit(held: _Held, ended: bool) -> None:
+        first, last, held.next = design.window_ranges(
+            held.records.t, window, origin=held.origin, skip=held.next, ended=ended)
         if len(first):
-            spans = design.windows_at(buffer, first, last, np.full(len(first), j), window)
-            rows = energy_rows(buffer, held["row"])
+            spans = design.windows_at(held.records, first, last,
+                                      np.full(len(first), held.j), window)
             if kind == "joint":
-                means.append(design.window_means(rows, spans))
-            weak.append(api._hold_fixed(design.weak_block(m, buffer, spans), free,
+                means.append(design.window_means(held.rows, spans))
+            weak.append(api._hold_fixed(design.weak_block(m, held.records, spans), free,
                                         fixed_values))
-        held["next"] = following
-        if ended:
-            return None
-        keep = int(np.searchsorted(buffer.t, held["origin"] + following * window
+        # Keep the samples from the first sample of the next window on.
+        keep = int(np.searchsorted(held.records.t, held.origin + held.next * window
                                    * design.WINDOW_STEP))
-        held["row"] += keep
-        return Records(buffer.X[keep:], buffer.t[keep:], buffer.group[keep:], ())
+        held.records = _records_slice(held.records, keep, None)
+        held.rows = _block_slice(held.rows, keep, None)
 
-    sizes: dict[int, int] = {}
     for records, row in reader:
         rows = energy_rows(records, row)
         for j, start, stop in design.runs(records.group):
-            sizes[j] = sizes.get(j, 0) + stop - start
+            piece, piece_rows = (_records_slice(records, start, stop),
+                                 _block_slice(rows, start, stop))
             total = totals.setdefault(j, np.zeros(rows.A.shape[1] + 2))
-            total += np.r_[rows.A[start:stop].sum(axis=0), rows.b[start:stop].sum(),
-                           stop - start]
-            piece = Records(records.X[start:stop], records.t[start:stop],
-                            records.group[start:stop], ())
-            if held.get("j") != j:
-                if "buffer" in held and held["buffer"] is not None:
-                    emit(held["buffer"], held["j"], ended=True)
-                held.update(j=j, origin=float(piece.t[0]), next=0, row=row + start,
-                            buffer=None)
-            buffer = piece if held["buffer"] is None else Records(
-                np.vstack([held["buffer"].X, piece.X]),
-                np.concatenate([held["buffer"].t, piece.t]),
-                np.concatenate([held["buffer"].group, piece.group]), ())
-            held["buffer"] = emit(buffer, j, ended=False)
-            if held["buffer"] is None:
-                held["buffer"] = buffer
-    if held.get("buffer") is not None:
-        emit(held["buffer"], held["j"], ended=True)
+            total += np.r_[piece_rows.A.sum(axis=0), piece_rows.b.sum(), stop - start]
+            if held is not None and held.j != j:
+                emit(held, ended=True)
+                held = None
+            if held is None:
+                held = _Held(j, float(piece.t[0]), 0, piece, piece_rows)
+            else:
+                held.records = Records(np.vstack([held.records.X, piece.X]),
+                                       np.concatenate([held.records.t, piece.t]),
+                                       np.concatenate([held.records.group, piece.group]), ())
+                held.rows = _concatenate([held.rows, piece_rows])
+            emit(held, ended=False)
+    if held is not None:
+        emit(held, ended=True)
     J = len(reader.labels)
     n_windows = sum(b.n_rows for b in weak) // len(m.coordinates)
     needed = len(free) + (J if kind == "joint" else 0) + 1
@@ -326,16 +319,33 @@ def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: fl
         block = energy_rows(records, row)
         residuals.add(block, block.A @ theta - block.b - h[block.group])
     stats = residuals.stats(reader.label_tuple())
-    stats["blocks"] = {b.kind: api._block_stats(r) for b, r in
-                       zip(blocks, np.split(estimate.residual,
-                                            np.cumsum([b.n_rows for b in blocks])[:-1]),
-                           strict=True)}
-    labels = reader.label_tuple()
-    cond = solve.conditioning(blocks, names, labels)
-    block_conditions = {b.kind: solve.conditioning([b], names, labels).condition_number
-                        for b in blocks} if len(blocks) > 1 else None
+    stats["blocks"], cond, block_conditions = api._block_report(
+        blocks, estimate.residual, names, reader.label_tuple())
     return (theta, c.theta, c.description, c.df, h, h_stderr, stats, cond, block_conditions,
-            block_variance, np.array([sizes[j] for j in range(J)]))
+            block_variance, np.array([totals[j][-1] for j in range(J)], dtype=np.int64))
+
+
+@dataclasses.dataclass
+class _Held:
+    """The open trajectory of a chunked weak/joint pass: its samples (and energy rows)
+    from the first sample of its next window on, still to be cut into windows."""
+
+    j: int
+    origin: float    # the trajectory's first time, from which windows are counted
+    next: int        # number of its next window
+    records: Records
+    rows: Block
+
+
+def _records_slice(records: Records, start: int, stop: int | None) -> Records:
+    return Records(records.X[start:stop], None if records.t is None else records.t[start:stop],
+                   records.group[start:stop], ())
+
+
+def _block_slice(block: Block, start: int, stop: int | None) -> Block:
+    return dataclasses.replace(block, A=block.A[start:stop], b=block.b[start:stop],
+                               group=block.group[start:stop], time=block.time[start:stop],
+                               weight=block.weight[start:stop])
 
 
 def _concatenate(blocks: list[Block]) -> Block:
