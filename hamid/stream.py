@@ -25,7 +25,7 @@ import numpy as np
 
 from hamid import api, design, io, solve, uncertainty
 from hamid.design import Block, Records
-from hamid.errors import DataError
+from hamid.errors import DataError, FitError, UsageError
 from hamid.model import Model
 from hamid.result import FitResult
 
@@ -40,7 +40,8 @@ class _Reader:
                  time: str | None, trajectory: str | None, chunk_rows: int) -> None:
         self.table, self.model, self.mapping = table, model, mapping
         self.time, self.trajectory, self.chunk_rows = time, trajectory, chunk_rows
-        self.labels: dict[Any, int] = {}
+        # Without a trajectory column the file is one trajectory, labelled 1.
+        self.labels: dict[Any, int] = {} if trajectory else {1: 0}
 
     def __iter__(self) -> Iterator[tuple[Records, int]]:
         """Each chunk's records and the file row (0-based) of its first row."""
@@ -55,8 +56,6 @@ class _Reader:
             t = (io.numeric_values(chunk[self.time], self.time, name, first_row=row + 1)
                  if self.time else None)
             group = self._keys(chunk, n, row) if self.trajectory else np.zeros(n, np.int64)
-            if not self.trajectory:
-                self.labels.setdefault(1, 0)
             # Contiguous trajectories, increasing times, also across the chunk boundary.
             starts = np.flatnonzero(np.diff(group, prepend=-1 if previous is None
                                             else previous))
@@ -119,7 +118,7 @@ def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: 
     fixed = api._check_fixed(fix, tuple(names))
     free = [k for k, name in enumerate(names) if name not in fixed]
     if not free:
-        raise api.UsageError("every parameter is fixed; nothing is left to fit")
+        raise UsageError("every parameter is fixed; nothing is left to fit")
     free_names = [names[k] for k in free]
     fixed_values = np.array([fixed.get(name, 0.0) for name in names])
 
@@ -297,7 +296,7 @@ def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: fl
                     f"fewer than the {needed} that {needed - 1} unknowns need")
         if method == "auto" and weak_window is None:
             return f"{shortage}; fitted the energy rows"
-        raise api.FitError(f"cannot determine {', '.join(names)}: {shortage}; use "
+        raise FitError(f"cannot determine {', '.join(names)}: {shortage}; use "
                            "--method energy or a shorter --weak-window")
     blocks = ([_concatenate(means)] if kind == "joint" else []) + [_concatenate(weak)]
     units, unit_group = api._resampling_units(blocks, kind)
