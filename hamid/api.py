@@ -754,7 +754,7 @@ class _ResidualSums:
         J = len(h)
         self.h = h
         self.n = np.zeros(J)
-        self.origin = np.full((J, 3), np.nan)   # first t, b and r: sums are taken about them
+        self.origin = np.full((J, 2), np.nan)   # first t and b: sums are taken about them
         self.sums = np.zeros((J, 8))   # t, t^2, r, r^2, t r, b, b^2, r_k r_k+1
         self.max_abs = 0.0
         self.last = np.full(J, np.nan)
@@ -766,8 +766,7 @@ class _ResidualSums:
         for j, start, stop in runs(block.group):
             t, b, r = block.time[start:stop], block.b[start:stop], residual[start:stop]
             if self.n[j] == 0:
-                self.origin[j] = t[0], b[0], 0.0
-                self.last[j] = r[0]
+                self.origin[j] = t[0], b[0]
             t, b = t - self.origin[j, 0], b - self.origin[j, 1]
             lagged = self.last[j] * r[0] + r[1:] @ r[:-1] if self.n[j] else r[1:] @ r[:-1]
             self.sums[j] += [t.sum(), t @ t, r.sum(), r @ r, t @ r, b.sum(), b @ b, lagged]
