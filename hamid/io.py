@@ -447,12 +447,8 @@ def _opened(source: str | os.PathLike[str], name: str) -> Iterator[IO[bytes]]:
     """Helper opening a file for reading, with file errors as DataError."""
     try:
         stream = open(source, "rb")  # noqa: SIM115 (closed below)
-    except FileNotFoundError as exc:
-        raise DataError(f"{name}: no such file") from exc
-    except IsADirectoryError as exc:
-        raise DataError(f"{name}: is a folder, not a file") from exc
     except OSError as exc:
-        raise DataError(f"{name}: cannot read: {_reason(exc)}") from exc
+        raise _file_error(exc, source, name) from exc
     with stream:
         yield stream
 
@@ -1011,17 +1007,20 @@ def _read_bytes(source: str | os.PathLike[str]) -> tuple[bytes, str]:
         except OSError as exc:
             raise DataError(f"{STDIN}: cannot read: {_reason(exc)}") from exc
     name = os.fsdecode(source)
-    try:
-        with open(source, "rb") as stream:
+    with _opened(source, name) as stream:
+        try:
             return stream.read(), name
-    except FileNotFoundError as exc:
-        raise DataError(f"{name}: no such file") from exc
-    except IsADirectoryError as exc:
-        raise DataError(f"{name}: is a folder, not a file") from exc
-    except OSError as exc:
-        if os.path.isdir(source):
-            raise DataError(f"{name}: is a folder, not a file") from exc
-        raise DataError(f"{name}: cannot read: {_reason(exc)}") from exc
+        except OSError as exc:
+            raise _file_error(exc, source, name) from exc
+
+
+def _file_error(exc: OSError, source: str | os.PathLike[str], name: str) -> DataError:
+    """Helper naming what went wrong opening or reading a file."""
+    if isinstance(exc, FileNotFoundError):
+        return DataError(f"{name}: no such file")
+    if isinstance(exc, IsADirectoryError) or os.path.isdir(source):
+        return DataError(f"{name}: is a folder, not a file")
+    return DataError(f"{name}: cannot read: {_reason(exc)}")
 
 
 def _is_stdio(path: str | os.PathLike[str]) -> bool:
