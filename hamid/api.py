@@ -154,7 +154,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     >>> result.estimates
     {'k': 1.0..., 'k3': 0.5...}
     """
-    from hamid import design, solve
+    from hamid import design
 
     _check_choice(method, METHODS, "method")
     _check_choice(cov, COVARIANCE_KINDS, "cov")
@@ -233,32 +233,35 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     else:
         estimate = _least_squares(blocks, free_names, J)
     theta = estimate.theta
+    refinement, refinement_info = None, None
+    if method == "auto" and kind == "joint":
+        obstacle = _refinement_obstacle(cov, bias_correct, dissipation.kinds)
+        if obstacle is None:
+            refinement, refinement_info = _refine(m, records, dissipation, free, fixed_values,
+                                                  theta, scales, window, sigma, velocity)
+        else:
+            refinement_info = {"applied": False, "reason": obstacle}
+        kind_reason += _refinement_note(refinement_info)
 
-    if cov == "bootstrap":
-        theta_cov, h_var, cov_text = _bootstrap_covariance(
-            blocks, free_names, J, units, unit_group, bootstrap, seed)
-        df = estimate.df_resid
+    if refinement is not None:
+        theta, theta_cov, df = refinement.theta, refinement.covariance, refinement.dof
+        cov_text = ("Gauss-Newton covariance of the trajectory fit, scaled by its misfit "
+                    f"per degree of freedom ({refinement.chi2_per_dof:.3g})")
+        h, h_stderr = _refined_levels(energy_rows, theta, theta_cov, J)
     else:
-        c = _covariance(cov, estimate, units, unit_group)
-        theta_cov, cov_text, df = c.theta, c.description, c.df
-        if dissipation.kinds:
-            theta_cov, cov_text = _with_propagated_noise(
-                theta_cov, cov_text, estimate, blocks, m, records, sigma, free, fixed_values,
-                spans, dissipation)
-        h_var = _level_variance(c, estimate.centred.level_means_A)
-    # Energy levels and energy residuals are reported for every method; with weak rows
-    # alone the levels are the mean fitted energies and carry no standard error.
-    if kind == "weak" or np.any(np.isnan(estimate.h)):
-        # No level in the fit (weak rows, or a trajectory too short for any window of a
-        # joint fit): the mean fitted energy, without a standard error.
-        levels_centred = solve.centre([energy_rows], J)
-        mean_energy = levels_centred.level_means_A @ theta - levels_centred.level_means_b
-    if kind == "weak":
-        h, h_stderr = mean_energy, np.full(J, np.nan)
-    else:
-        h = np.where(np.isnan(estimate.h), mean_energy, estimate.h) if np.any(
-            np.isnan(estimate.h)) else estimate.h
-        h_stderr = np.sqrt(np.clip(h_var, 0, None))
+        if cov == "bootstrap":
+            theta_cov, h_var, cov_text = _bootstrap_covariance(
+                blocks, free_names, J, units, unit_group, bootstrap, seed)
+            df = estimate.df_resid
+        else:
+            c = _covariance(cov, estimate, units, unit_group)
+            theta_cov, cov_text, df = c.theta, c.description, c.df
+            if dissipation.kinds:
+                theta_cov, cov_text = _with_propagated_noise(
+                    theta_cov, cov_text, estimate, blocks, m, records, sigma, free,
+                    fixed_values, spans, dissipation)
+            h_var = _level_variance(c, estimate.centred.level_means_A)
+        h, h_stderr = _fitted_levels(kind, estimate, energy_rows, h_var, J)
     energy_residual = energy_rows.A @ theta - energy_rows.b - h[energy_rows.group]
     sums = _ResidualSums(h)
     sums.add(energy_rows, energy_residual)
@@ -271,7 +274,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         "weighting": "none" if sigma is None else "noise", "noise": noise_info,
         "weighting_rounds": rounds, "bias_correction": bias_correct, "covariance": cov,
         "covariance_description": cov_text, "level": level, "fixed": dict(fixed),
-        "block_variance": block_variance,
+        "block_variance": block_variance, "refinement": refinement_info,
     }
     estimates = {**fixed, **dict(zip(free_names, theta.tolist(), strict=True))}
     labels = np.asarray(records.labels, dtype=object)
@@ -288,6 +291,47 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         dissipation=_dissipation_summary(m, records, dissipation, estimates,
                                          all_energy_rows, h),
         samples=samples)
+
+
+def _fitted_levels(kind: str, estimate: _Estimate, energy_rows: Block, h_var: Any,
+                   J: int) -> tuple[Any, Any]:
+    """Energy levels of a linear fit and their standard errors.
+
+    Without a level in the fit (weak rows, or a trajectory too short for any window of a
+    joint fit) the level is the mean fitted energy, without a standard error.
+    """
+    mean_energy = _mean_energy(energy_rows, estimate.theta, J)
+    if kind == "weak":
+        return mean_energy, np.full(J, np.nan)
+    return (np.where(np.isnan(estimate.h), mean_energy, estimate.h),
+            np.sqrt(np.clip(h_var, 0, None)))
+
+
+def _mean_energy(energy_rows: Block, theta: Any, J: int) -> Any:
+    """Each trajectory's mean energy (with dissipated work) at the parameters theta."""
+    from hamid import solve
+
+    centred = solve.centre([energy_rows], J)
+    return centred.level_means_A @ theta - centred.level_means_b
+
+
+def _refined_levels(energy_rows: Block, theta: Any, theta_cov: Any, J: int) -> tuple[Any, Any]:
+    """Levels after the trajectory fit: the mean energy at its parameters.
+
+    The variance adds what the parameters' covariance puts into each mean to that of the
+    mean of its energy residuals, which are white once the parameters are right (each is
+    the energy of one sample's measurement noise).
+    """
+    from hamid import solve
+
+    centred = solve.centre([energy_rows], J)
+    h = centred.level_means_A @ theta - centred.level_means_b
+    residual = energy_rows.A @ theta - energy_rows.b - h[energy_rows.group]
+    n = np.bincount(energy_rows.group, minlength=J)
+    mean_noise = np.bincount(energy_rows.group, weights=residual**2, minlength=J) / np.maximum(
+        n * (n - 1), 1)
+    means_A = centred.level_means_A
+    return h, np.sqrt(np.einsum("jk,kl,jl->j", means_A, theta_cov, means_A) + mean_noise)
 
 
 def _levels(labels: tuple[str | int, ...], h: Any, stderr: Any,
@@ -470,6 +514,59 @@ def _choose_method(method: str, model: Model, scales: list[tuple[float | None, f
                          f"{window:.3g} s ({how})"), window
     return method, f"asked for with --method {method}; windows of {window:.3g} s ({how})", \
         window
+
+
+CHUNKED_NOT_REFINED = "it needs the data in memory, and the file is read in chunks"
+
+
+def _refinement_obstacle(cov: str, bias_correct: bool,
+                         damping: tuple[str, ...] = ()) -> str | None:
+    """Why an automatic joint fit is not refined by trajectories, or None when it is."""
+    if "coulomb" in damping:
+        return ("Coulomb friction makes the motion jump at every stop, which the trajectory "
+                "fit's integration and differences do not follow")
+    if cov != "hac":
+        return (f"the trajectory fit has a covariance of its own, and --cov {cov} asks for "
+                "that of the linear fit")
+    if bias_correct:
+        return "--bias-correct asks for the linear fit"
+    return None
+
+
+def _refinement_note(info: dict[str, Any]) -> str:
+    """What the method's reason adds about the trajectory refinement."""
+    if info["applied"]:
+        return "; refined by fitting the integrated trajectories"
+    return f"; not refined by fitting trajectories: {info['reason']}"
+
+
+def _refine(m: Model, records: Records, dissipation: Any, free: list[int],
+            fixed_values: Any, theta: Any, scales: list[tuple[float | None, float]],
+            window: float, sigma: Any, velocity: str) -> tuple[Any, dict[str, Any]]:
+    """The trajectory refinement of an automatic joint fit (`hamid.trajectory`), or None,
+    and what the report says of it."""
+    from hamid import measurement, trajectory
+
+    N = len(m.coordinates)
+    noise = measurement.estimate_noise(records.X, records.bounds())
+    if sigma is not None:
+        noise = np.where(sigma > 0, sigma, noise)
+    weight = 1.0 / np.maximum(noise, 1e-9 * records.X.std(axis=0))
+    if velocity == "savgol":
+        weight[N:] = 0.0  # derived from the positions: no information of their own
+    periods = [period for period, _ in scales if period is not None]
+    period = float(np.median(periods)) if periods else 2 * window
+    theta_all = fixed_values.copy()
+    theta_all[free] = theta
+    try:
+        refined = trajectory.refine(m, records, dissipation, theta_all, free, period, weight)
+    except trajectory.RefinementFailed as exc:
+        return None, {"applied": False, "reason": f"the integrated model does not fit the "
+                      f"recording: {exc}"}
+    return refined, {"applied": True, "segments": refined.segments,
+                     "segment_seconds": refined.segment_seconds,
+                     "iterations": refined.iterations,
+                     "chi2_per_dof": refined.chi2_per_dof}
 
 
 def _check_fixed(fix: Mapping[str, float], parameters: tuple[str, ...]) -> dict[str, float]:

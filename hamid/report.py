@@ -421,6 +421,15 @@ def _method_section(result: Mapping[str, Any]) -> _Section:
     rows.append(("bias correction", "yes" if method["bias_correction"] else "no"))
     if method["weak_window"] is not None:
         rows.append(("weak window", f"{_num(method['weak_window'])} s"))
+    refinement = method.get("refinement")
+    if refinement and refinement["applied"]:
+        rows.append(("refinement", f"trajectory fit over "
+                     f"{_plural(refinement['segments'], 'segment', 'segments')} of "
+                     f"{_num(refinement['segment_seconds'])} s, misfit "
+                     f"{_num(refinement['chi2_per_dof'])} × noise variance, "
+                     f"{_plural(refinement['iterations'], 'iteration', 'iterations')}"))
+    elif refinement:
+        rows.append(("refinement", f"none: {refinement['reason']}"))
     rows.append(("damping", ", ".join(method["damping"]) or "none"))
     fixed = ", ".join(f"{name} = {_num(value)}" for name, value in method["fixed"].items())
     rows.append(("fixed", fixed or "none"))

@@ -140,12 +140,18 @@ def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: 
             fitted = _energy(reader, energy_rows, free_names, cov)
     theta, theta_cov, cov_text, df, h, h_stderr, stats, cond, block_conditions, \
         block_variance, sizes = fitted
+    refinement_info = None
+    if method == "auto" and kind == "joint":
+        refinement_info = {"applied": False, "reason": api._refinement_obstacle(cov, False)
+                           or api.CHUNKED_NOT_REFINED}
+        kind_reason += api._refinement_note(refinement_info)
     labels = reader.label_tuple()
     method_info = {
         "kind": kind, "kind_reason": kind_reason, "weak_window": window, "damping": [],
         "weighting": "none", "noise": None, "weighting_rounds": 0, "bias_correction": False,
         "covariance": cov, "covariance_description": cov_text, "level": level,
         "fixed": dict(fixed), "block_variance": block_variance,
+        "refinement": refinement_info,
     }
     data_info = {"sources": [table.name], "n_samples": int(sum(sizes)),
                  "n_trajectories": len(labels), "columns": dict(mapping),

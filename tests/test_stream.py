@@ -9,7 +9,7 @@ from click.testing import CliRunner
 from conftest import with_noise
 
 import hamid
-from hamid import io
+from hamid import api, io
 from hamid.cli import cli
 from hamid.errors import DataError, UsageError
 
@@ -24,6 +24,23 @@ def noisy_files(clean_records, tmp_path_factory):
         paths[suffix] = str(folder / f"peng.{suffix}")
         io.write_table(frame, paths[suffix], metadata=frame.attrs["hamid"])
     return frame, paths
+
+
+@pytest.fixture(autouse=True)
+def linear_fits_in_memory(monkeypatch):
+    """The fits in memory here stop where a chunked fit stops: before the trajectory
+    refinement, which needs the data in memory (tested in test_trajectory.py)."""
+    obstacle = api._refinement_obstacle
+    monkeypatch.setattr(api, "_refinement_obstacle", lambda cov, bias, damping=(): obstacle(
+        cov, bias, damping) or api.CHUNKED_NOT_REFINED)
+
+
+def test_chunked_auto_fits_say_they_are_not_refined(noisy_files):
+    _, paths = noisy_files
+    streamed = hamid.fit(paths["parquet"], chunk_rows=1000)
+    assert streamed.method["refinement"] == {"applied": False,
+                                                     "reason": api.CHUNKED_NOT_REFINED}
+    assert "not refined" in streamed.method["kind_reason"]
 
 
 def _compare(memory, streamed):

@@ -1,0 +1,182 @@
+"""The trajectory refinement of automatic joint fits (hamid.trajectory)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from conftest import DUFFING, ELASTIC_PENDULUM, PENG, TWO_MASS, with_noise
+
+import hamid
+from hamid.cli import cli
+from hamid.design import Damping
+from hamid.model import model_from_spec
+from hamid.trajectory import _Dynamics
+
+CLEAN = {"peng-quadratic": PENG, "duffing": DUFFING, "two-mass": TWO_MASS,
+         "elastic-pendulum": ELASTIC_PENDULUM}
+
+
+@pytest.mark.parametrize("name", list(CLEAN))
+def test_clean_records_are_recovered_exactly(clean_records, name):
+    """Polynomial and non-polynomial energies, and a parameter in the kinetic energy."""
+    result = hamid.fit(clean_records[name])
+    assert result.method["refinement"]["applied"] is True
+    assert "refined by fitting the integrated trajectories" in result.method["kind_reason"]
+    assert result.estimates == pytest.approx(CLEAN[name]["parameters"], rel=1e-8)
+
+
+def test_accelerations_match_the_hand_written_equations_of_motion():
+    """Duffing with viscous and quadratic damping: x'' = -k x - k3 x^3 - c v - d |v| v."""
+    model = model_from_spec(DUFFING["model"])
+    dynamics = _Dynamics(model, Damping(("viscous", "quadratic"), model.coordinates))
+    rng = np.random.default_rng(0)
+    Y = rng.normal(size=(2, 7))
+    W = np.vstack([np.ones(7), rng.uniform(0.5, 2, size=(4, 7))])   # 1, k, k3, c_x, d_x
+    x, v = Y
+    k, k3, c, d = W[1:]
+    expected = -k * x - k3 * x**3 - c * v - d * np.abs(v) * v
+    np.testing.assert_allclose(dynamics.accelerations(Y, W)[0], expected, rtol=1e-13)
+
+
+def test_accelerations_solve_the_mass_matrix():
+    """Two masses, the second of mass m: m x2'' = -k2 (x2 - x1) - k3 (x2 - x1)^3."""
+    model = model_from_spec(TWO_MASS["model"])
+    dynamics = _Dynamics(model, Damping((), model.coordinates))
+    rng = np.random.default_rng(1)
+    Y = rng.normal(size=(4, 5))
+    W = np.vstack([np.ones(5), rng.uniform(0.5, 2, size=(4, 5))])   # 1, m, k1, k2, k3
+    x1, x2 = Y[:2]
+    m, k1, k2, k3 = W[1:]
+    stretch = x2 - x1
+    spring = k2 * stretch + k3 * stretch**3
+    expected = np.vstack([-k1 * x1 + spring, -spring / m])
+    np.testing.assert_allclose(dynamics.accelerations(Y, W), expected, rtol=1e-12)
+
+
+def test_levels_are_the_energies_of_the_initial_states(clean_records):
+    """Duffing E = v^2/2 + k x^2/2 + k3 x^4/4 at each simulated initial state."""
+    result = hamid.fit(clean_records["duffing"])
+    k, k3 = DUFFING["parameters"].values()
+    expected = [s["v"] ** 2 / 2 + k * s["x"] ** 2 / 2 + k3 * s["x"] ** 4 / 4
+                for s in DUFFING["initial"]]
+    assert [level.h for level in result.energy_levels] == pytest.approx(expected, rel=1e-9)
+    assert all(level.stderr is not None and level.stderr < 1e-8
+               for level in result.energy_levels)
+
+
+@pytest.mark.parametrize("name, noise", [("duffing", 0.03), ("two-mass", 0.03),
+                                         ("elastic-pendulum", 0.01)])
+def test_refinement_beats_the_joint_fit_under_noise(clean_records, name, noise):
+    truth = np.array(list(CLEAN[name]["parameters"].values()))
+    errors = {"joint": [], "auto": []}
+    for seed in range(4):
+        frame = with_noise(clean_records[name], noise, seed)
+        for method in errors:
+            estimate = np.array(list(hamid.fit(frame, method=method).estimates.values()))
+            errors[method].append(np.max(np.abs(estimate / truth - 1)))
+    assert np.median(errors["auto"]) < np.median(errors["joint"]) / 1.5, errors
+
+
+def test_standard_errors_match_the_spread_over_realizations(clean_records):
+    """Duffing at 1% noise, 16 realizations: the reported errors are the real spread."""
+    fits = [hamid.fit(with_noise(clean_records["duffing"], 0.01, seed)) for seed in range(16)]
+    for name in DUFFING["parameters"]:
+        estimates = [f.estimates[name] for f in fits]
+        stderr = np.median([next(p.stderr for p in f.parameters if p.name == name)
+                            for f in fits])
+        assert 0.6 < np.std(estimates, ddof=1) / stderr < 1.6, name
+
+
+def test_fixed_parameters_stay_fixed(clean_records):
+    result = hamid.fit(clean_records["peng-quadratic"], fix={"a6": 0.2, "w1sq": 1.0})
+    assert result.method["refinement"]["applied"] is True
+    assert result.estimates == pytest.approx(PENG["parameters"], rel=1e-8)
+    fixed = [p for p in result.parameters if p.fixed]
+    assert [(p.name, p.estimate, p.stderr) for p in fixed] == [("w1sq", 1.0, None),
+                                                                ("a6", 0.2, None)]
+
+
+def test_damped_records_are_refined_with_their_damping():
+    system = {**PENG, "damping": {"c_u1": 0.02, "c_u2": 0.01}}
+    clean = hamid.simulate(system)
+    result = hamid.fit(clean, damping="viscous")
+    assert result.method["refinement"]["applied"] is True
+    assert result.estimates == pytest.approx({**PENG["parameters"], **system["damping"]},
+                                             rel=1e-7)
+    noisy = with_noise(clean, 0.01, seed=2)
+    assert hamid.fit(noisy, damping="viscous").method["refinement"]["applied"] is True
+
+
+def test_derived_velocities_leave_the_trajectory_fit_to_the_positions(clean_records):
+    """Savitzky-Golay velocities are not data of their own: the positions alone fit."""
+    frame = clean_records["duffing"].drop(columns=["v"])
+    joint = hamid.fit(frame, model="duffing", velocity="savgol", method="joint")
+    refined = hamid.fit(frame, model="duffing", velocity="savgol")
+    assert refined.method["refinement"]["applied"] is True
+    truth = np.array(list(DUFFING["parameters"].values()))
+    joint_error, refined_error = (
+        np.max(np.abs(np.array(list(fit.estimates.values())) / truth - 1))
+        for fit in (joint, refined))
+    assert refined_error < 1e-7 < joint_error
+
+
+def test_a_model_that_does_not_fit_keeps_the_linear_fit(clean_records):
+    """A damped record fitted as conservative: the integrated motion cannot follow it."""
+    damped = hamid.simulate({**DUFFING, "damping": {"c_x": 0.05}})
+    auto = hamid.fit(damped)
+    joint = hamid.fit(damped, method="joint")
+    refinement = auto.method["refinement"]
+    assert refinement["applied"] is False
+    assert "does not fit the recording" in refinement["reason"]
+    assert "misfit" in refinement["reason"] and "1 period" in refinement["reason"]
+    assert auto.estimates == joint.estimates
+    assert [p.stderr for p in auto.parameters] == [p.stderr for p in joint.parameters]
+
+
+@pytest.mark.parametrize("options, reason", [
+    ({"damping": "viscous,coulomb"}, "Coulomb friction"),
+    ({"cov": "classical"}, "--cov classical"),
+    ({"cov": "bootstrap", "bootstrap": 10, "seed": 1}, "--cov bootstrap"),
+    ({"noise": "auto", "bias_correct": True}, "--bias-correct"),
+])
+def test_options_of_the_linear_fit_skip_the_refinement(clean_records, options, reason):
+    frame = with_noise(clean_records["duffing"], 0.01, seed=3)
+    result = hamid.fit(frame, **options)
+    assert result.method["refinement"]["applied"] is False
+    assert reason in result.method["refinement"]["reason"]
+    assert reason in result.method["kind_reason"]
+    assert result.estimates == hamid.fit(frame, method="joint", **options).estimates
+
+
+@pytest.mark.parametrize("method", ["energy", "weak", "joint"])
+def test_explicit_methods_are_not_refined(clean_records, method):
+    assert hamid.fit(clean_records["duffing"], method=method).method["refinement"] is None
+
+
+def test_cli_reports_the_refinement(clean_records, tmp_path):
+    path = tmp_path / "duffing.csv"
+    with_noise(clean_records["duffing"], 0.01, seed=4).to_csv(path, index=False)
+    runner = CliRunner()
+    out = runner.invoke(cli, ["fit", str(path), "--model", "duffing", "--format", "json"])
+    assert out.exit_code == 0, out.output
+    refinement = json.loads(out.output)["method"]["refinement"]
+    assert refinement["applied"] is True
+    assert refinement["segments"] >= 1 and refinement["iterations"] >= 1
+    assert 0.5 < refinement["chi2_per_dof"] < 1.5
+    table = runner.invoke(cli, ["fit", str(path), "--model", "duffing"])
+    assert table.exit_code == 0, table.output
+    assert "trajectory fit" in table.output
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["duffing", "peng-quadratic"])
+def test_refined_bounds_cover_the_truth(clean_records, name):
+    """1% noise, 100 realizations: the 95% bounds of the refined fit cover 88-99%."""
+    from conftest import coverage
+
+    covered = coverage(clean_records[name], CLEAN[name]["parameters"], 0.01, 100)
+    for parameter, fraction in covered.items():
+        assert 0.88 <= fraction <= 0.99, (parameter, fraction)
