@@ -131,7 +131,7 @@ def refine(model: Model, records: Records, damping: Damping, theta_all: npt.Arra
         try:
             result = _fit_segments(model, records, damping, np.asarray(theta_all, float),
                                    free, periods * period, weight)
-        except (_IntegrationFailed, np.linalg.LinAlgError) as exc:
+        except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
             failure = f"{exc}"
         else:
             if result.chi2_per_dof < CHI2_LIMIT:
@@ -143,8 +143,8 @@ def refine(model: Model, records: Records, damping: Damping, theta_all: npt.Arra
         periods /= 2
 
 
-class _IntegrationFailed(Exception):
-    pass
+class _SegmentFitFailed(Exception):
+    """One segment length did not give a fit; the reason is the text."""
 
 
 def _fit_segments(model: Model, records: Records, damping: Damping,
@@ -155,7 +155,7 @@ def _fit_segments(model: Model, records: Records, damping: Damping,
     t = records.t
     pieces = _segments(records, t, length)
     if not pieces:
-        raise _IntegrationFailed(f"no trajectory holds {MIN_SEGMENT_SAMPLES} samples")
+        raise _SegmentFitFailed(f"no trajectory holds {MIN_SEGMENT_SAMPLES} samples")
     X = records.X
     dynamics = _Dynamics(model, damping)
     n_states, p = X.shape[1], len(free)
@@ -167,12 +167,13 @@ def _fit_segments(model: Model, records: Records, damping: Damping,
     n_used = sum(len(x) for x in tau) * int(np.count_nonzero(weight))
     dof = max(n_used - p - n_states * len(pieces), 1)
     rtol = LOOSE_RTOL
-    damping_factor, best = 0.0, None
+    damping_factor, best, converged = 0.0, None, False
     iterations = 0
     with np.errstate(all="ignore"):
         for _ in range(MAX_ITERATIONS):
             free_theta = theta[free]
             theta_step = STEP * np.maximum(np.abs(free_theta), 1e-3 * np.abs(free_theta).max())
+            theta_step[theta_step == 0] = STEP   # every start at zero: no scale to go by
             normal = _normal_equations(dynamics, tau, measured, theta, X0, free, x_step,
                                        theta_step, weight, rtol)
             if best is not None and normal.cost > best[0].cost * (1 + 1e-12):
@@ -195,16 +196,13 @@ def _fit_segments(model: Model, records: Records, damping: Damping,
                 if rtol > STRICT_RTOL and np.min(relative_spread) < 1e3 * rtol:
                     rtol, best = STRICT_RTOL, None
                     continue
+                converged = True
                 break
-        else:
-            if damping_factor != 0.0:
-                raise _IntegrationFailed(f"Gauss-Newton did not settle in {MAX_ITERATIONS} "
-                                         "iterations")
-    if best is None:
-        raise _IntegrationFailed(f"Gauss-Newton did not settle in {MAX_ITERATIONS} iterations")
+    if best is None or (not converged and damping_factor != 0.0):
+        raise _SegmentFitFailed(f"Gauss-Newton did not settle in {MAX_ITERATIONS} iterations")
     chi2 = best[0].cost / dof
     if not np.isfinite(chi2) or not np.all(np.isfinite(theta)):
-        raise _IntegrationFailed("the fit diverged")
+        raise _SegmentFitFailed("the fit diverged")
     covariance = np.linalg.inv(best[0].step(0.0)[2]) * chi2
     return Refinement(theta[free], covariance, dof, float(chi2), len(pieces), float(length),
                       iterations)
@@ -263,14 +261,14 @@ def _normal_equations(dynamics: _Dynamics, tau: list[Any], measured: list[Any],
         span = max(tau[s][-1] for s in batch)
         solution = solve_ivp(_rhs(dynamics, W), (0.0, span),
                              starts.reshape(-1, n_states).T.ravel(), method="DOP853",
-                             dense_output=True, rtol=rtol, atol=rtol * 1e-2 * x_step.min()
-                             / STEP)
+                             dense_output=True, rtol=rtol,
+                             atol=np.repeat(1e-2 * rtol / STEP * x_step, copies * B))
         if solution.status != 0:
-            raise _IntegrationFailed(f"the integration failed ({solution.message})")
+            raise _SegmentFitFailed(f"the integration failed ({solution.message})")
         grid, where = np.unique(np.concatenate([tau[s] for s in batch]), return_inverse=True)
         values = solution.sol(grid).reshape(n_states, copies, B, len(grid))
         if not np.all(np.isfinite(values)):
-            raise _IntegrationFailed("the integrated motion is not finite")
+            raise _SegmentFitFailed("the integrated motion is not finite")
         offset = 0
         for b, s in enumerate(batch):
             m = len(tau[s])
