@@ -409,8 +409,11 @@ def _conditioning_section(result: Mapping[str, Any]) -> _Section:
 def _method_section(result: Mapping[str, Any]) -> _Section:
     """Helper: how the fit was made."""
     method = result["method"]
+    refinement = method.get("refinement")
+    covariance = ("Gauss-Newton of the trajectory fit" if refinement and refinement["applied"]
+                  else method["covariance"])
     rows = [
-        ("covariance", f"{method['covariance']}, {_level(method['level'])} intervals"),
+        ("covariance", f"{covariance}, {_level(method['level'])} intervals"),
         ("weighting", method["weighting"]),
     ]
     if method["noise"]:
@@ -421,7 +424,6 @@ def _method_section(result: Mapping[str, Any]) -> _Section:
     rows.append(("bias correction", "yes" if method["bias_correction"] else "no"))
     if method["weak_window"] is not None:
         rows.append(("weak window", f"{_num(method['weak_window'])} s"))
-    refinement = method.get("refinement")
     if refinement and refinement["applied"]:
         rows.append(("refinement", f"trajectory fit over "
                      f"{_plural(refinement['segments'], 'segment', 'segments')} of "
