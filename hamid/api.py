@@ -125,7 +125,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         Parameters held at known values.
     method : {"auto", "joint", "weak", "energy"}
         Which rows to fit: energy rows, weak-form equations of motion, or both; ``auto``
-        takes ``joint`` when the data allow it and says why.
+        takes ``joint`` when the data allow it, refined by fitting the model's integrated
+        trajectories to the recording (`hamid.trajectory`), and says why.
     weak_window : float, optional
         Length of the weak-form windows in seconds; by default half the dominant period.
     damping : str or list of str

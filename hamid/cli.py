@@ -172,7 +172,7 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--method", default="auto", show_default=True,
               type=click.Choice(["auto", "joint", "weak", "energy"]),
               help="Energy rows, weak-form equations of motion, or both (auto: joint when "
-                   "the data allow it).")
+                   "the data allow it, refined by fitting the integrated trajectories).")
 @click.option("--weak-window", type=float, metavar="SECONDS",
               help="Length of the weak-form windows (default: half the dominant period).")
 @click.option("--damping", default="none", show_default=True,
