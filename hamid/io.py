@@ -405,13 +405,34 @@ class TableChunks:
 
     def chunks(self, columns: Sequence[str], rows: int) -> Iterator[dict[str, Any]]:
         """The named columns, about `rows` rows at a time, as numpy arrays."""
-        with _arrow_reading(self.name):
-            for batch in self._batches(list(dict.fromkeys(columns)), rows):
-                yield {name: batch.column(name).to_numpy(zero_copy_only=False)
-                       if batch.column(name).null_count == 0 else
-                       _with_nulls(batch.column(name)) for name in batch.schema.names}
+        names = list(dict.fromkeys(columns))
+        try:
+            with _arrow_reading(self.name):
+                for batch in self._batches(names, rows):
+                    yield {name: batch.column(name).to_numpy(zero_copy_only=False)
+                           if batch.column(name).null_count == 0 else
+                           _with_nulls(batch.column(name)) for name in batch.schema.names}
+        except DataError:
+            if self.format != "parquet":
+                self._name_the_bad_cell(names, rows)
+            raise
 
-    def _batches(self, columns: list[str], rows: int) -> Iterator[Any]:
+    def _name_the_bad_cell(self, columns: list[str], rows: int) -> None:
+        """Raise the error that names the file row of a cell that is not a number.
+
+        Text columns take their types from the first block, so a bad cell further on stops
+        pyarrow with only the column's position; reading them again as text finds the row.
+        """
+        first_row = 1
+        with _arrow_reading(self.name):
+            for batch in self._batches(columns, rows, as_text=True):
+                for name in batch.schema.names:
+                    numeric_values(_with_nulls(batch.column(name)), name, self.name,
+                                   first_row=first_row)
+                first_row += batch.num_rows
+
+    def _batches(self, columns: list[str], rows: int, as_text: bool = False) -> Iterator[Any]:
+        import pyarrow as pa
         import pyarrow.csv as pacsv
         import pyarrow.parquet as pq
 
@@ -426,7 +447,9 @@ class TableChunks:
                 read_options=pacsv.ReadOptions(block_size=max(rows * 64, 1 << 12)),
                 parse_options=pacsv.ParseOptions(delimiter=self.delimiter),
                 convert_options=pacsv.ConvertOptions(
-                    null_values=[""], include_columns=[self._raw[c] for c in columns]))
+                    null_values=[""], include_columns=[self._raw[c] for c in columns],
+                    column_types={self._raw[c]: pa.string() for c in columns} if as_text
+                    else None))
             for batch in reader:
                 yield batch.rename_columns([c.strip() for c in batch.schema.names])
         finally:
