@@ -288,6 +288,7 @@ def _normal_equations(dynamics: _Dynamics, tau: list[Any], measured: list[Any],
 
 
 def _rhs(dynamics: _Dynamics, W: npt.NDArray[np.float64]) -> Any:
+    """solve_ivp's right-hand side (q, v)' = (v, a) for many states, flattened by variable."""
     n_states = 2 * len(dynamics.model.coordinates)
     half = n_states // 2
 
