@@ -39,6 +39,9 @@ CHI2_LIMIT = 1.5       # weighted misfit per degree of freedom that still counts
 MAX_ITERATIONS = 20
 BATCH = 32             # segments integrated together as one vectorised system
 STEP = 1e-7            # relative forward-difference step of the Jacobian
+# Integration steps allowed per sample time (and a floor): smooth motion needs about one;
+# a motion that is stiff or blows up would otherwise crawl on for hours.
+MAX_STEPS_PER_SAMPLE, MIN_STEP_BUDGET = 50, 1000
 # Gauss-Newton runs at the loose tolerance until it settles, then tightens to the strict
 # one only when the parameters are determined finely enough for it to matter (clean data).
 LOOSE_RTOL, STRICT_RTOL = 1e-8, 1e-11
@@ -259,13 +262,14 @@ def _normal_equations(dynamics: _Dynamics, tau: list[Any], measured: list[Any],
         starts[1 + np.arange(n_states), :, np.arange(n_states)] += x_step[:, None]
         W = np.repeat(shifted, B, axis=1)                              # (1 + P, copies * B)
         span = max(tau[s][-1] for s in batch)
-        solution = solve_ivp(_rhs(dynamics, W), (0.0, span),
+        grid, where = np.unique(np.concatenate([tau[s] for s in batch]), return_inverse=True)
+        budget = _EVALUATIONS_PER_STEP * (MAX_STEPS_PER_SAMPLE * len(grid) + MIN_STEP_BUDGET)
+        solution = solve_ivp(_rhs(dynamics, W, budget), (0.0, span),
                              starts.reshape(-1, n_states).T.ravel(), method="DOP853",
                              dense_output=True, rtol=rtol,
                              atol=np.repeat(1e-2 * rtol / STEP * x_step, copies * B))
         if solution.status != 0:
             raise _SegmentFitFailed(f"the integration failed ({solution.message})")
-        grid, where = np.unique(np.concatenate([tau[s] for s in batch]), return_inverse=True)
         values = solution.sol(grid).reshape(n_states, copies, B, len(grid))
         if not np.all(np.isfinite(values)):
             raise _SegmentFitFailed("the integrated motion is not finite")
@@ -287,12 +291,20 @@ def _normal_equations(dynamics: _Dynamics, tau: list[Any], measured: list[Any],
     return _Normal(cost, H_tt, g_t, H_xx, H_xt, g_x)
 
 
-def _rhs(dynamics: _Dynamics, W: npt.NDArray[np.float64]) -> Any:
-    """solve_ivp's right-hand side (q, v)' = (v, a) for many states, flattened by variable."""
+_EVALUATIONS_PER_STEP = 12  # DOP853's stages
+
+
+def _rhs(dynamics: _Dynamics, W: npt.NDArray[np.float64], budget: int) -> Any:
+    """solve_ivp's right-hand side (q, v)' = (v, a) for many states, flattened by variable;
+    it stops the integration after `budget` evaluations."""
     n_states = 2 * len(dynamics.model.coordinates)
     half = n_states // 2
+    evaluations = iter(range(budget))
 
     def rhs(_: float, y: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        if next(evaluations, None) is None:
+            raise _SegmentFitFailed("the integration needs too many steps: the model's motion "
+                                    "is stiff or blows up")
         Y = y.reshape(n_states, -1)
         return np.concatenate([Y[half:], dynamics.accelerations(Y, W)]).ravel()
     return rhs
