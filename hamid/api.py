@@ -301,19 +301,16 @@ def _fitted_levels(kind: str, estimate: _Estimate, energy_rows: Block, h_var: An
     Without a level in the fit (weak rows, or a trajectory too short for any window of a
     joint fit) the level is the mean fitted energy, without a standard error.
     """
-    mean_energy = _mean_energy(energy_rows, estimate.theta, J)
-    if kind == "weak":
-        return mean_energy, np.full(J, np.nan)
-    return (np.where(np.isnan(estimate.h), mean_energy, estimate.h),
-            np.sqrt(np.clip(h_var, 0, None)))
-
-
-def _mean_energy(energy_rows: Block, theta: Any, J: int) -> Any:
-    """Each trajectory's mean energy (with dissipated work) at the parameters theta."""
+    h_stderr = np.full(J, np.nan) if kind == "weak" else np.sqrt(np.clip(h_var, 0, None))
+    if kind != "weak" and not np.any(np.isnan(estimate.h)):
+        return estimate.h, h_stderr
     from hamid import solve
 
-    centred = solve.centre([energy_rows], J)
-    return centred.level_means_A @ theta - centred.level_means_b
+    means_A, means_b, _ = solve.level_means(energy_rows, J)
+    mean_energy = means_A @ estimate.theta - means_b
+    if kind == "weak":
+        return mean_energy, h_stderr
+    return np.where(np.isnan(estimate.h), mean_energy, estimate.h), h_stderr
 
 
 def _refined_levels(energy_rows: Block, theta: Any, theta_cov: Any, J: int) -> tuple[Any, Any]:
@@ -325,13 +322,12 @@ def _refined_levels(energy_rows: Block, theta: Any, theta_cov: Any, J: int) -> t
     """
     from hamid import solve
 
-    centred = solve.centre([energy_rows], J)
-    h = centred.level_means_A @ theta - centred.level_means_b
+    means_A, means_b, _ = solve.level_means(energy_rows, J)
+    h = means_A @ theta - means_b
     residual = energy_rows.A @ theta - energy_rows.b - h[energy_rows.group]
     n = np.bincount(energy_rows.group, minlength=J)
     mean_noise = np.bincount(energy_rows.group, weights=residual**2, minlength=J) / np.maximum(
         n * (n - 1), 1)
-    means_A = centred.level_means_A
     return h, np.sqrt(np.einsum("jk,kl,jl->j", means_A, theta_cov, means_A) + mean_noise)
 
 
@@ -520,8 +516,7 @@ def _choose_method(method: str, model: Model, scales: list[tuple[float | None, f
 CHUNKED_NOT_REFINED = "it needs the data in memory, and the file is read in chunks"
 
 
-def _refinement_obstacle(cov: str, bias_correct: bool,
-                         damping: tuple[str, ...] = ()) -> str | None:
+def _refinement_obstacle(cov: str, bias_correct: bool, damping: tuple[str, ...]) -> str | None:
     """Why an automatic joint fit is not refined by trajectories, or None when it is."""
     if "coulomb" in damping:
         return ("Coulomb friction makes the motion jump at every stop, which the trajectory "

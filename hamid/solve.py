@@ -40,6 +40,21 @@ class Centred:
     raw_norms: npt.NDArray[np.float64]      # (p,) column norms before centring
 
 
+def level_means(block: Block, n_groups: int) -> tuple[npt.NDArray[np.float64], ...]:
+    """Weighted means of A and b in each trajectory, and 1 / each trajectory's weight.
+
+    A trajectory with no rows here (too short for a window) has no level: NaN.
+    """
+    w, p = block.weight, block.A.shape[1]
+    W = np.bincount(block.group, weights=w, minlength=n_groups)
+    inverse = np.divide(1.0, W, out=np.full(n_groups, np.nan), where=W > 0)
+    means_b = np.bincount(block.group, weights=w * block.b, minlength=n_groups) * inverse
+    means_A = np.stack([np.bincount(block.group, weights=w * block.A[:, k],
+                                    minlength=n_groups) for k in range(p)],
+                       axis=-1).reshape(n_groups, p) * inverse[:, None]
+    return means_A, means_b, inverse
+
+
 def centre(blocks: Sequence[Block], n_groups: int) -> Centred:
     """Stack the blocks, centring rows that carry a level within their trajectory."""
     A_parts, b_parts, sw_parts, lam_parts = [], [], [], []
@@ -52,13 +67,7 @@ def centre(blocks: Sequence[Block], n_groups: int) -> Centred:
         lam = np.zeros(block.n_rows)
         raw_sq += w @ (A * A)
         if block.has_level:
-            W = np.bincount(block.group, weights=w, minlength=n_groups)
-            # A trajectory with no rows here (too short for a window) has no level: NaN.
-            inverse = np.divide(1.0, W, out=np.full(n_groups, np.nan), where=W > 0)
-            means_b = np.bincount(block.group, weights=w * b, minlength=n_groups) * inverse
-            means_A = np.stack([np.bincount(block.group, weights=w * A[:, k],
-                                            minlength=n_groups) for k in range(p)],
-                               axis=-1).reshape(n_groups, p) * inverse[:, None]
+            means_A, means_b, inverse = level_means(block, n_groups)
             A = A - means_A[block.group]
             b = b - means_b[block.group]
             lam = w * inverse[block.group]

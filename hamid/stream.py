@@ -142,7 +142,7 @@ def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: 
         block_variance, sizes = fitted
     refinement_info = None
     if method == "auto" and kind == "joint":
-        refinement_info = {"applied": False, "reason": api._refinement_obstacle(cov, False)
+        refinement_info = {"applied": False, "reason": api._refinement_obstacle(cov, False, ())
                            or api.CHUNKED_NOT_REFINED}
         kind_reason += api._refinement_note(refinement_info)
     labels = reader.label_tuple()

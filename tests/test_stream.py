@@ -31,7 +31,7 @@ def linear_fits_in_memory(monkeypatch):
     """The fits in memory here stop where a chunked fit stops: before the trajectory
     refinement, which needs the data in memory (tested in test_trajectory.py)."""
     obstacle = api._refinement_obstacle
-    monkeypatch.setattr(api, "_refinement_obstacle", lambda cov, bias, damping=(): obstacle(
+    monkeypatch.setattr(api, "_refinement_obstacle", lambda cov, bias, damping: obstacle(
         cov, bias, damping) or api.CHUNKED_NOT_REFINED)
 
 
