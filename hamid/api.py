@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -580,6 +581,8 @@ def _check_fixed(fix: Mapping[str, float], parameters: tuple[str, ...]) -> dict[
 def _check_finite(block: Block, locate: Callable[[int], tuple[str, int]],
                   names: list[str]) -> None:
     """Energy terms must be finite at every sample (data inside the energy's domain)."""
+    if np.isfinite(block.A.sum() + block.b.sum()):   # a finite sum has finite terms
+        return
     values = np.column_stack([block.b, block.A])
     bad = np.flatnonzero(~np.all(np.isfinite(values), axis=1))
     if not bad.size:
@@ -596,6 +599,8 @@ def _hold_fixed(block: Block, free: list[int], values: Any) -> Block:
     """Move the terms of fixed parameters into the known side of the rows."""
     import dataclasses
 
+    if len(free) == block.A.shape[1]:
+        return block
     return dataclasses.replace(block, A=block.A[:, free], b=block.b - block.A @ values)
 
 
@@ -1006,18 +1011,16 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
                trajectory: str | None, format: str | None, velocity: str = "measured",
                window: int | None = None, order: int = SAVGOL_ORDER) -> _Loaded:
     """Read the sources, settle the model and arrange the rows by trajectory."""
-    import pandas as pd
-
     from hamid import io
 
-    if isinstance(data, pd.DataFrame):
+    if _is_data_frame(data):
         tables = [("<DataFrame>", data, data.attrs.get("hamid"))]
     else:
         paths = [data] if isinstance(data, str | os.PathLike) else list(data)
         if not paths:
             raise UsageError("no data given")
         tables = [(os.fspath(p) if os.fspath(p) != "-" else "<stdin>",
-                   *io.read_table(p, format=format)) for p in paths]
+                   *io.read_columns(p, format=format)) for p in paths]
     first_name, first_table, metadata = tables[0]
     notes = []
     if isinstance(model, Model):
@@ -1027,7 +1030,7 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
     elif metadata and isinstance(metadata.get("model"), Mapping):
         m = _model_from_metadata(metadata["model"], first_name)
     else:
-        m = _assumed_model([str(c) for c in first_table.columns], first_name, columns,
+        m = _assumed_model([str(c) for c in first_table], first_name, columns,
                            time, trajectory)
         notes.append(f"no model given: assumed {m.name} over the coordinates "
                      f"{', '.join(m.coordinates)} (pick one with --model)")
@@ -1035,7 +1038,7 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
     X_parts, t_parts, group_parts, labels, mapping = [], [], [], [], {}
     has_time = True
     for source, frame, _ in tables:
-        names = [str(c) for c in frame.columns]
+        names = [str(c) for c in frame]
         derived = velocity == "savgol"
         mapping = io.resolve_columns(names, m.coordinates, () if derived else m.velocities,
                                      mapping=columns, source=source)
@@ -1043,15 +1046,17 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
                                     source)
         traj_col = _optional_column(names, trajectory, io.default_trajectory_column(names),
                                     "--trajectory", source)
+        n_rows = len(io.column_values(frame[names[0]]))
         X = np.column_stack([io.numeric_column(frame, mapping[v], source=source)
-                             if v in mapping else np.zeros(len(frame)) for v in m.variables])
+                             if v in mapping else np.zeros(n_rows) for v in m.variables])
         t = io.numeric_column(frame, time_col, source=source) if time_col else None
         has_time = has_time and t is not None
         if traj_col is None:
-            keys = np.zeros(len(frame), dtype=np.int64)
+            keys = np.zeros(n_rows, dtype=np.int64)
             traj_labels = [source if len(tables) > 1 else 1]
         else:
-            keys, traj_labels = _trajectory_keys(frame[traj_col], traj_col, source)
+            keys, traj_labels = _trajectory_keys(io.column_values(frame[traj_col]), traj_col,
+                                                 source)
             if len(tables) > 1:
                 traj_labels = [f"{source}:{label}" for label in traj_labels]
         _check_order(keys, t, source, traj_col, time_col)
@@ -1239,17 +1244,37 @@ def _optional_column(names: list[str], asked: str | None, default: str | None, o
     return asked
 
 
-def _trajectory_keys(values: Any, column: str, source: str) -> tuple[Any, list[Any]]:
+def _trajectory_keys(values: np.ndarray, column: str, source: str) -> tuple[Any, list[Any]]:
     """Index 0..J-1 of each row's trajectory, in order of first appearance, and the labels."""
-    import pandas as pd
+    from hamid.io import is_missing
 
-    if values.isna().any():
-        row = int(np.flatnonzero(values.isna().to_numpy())[0]) + 1
+    if values.dtype.kind == "f":
+        missing = np.isnan(values)
+    else:
+        missing = np.fromiter((is_missing(v) for v in values), bool, len(values))
+    if missing.any():
+        row = int(np.flatnonzero(missing)[0]) + 1
         raise DataError(f"{source}: column {column!r}, row {row}: missing trajectory label")
-    codes, uniques = pd.factorize(values, sort=False)
+    if values.dtype.kind in "iuf":
+        uniques, first, codes = np.unique(values, return_index=True, return_inverse=True)
+        order = np.argsort(first)
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        codes, uniques = rank[codes.ravel()], uniques[order]
+    else:   # text or mixed objects, which need not sort
+        index: dict[Any, int] = {}
+        codes = np.fromiter((index.setdefault(v, len(index)) for v in values), np.int64,
+                            len(values))
+        uniques = list(index)
     labels = [u.item() if hasattr(u, "item") else u for u in uniques]
     labels = [int(u) if isinstance(u, float) and u.is_integer() else u for u in labels]
     return codes.astype(np.int64), labels
+
+
+def _is_data_frame(data: Any) -> bool:
+    """Whether `data` is a pandas DataFrame, without importing pandas when it cannot be."""
+    pandas = sys.modules.get("pandas")
+    return pandas is not None and isinstance(data, pandas.DataFrame)
 
 
 def _check_order(keys: Any, t: Any, source: str, traj_col: str | None,

@@ -32,15 +32,19 @@ if TYPE_CHECKING:
 __all__ = [
     "VELOCITY_PATTERNS",
     "all_or_nothing",
+    "as_numpy",
     "check_destination",
+    "column_values",
     "default_time_column",
     "default_trajectory_column",
     "find_coordinates",
     "find_velocity",
+    "is_missing",
     "numeric_column",
     "numeric_values",
     "parse_float_mapping",
     "parse_mapping",
+    "read_columns",
     "read_json",
     "read_table",
     "read_toml",
@@ -115,6 +119,26 @@ def read_table(
     >>> table, metadata = read_table("run3.csv")  # doctest: +SKIP
     >>> x = numeric_column(table, "x", source="run3.csv")  # doctest: +SKIP
     """
+    table, metadata, name = _read_arrow(source, format)
+    return _to_pandas(table, name), metadata
+
+
+def read_columns(
+    source: str | os.PathLike[str], *, format: str | None = None
+) -> tuple[dict[str, npt.NDArray[Any]], dict[str, Any] | None]:
+    """`read_table` as numpy arrays by column name, in file order, without pandas (whose
+    import costs a third of a second) unless a Parquet file stores a pandas index."""
+    table, metadata, name = _read_arrow(source, format)
+    if _stores_pandas_index(table):
+        frame = _to_pandas(table, name)
+        return {column: frame[column].to_numpy() for column in frame.columns}, metadata
+    return {column: as_numpy(table.column(column)) for column in table.column_names}, metadata
+
+
+def _read_arrow(
+    source: str | os.PathLike[str], format: str | None
+) -> tuple[pa.Table, dict[str, Any] | None, str]:
+    """Helper reading a table file: its Arrow table, hamid metadata and name for messages."""
     fmt = _check_format(format) if format is not None else _format_from_suffix(source)
     data, name = _read_bytes(source)
     if not data or data.isspace():
@@ -122,11 +146,11 @@ def read_table(
     if fmt is None:
         fmt = "parquet" if data.startswith(_PARQUET_MAGIC) else None
     if fmt == "parquet":
-        return _read_parquet(data, name)
-    return _read_text(data, name, fmt)
+        return (*_read_parquet(data, name), name)
+    return (*_read_text(data, name, fmt), name)
 
 
-def _read_parquet(data: bytes, name: str) -> tuple[pd.DataFrame, dict[str, Any] | None]:
+def _read_parquet(data: bytes, name: str) -> tuple[pa.Table, dict[str, Any] | None]:
     """Helper function reading a Parquet file held in memory."""
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -149,8 +173,40 @@ def _read_parquet(data: bytes, name: str) -> tuple[pd.DataFrame, dict[str, Any] 
         raise DataError(f"{name}: has no columns")
     if table.num_rows == 0:
         raise DataError(f"{name}: has columns but no data rows")
-    frame = _to_pandas(table, name)
-    return frame, metadata
+    return table, metadata
+
+
+def _stores_pandas_index(table: pa.Table) -> bool:
+    """Helper telling whether a table written by pandas stores its index as columns (or
+    has pandas metadata too damaged to tell): only pandas restores such an index."""
+    raw = (table.schema.metadata or {}).get(b"pandas")
+    if raw is None:
+        return False
+    try:
+        return any(not isinstance(index, dict) for index in json.loads(raw)["index_columns"])
+    except (ValueError, TypeError, KeyError):
+        return True
+
+
+def as_numpy(column: pa.Array | pa.ChunkedArray) -> npt.NDArray[Any]:
+    """An Arrow column as a numpy array: numbers without missing cells are a view of
+    Arrow's memory (its to_numpy imports pandas), numbers with missing cells floats with
+    NaN, anything else (text) objects."""
+    import numpy as np
+    import pyarrow as pa
+
+    if isinstance(column, pa.ChunkedArray):
+        column = column.combine_chunks()
+    kind = ("f" if pa.types.is_floating(column.type) else
+            "i" if pa.types.is_signed_integer(column.type) else
+            "u" if pa.types.is_unsigned_integer(column.type) else None)
+    if kind is None:
+        return column.to_numpy(zero_copy_only=False)
+    if column.null_count:
+        return column.cast(pa.float64()).to_numpy(zero_copy_only=False)
+    size = column.type.bit_width // 8
+    return np.frombuffer(column.buffers()[1], dtype=f"{kind}{size}", count=len(column),
+                         offset=column.offset * size)
 
 
 def _to_pandas(table: pa.Table, name: str) -> pd.DataFrame:
@@ -189,7 +245,7 @@ def _is_default_index(frame: pd.DataFrame) -> bool:
 
 def _read_text(
     data: bytes, name: str, fmt: Format | None
-) -> tuple[pd.DataFrame, dict[str, Any] | None]:
+) -> tuple[pa.Table, dict[str, Any] | None]:
     """Helper function reading CSV or TSV text; ``fmt=None`` sniffs the delimiter."""
     import pyarrow as pa
 
@@ -215,7 +271,7 @@ def _read_text(
     _check_unique(stripped, name)
     if table.num_rows == 0:
         raise DataError(f"{name}: has a header but no data rows")
-    return _to_pandas(table.rename_columns(stripped), name), metadata
+    return table.rename_columns(stripped), metadata
 
 
 def _parse_csv(body: pa.Buffer, delimiter: str, name: str) -> pa.Table:
@@ -409,9 +465,7 @@ class TableChunks:
         try:
             with _arrow_reading(self.name):
                 for batch in self._batches(names, rows):
-                    yield {name: batch.column(name).to_numpy(zero_copy_only=False)
-                           if batch.column(name).null_count == 0 else
-                           _with_nulls(batch.column(name)) for name in batch.schema.names}
+                    yield {name: as_numpy(batch.column(name)) for name in batch.schema.names}
         except DataError:
             if self.format != "parquet":
                 self._name_the_bad_cell(names, rows)
@@ -427,7 +481,7 @@ class TableChunks:
         with _arrow_reading(self.name):
             for batch in self._batches(columns, rows, as_text=True):
                 for name in batch.schema.names:
-                    numeric_values(_with_nulls(batch.column(name)), name, self.name,
+                    numeric_values(as_numpy(batch.column(name)), name, self.name,
                                    first_row=first_row)
                 first_row += batch.num_rows
 
@@ -454,15 +508,6 @@ class TableChunks:
                 yield batch.rename_columns([c.strip() for c in batch.schema.names])
         finally:
             stream.close()
-
-
-def _with_nulls(column: Any) -> Any:
-    """Helper: a column with missing cells as floats with NaN (numbers) or None (text)."""
-    import pyarrow as pa
-
-    if pa.types.is_integer(column.type) or pa.types.is_floating(column.type):
-        return column.cast(pa.float64()).to_numpy(zero_copy_only=False)
-    return column.to_numpy(zero_copy_only=False)
 
 
 @contextlib.contextmanager
@@ -493,13 +538,14 @@ def _arrow_reading(name: str) -> Iterator[None]:
 # Checking a column
 
 
-def numeric_column(table: pd.DataFrame, column: str, *, source: str) -> npt.NDArray[np.float64]:
+def numeric_column(table: pd.DataFrame | Mapping[str, Any], column: str, *,
+                   source: str) -> npt.NDArray[np.float64]:
     """Return one column of a table as finite floating-point numbers.
 
     Parameters
     ----------
-    table : pandas.DataFrame
-        Table as read by `read_table`.
+    table : pandas.DataFrame or mapping of column name to array
+        Table as read by `read_table` or `read_columns`.
     column : str
         Name of the column.
     source : str
@@ -523,16 +569,22 @@ def numeric_column(table: pd.DataFrame, column: str, *, source: str) -> npt.NDAr
     >>> numeric_column(pd.DataFrame({"x": [1, 2]}), "x", source="run.csv")
     array([1., 2.])
     """
+    if column not in table:
+        listed = _list_columns(list(table))
+        raise DataError(f"{source}: no column {column!r} (columns: {listed})")
+    return numeric_values(column_values(table[column]), column, source)
+
+
+def column_values(values: Any) -> npt.NDArray[Any]:
+    """A column (numpy array or pandas Series) as a numpy array: numbers as floats with
+    NaN for missing cells, anything else as objects."""
     import numpy as np
 
-    if column not in table.columns:
-        listed = _list_columns(table.columns)
-        raise DataError(f"{source}: no column {column!r} (columns: {listed})")
-    series = table[column]
-    if getattr(series.dtype, "kind", "O") in "iuf":
-        return numeric_values(series.to_numpy(dtype=np.float64, na_value=np.nan), column,
-                              source)
-    return numeric_values(series.to_numpy(dtype=object), column, source)
+    if not hasattr(values, "to_numpy"):
+        return np.asarray(values)
+    if getattr(values.dtype, "kind", "O") in "iuf":
+        return values.to_numpy(dtype=np.float64, na_value=np.nan)
+    return values.to_numpy(dtype=object)
 
 
 def numeric_values(values: npt.NDArray[Any], column: str, source: str, *,
@@ -576,7 +628,7 @@ def _parse_cells(
         ):
             values[row] = float(cell)
             continue
-        elif _is_missing(cell):
+        elif is_missing(cell):
             values[row] = np.nan
             continue
         else:
@@ -590,12 +642,16 @@ def _parse_cells(
     return values
 
 
-def _is_missing(cell: object) -> bool:
-    """Helper function recognising pandas' missing-value markers."""
-    import pandas as pd
-
+def is_missing(cell: object) -> bool:
+    """Whether a cell is missing: None, NaN, or one of pandas' markers when pandas is in use
+    (a cell of a DataFrame)."""
+    if cell is None or (isinstance(cell, float) and math.isnan(cell)):
+        return True
+    pandas = sys.modules.get("pandas")
+    if pandas is None:
+        return False
     try:
-        return bool(pd.isna(cell))
+        return bool(pandas.isna(cell))
     except (TypeError, ValueError):
         return False
 

@@ -153,6 +153,24 @@ def test_each_file_is_its_own_trajectory(tmp_path, clean_records):
     assert all(p.truth is None for p in result.parameters)  # plain CSV: no metadata
 
 
+@pytest.mark.parametrize("names", [["run-b", "run-a"], [5, 2], [2.5, 0.5]])
+@pytest.mark.parametrize("source", ["DataFrame", ".csv", ".parquet"])
+def test_trajectory_labels_keep_their_order_of_appearance(tmp_path, clean_records, names,
+                                                         source):
+    frame = clean_records["duffing"].copy()
+    codes = frame["trajectory"].rank(method="dense").astype(int) - 1
+    frame["trajectory"] = [names[c] for c in codes]
+    data = frame
+    if source != "DataFrame":
+        data = tmp_path / f"run{source}"
+        frame.to_csv(data, index=False) if source == ".csv" else frame.to_parquet(data)
+    result = hamid.fit(data, "duffing", method="energy")
+    assert [h.trajectory for h in result.energy_levels] == names
+    assert [h.n_samples for h in result.energy_levels] == codes.value_counts(
+        sort=False).tolist()
+    assert result.estimates["k3"] == pytest.approx(0.5, rel=1e-8)
+
+
 def test_model_assumed_when_none_is_known(clean_records):
     frame = clean_records["duffing"].rename(columns={"v": "x_dot"})
     frame.attrs = {}

@@ -24,7 +24,13 @@ def test_importing_the_cli_loads_nothing_heavy(code):
     assert _loaded_after(code) == set()
 
 
-def test_fitting_a_builtin_model_does_not_import_sympy():
-    loaded = _loaded_after(f"import hamid\nhamid.fit({str(SAMPLE)!r})")
-    assert "numpy" in loaded  # the probe works
-    assert "sympy" not in loaded
+@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
+def test_fitting_a_builtin_model_imports_neither_sympy_nor_pandas(tmp_path, suffix):
+    from hamid import io
+
+    path = tmp_path / f"duffing{suffix}"
+    table, metadata = io.read_table(SAMPLE)
+    io.write_table(table, str(path), metadata=metadata)
+    loaded = _loaded_after(f"import hamid\nhamid.fit({str(path)!r})")
+    assert {"numpy", "pyarrow"} <= loaded  # the probe works
+    assert not loaded & {"sympy", "pandas"}

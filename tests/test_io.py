@@ -223,13 +223,47 @@ def test_header_names_are_stripped(tmp_path):
     assert hio.numeric_column(table, "x", source="run.csv")[0] == 1.5
 
 
-def test_parquet_index_written_by_pandas_becomes_a_column(tmp_path):
+@pytest.mark.parametrize("read", [hio.read_table, hio.read_columns])
+def test_parquet_index_written_by_pandas_becomes_a_column(tmp_path, read):
     path = tmp_path / "run.parquet"
     frame = pd.DataFrame({"x": [1.0, 2.0]}, index=pd.Index([0.0, 0.5], name="t"))
     frame.to_parquet(path)
-    table = hio.read_table(path)[0]
-    assert list(table.columns) == ["t", "x"]
+    table = read(path)[0]
+    assert list(table) == ["t", "x"]
     assert list(table["t"]) == [0.0, 0.5]
+
+
+@pytest.mark.parametrize("frame", [
+    pd.DataFrame({"x": [1.5, np.nan, 3.0], "n": [1, 2, 3], "label": ["a", None, "b"]}),
+    pd.DataFrame({"x": [1.0, 2.0]}, index=pd.Index([10, 20])),   # unnamed index: dropped
+    pd.DataFrame({"k": pd.array([1, None, 3], dtype="Int64"), "u": np.array([1, 2, 3],
+                                                                            np.uint16)}),
+    pd.DataFrame({"f": np.array([0.5, 1.5], np.float32), "flag": [True, False]}),
+])
+@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
+def test_read_columns_holds_the_cells_of_read_table(tmp_path, frame, suffix):
+    path = tmp_path / f"run{suffix}"
+    frame.to_csv(path, index=False) if suffix == ".csv" else frame.to_parquet(path)
+    table = hio.read_table(path)[0]
+    columns = hio.read_columns(path)[0]
+    assert list(columns) == list(table.columns)
+
+    def outcome(read, name):
+        try:
+            return hio.numeric_column(read, name, source="run").tolist()
+        except DataError as exc:
+            return str(exc)
+
+    for name in columns:
+        assert outcome(columns, name) == outcome(table, name)
+
+
+def test_read_columns_of_a_sliced_arrow_column_starts_at_its_offset():
+    import pyarrow as pa
+
+    column = pa.array([1.0, 2.0, 3.0, 4.0]).slice(1, 2)
+    assert hio.as_numpy(column).tolist() == [2.0, 3.0]
+    assert hio.as_numpy(pa.chunked_array([[1, 2], [3]])).tolist() == [1, 2, 3]
 
 
 # ---------------------------------------------------------------------------------------------
