@@ -1248,7 +1248,9 @@ def _trajectory_keys(values: np.ndarray, column: str, source: str) -> tuple[Any,
     """Index 0..J-1 of each row's trajectory, in order of first appearance, and the labels."""
     from hamid.io import is_missing
 
-    if values.dtype.kind == "f":
+    if values.dtype.kind in "iu":
+        missing = np.zeros(len(values), bool)
+    elif values.dtype.kind == "f":
         missing = np.isnan(values)
     else:
         missing = np.fromiter((is_missing(v) for v in values), bool, len(values))

@@ -66,41 +66,72 @@ class Refinement:
 
 @dataclass(frozen=True, eq=False)
 class _Dynamics:
-    """Accelerations of many states at once, each with its own parameter vector."""
+    """Accelerations of many states at once, each with its own parameter vector.
+
+    Every part of L (L0, then one per parameter) gives its forces dL/dq, the non-zero
+    entries of d(dL/dv)/dq and the upper triangle of its mass matrix d(dL/dv)/dv; the
+    parameter vectors weigh the parts. A mass matrix that does not change with the state
+    (e.g. kinetic energy sum m v^2/2) is inverted once per parameter vector (`at`).
+    """
 
     model: Model
     damping: Damping
 
     @cached_property
-    def _stack(self) -> Any:
-        """dL/dq (N), d(dL/dv)/dq (N x N) and d(dL/dv)/dv (N x N) of every part of L."""
+    def _terms(self) -> tuple[list[tuple[int, int]], list[tuple[int, int]], bool, Any, Any]:
+        """Mixed (i, k) entries, upper (i, j) mass entries, whether the mass is constant,
+        the stack of forces and mixed entries, and the stack of the mass entries."""
         lag = self.model.lagrangian
         q, v = lag.coordinates, lag.velocities
-        funcs: list[expr.Func] = []
-        for part in (lag.L0, *lag.L):
-            dv = [part.diff(vi) for vi in v]
-            funcs += [part.diff(qi) for qi in q]
-            funcs += [dvi.diff(qk) for dvi in dv for qk in q]
-            funcs += [dvi.diff(vj) for dvi in dv for vj in v]
-        return expr.Func.stack(funcs)
+        N = len(q)
+        parts = (lag.L0, *lag.L)
+        dv = [[part.diff(vi) for vi in v] for part in parts]
+        mixed = [(i, k) for i in range(N) for k in range(N)
+                 if not all(d[i].diff(q[k]).is_zero() for d in dv)]
+        upper = [(i, j) for i in range(N) for j in range(i, N)]
+        mass = [d[i].diff(v[j]) for d in dv for i, j in upper]
+        constant = all(f.diff(x).is_zero() for f in mass for x in (*q, *v))
+        forces = [f for part, d in zip(parts, dv, strict=True)
+                  for f in [part.diff(qi) for qi in q] + [d[i].diff(q[k]) for i, k in mixed]]
+        return mixed, upper, constant, expr.Func.stack(forces), expr.Func.stack(mass)
 
-    def accelerations(self, Y: npt.NDArray[np.float64],
-                      W: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        """Y: states (2N, n); W: (1, theta) of every state, shape (1 + p, n)."""
-        N, n = len(self.model.coordinates), Y.shape[1]
+    def at(self, W: npt.NDArray[np.float64]) -> Any:
+        """The accelerations (N, n) of states Y (2N, n) as a function of Y, for the
+        parameter vectors W = (1, theta, damping coefficients) of the n states."""
+        mixed, upper, constant, forces, mass = self._terms
+        N, n = len(self.model.coordinates), W.shape[1]
         parts = 1 + len(self.model.parameters)
-        per_part = N + 2 * N * N
-        values = np.broadcast_to(self._stack(Y), (parts * per_part, n))
-        combined = np.einsum("pfn,pn->fn", values.reshape(parts, per_part, n), W[:parts])
-        V = Y[N:]
-        force = combined[:N] - np.einsum("ikn,kn->in",
-                                         combined[N:N + N * N].reshape(N, N, n), V)
-        for k, (_, i, law) in enumerate(self.damping.terms):
-            force[i] -= W[parts + k] * law(V[i])
-        mass = combined[N + N * N:].reshape(N, N, n)
-        if N == 1:
-            return force / mass[0]
-        return np.linalg.solve(mass.transpose(2, 0, 1), force.T[..., None])[..., 0].T
+
+        def weighted(stack: Any, per_part: int,
+                     Y: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+            values = np.broadcast_to(stack(Y), (parts * per_part, n))
+            return np.einsum("pfn,pn->fn", values.reshape(parts, per_part, n), W[:parts])
+
+        def matrix(entries: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+            M = np.empty((n, N, N))
+            for (i, j), entry in zip(upper, entries, strict=True):
+                M[:, i, j] = M[:, j, i] = entry
+            return M
+
+        inverse = None
+        if constant and N > 1:
+            inverse = np.linalg.inv(matrix(weighted(mass, len(upper), np.zeros((2 * N, n)))))
+
+        def accelerations(Y: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+            combined = weighted(forces, N + len(mixed), Y)
+            V = Y[N:]
+            force = combined[:N].copy()
+            for m, (i, k) in enumerate(mixed):
+                force[i] -= combined[N + m] * V[k]
+            for k, (_, i, law) in enumerate(self.damping.terms):
+                force[i] -= W[parts + k] * law(V[i])
+            if inverse is not None:
+                return np.einsum("nij,jn->in", inverse, force)
+            entries = weighted(mass, len(upper), Y)
+            if N == 1:
+                return force / entries[0]
+            return np.linalg.solve(matrix(entries), force.T[..., None])[..., 0].T
+        return accelerations
 
 
 def _segments(records: Records, t: npt.NDArray[np.float64],
@@ -266,11 +297,11 @@ def _normal_equations(dynamics: _Dynamics, tau: list[Any], measured: list[Any],
         budget = _EVALUATIONS_PER_STEP * (MAX_STEPS_PER_SAMPLE * len(grid) + MIN_STEP_BUDGET)
         solution = solve_ivp(_rhs(dynamics, W, budget), (0.0, span),
                              starts.reshape(-1, n_states).T.ravel(), method="DOP853",
-                             dense_output=True, rtol=rtol,
+                             t_eval=grid, rtol=rtol,
                              atol=np.repeat(1e-2 * rtol / STEP * x_step, copies * B))
         if solution.status != 0:
             raise _SegmentFitFailed(f"the integration failed ({solution.message})")
-        values = solution.sol(grid).reshape(n_states, copies, B, len(grid))
+        values = solution.y.reshape(n_states, copies, B, len(grid))
         if not np.all(np.isfinite(values)):
             raise _SegmentFitFailed("the integrated motion is not finite")
         offset = 0
@@ -300,11 +331,12 @@ def _rhs(dynamics: _Dynamics, W: npt.NDArray[np.float64], budget: int) -> Any:
     n_states = 2 * len(dynamics.model.coordinates)
     half = n_states // 2
     evaluations = iter(range(budget))
+    accelerations = dynamics.at(W)
 
     def rhs(_: float, y: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         if next(evaluations, None) is None:
             raise _SegmentFitFailed("the integration needs too many steps: the model's motion "
                                     "is stiff or blows up")
         Y = y.reshape(n_states, -1)
-        return np.concatenate([Y[half:], dynamics.accelerations(Y, W)]).ravel()
+        return np.concatenate([Y[half:], accelerations(Y)]).ravel()
     return rhs

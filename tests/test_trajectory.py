@@ -38,7 +38,7 @@ def test_accelerations_match_the_hand_written_equations_of_motion():
     x, v = Y
     k, k3, c, d = W[1:]
     expected = -k * x - k3 * x**3 - c * v - d * np.abs(v) * v
-    np.testing.assert_allclose(dynamics.accelerations(Y, W)[0], expected, rtol=1e-13)
+    np.testing.assert_allclose(dynamics.at(W)(Y)[0], expected, rtol=1e-13)
 
 
 def test_accelerations_solve_the_mass_matrix():
@@ -53,7 +53,25 @@ def test_accelerations_solve_the_mass_matrix():
     stretch = x2 - x1
     spring = k2 * stretch + k3 * stretch**3
     expected = np.vstack([-k1 * x1 + spring, -spring / m])
-    np.testing.assert_allclose(dynamics.accelerations(Y, W), expected, rtol=1e-12)
+    np.testing.assert_allclose(dynamics.at(W)(Y), expected, rtol=1e-12)
+
+
+def test_accelerations_of_a_mass_matrix_that_changes_with_the_state():
+    """Polar coordinates, moment of inertia (1 + m) r^2: r'' = (1 + m) r p'^2 - k r and
+    p'' = -2 r' p' / r (the mass matrix diag(1, (1 + m) r^2) changes with r and m, and
+    d(dL/dv)/dq does not vanish)."""
+    from hamid.model import model_from_expression
+
+    model = model_from_expression("polar", "(vr**2 + r**2*vp**2)/2 + m*r**2*vp**2/2 + k*r**2/2",
+                                  ("r", "p"), ("vr", "vp"), ("m", "k"))
+    dynamics = _Dynamics(model, Damping((), model.coordinates))
+    rng = np.random.default_rng(2)
+    Y = np.vstack([rng.uniform(0.5, 2, 6), rng.normal(size=(3, 6))])
+    W = np.vstack([np.ones(6), rng.uniform(0.5, 2, size=(2, 6))])   # 1, m, k
+    r, _, vr, vp = Y
+    m, k = W[1:]
+    expected = np.vstack([(1 + m) * r * vp**2 - k * r, -2 * vr * vp / r])
+    np.testing.assert_allclose(dynamics.at(W)(Y), expected, rtol=1e-12)
 
 
 def test_levels_are_the_energies_of_the_initial_states(clean_records):
