@@ -688,8 +688,9 @@ def _balance_blocks(blocks: list[Block], names: list[str], J: int, units: Any,
     its weighted residual variance from a fit of that block alone. Rows of overlapping
     windows are correlated, and differently in the two blocks, so that guess can be far
     from best; the final
-    ratio is the one, on a grid around it, that minimises the determinant of the robust
-    (``hac``) covariance of the parameters, which does not depend on their units.
+    ratio is the one, on a grid of half decades around it (searched coarse to fine), that
+    minimises the determinant of the robust (``hac``) covariance of the parameters, which
+    does not depend on their units.
     """
     import dataclasses
 
@@ -713,8 +714,12 @@ def _balance_blocks(blocks: list[Block], names: list[str], J: int, units: Any,
         sign, logdet = np.linalg.slogdet(_covariance("hac", fit, units, unit_group).theta)
         return logdet if sign > 0 else np.inf
 
-    grid = 10.0 ** np.arange(-4, 4.5, 0.5)
-    best = min(grid, key=spread)
+    # whole decades first, then the half decades beside the best of them
+    spreads = {float(r): spread(r) for r in 10.0 ** np.arange(-4, 5)}
+    coarse = min(spreads, key=spreads.__getitem__)
+    spreads.update((r, spread(r)) for r in (coarse / np.sqrt(10), coarse * np.sqrt(10))
+                   if 1e-4 < r < 1e4)
+    best = min(spreads, key=spreads.__getitem__)
     return weighted(best), {k: v / (best if k == first.kind else 1.0)
                             for k, v in variance.items()}
 

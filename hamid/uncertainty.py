@@ -359,8 +359,9 @@ def _by_unit(prob: _Problem, units: npt.ArrayLike) -> _Problem:
     if not np.issubdtype(u.dtype, np.integer) or u.min() != 0:
         raise ValueError("`units` must number the units 0..K-1 with integers")
     n_units = int(u.max()) + 1
-    sums = np.zeros((n_units, prob.p + 1))
-    np.add.at(sums, u, np.column_stack((prob.G, prob.lam)) * prob.r[:, None])
+    scores = np.column_stack((prob.G, prob.lam)) * prob.r[:, None]
+    sums = np.stack([np.bincount(u, weights=column, minlength=n_units)
+                     for column in scores.T], axis=1)
     row_labels = np.repeat(prob.labels, prob.stops - prob.starts)
     owner = np.full(n_units, -1)
     owner[u] = row_labels
