@@ -65,20 +65,26 @@ def centre(blocks: Sequence[Block], n_groups: int) -> Centred:
         w = block.weight
         A, b = block.A, block.b
         lam = np.zeros(block.n_rows)
-        raw_sq += w @ (A * A)
+        raw_sq += np.einsum("i,ij,ij->j", w, A, A)
         if block.has_level:
             means_A, means_b, inverse = level_means(block, n_groups)
             A = A - means_A[block.group]
             b = b - means_b[block.group]
             lam = w * inverse[block.group]
         sw = np.sqrt(w)
-        A_parts.append(A * sw[:, None])
-        b_parts.append(b * sw)
+        if np.any(sw != 1.0):   # unit weights (the common case) need no product
+            A, b = A * sw[:, None], b * sw
+        A_parts.append(A)
+        b_parts.append(b)
         sw_parts.append(sw)
         lam_parts.append(lam)
-    return Centred(np.concatenate(A_parts), np.concatenate(b_parts),
-                   np.concatenate(sw_parts), means_A, means_b, np.concatenate(lam_parts),
-                   np.sqrt(raw_sq))
+    return Centred(_stacked(A_parts), _stacked(b_parts), _stacked(sw_parts), means_A,
+                   means_b, _stacked(lam_parts), np.sqrt(raw_sq))
+
+
+def _stacked(parts: list[npt.NDArray[np.float64]]) -> npt.NDArray[np.float64]:
+    """The parts one after another; a single part as it is, without a copy."""
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 class Factor:
