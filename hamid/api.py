@@ -98,7 +98,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         weak_window: float | None = None, damping: str | Sequence[str] = "none",
         cov: str = "hac", level: float = 0.95, bootstrap: int = 200,
         seed: int | None = None, format: str | None = None,
-        chunk_rows: int | None = None) -> FitResult:
+        chunk_rows: int | None = None, in_memory: bool = False) -> FitResult:
     """Fit the energy of recorded free oscillations.
 
     Parameters
@@ -145,6 +145,9 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         Read the file in chunks of this many rows, in memory that does not grow with the
         file's length (`hamid.stream`); a file over 256 MB is read so by default. Needs one
         file, measured velocities, no noise weighting or damping, and an analytic `cov`.
+    in_memory : bool
+        Read the data into memory whatever the file's size: ``result.samples`` then holds
+        the per-sample residuals, and ``auto`` refines by fitting the trajectories.
 
     Returns
     -------
@@ -178,10 +181,13 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     _check_choice(velocity, VELOCITY_SOURCES, "velocity")
     if isinstance(data, list | tuple) and len(data) == 1:
         data = data[0]
-    in_memory = _needs_memory(data, velocity, noise, damping, cov)
-    if chunk_rows is not None and (chunk_rows < 1 or in_memory):
-        raise UsageError(f"--chunk-rows: {in_memory or 'must be a positive number of rows'}")
-    if chunk_rows is not None or (not in_memory and os.path.getsize(data) > STREAM_BYTES):
+    obstacle = _needs_memory(data, velocity, noise, damping, cov)
+    if chunk_rows is not None and chunk_rows < 1:
+        raise UsageError("--chunk-rows: must be a positive number of rows")
+    if chunk_rows is not None and (obstacle or in_memory):
+        raise UsageError(f"--chunk-rows: {obstacle or 'in_memory asks for the data in memory'}")
+    if chunk_rows is not None or (not obstacle and not in_memory
+                                  and os.path.getsize(data) > STREAM_BYTES):
         from hamid import stream
 
         return stream.fit_file(data, model, columns=columns, time=time,

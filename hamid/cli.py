@@ -190,7 +190,8 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--format", "fmt", type=click.Choice(["table", "json", "csv"]),
               help="Report format (default: from -o's extension, else table).")
 @click.option("-o", "--output", default="-", metavar="FILE", help="Write the report here.")
-@click.option("--residuals", metavar="FILE", help="Write per-sample residuals (CSV/Parquet).")
+@click.option("--residuals", metavar="FILE",
+              help="Write per-sample residuals (CSV/Parquet); reads the data into memory.")
 @click.option("--chunk-rows", type=click.IntRange(min=1), metavar="ROWS",
               help="Read the file in chunks of ROWS rows, in bounded memory (default for "
                    "files over 256 MB).")
@@ -227,10 +228,8 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
                      fix=_parse_floats(fix, "--fix"),
                      method=method, weak_window=weak_window, damping=damping, cov=cov,
                      level=level,
-                     bootstrap=n_boot, seed=seed, format=format_in, chunk_rows=chunk_rows)
-    if residuals is not None and result.samples is None:
-        raise click.UsageError("--residuals needs the data in memory, and this file is over "
-                               "256 MB, so it was read in chunks")
+                     bootstrap=n_boot, seed=seed, format=format_in, chunk_rows=chunk_rows,
+                     in_memory=residuals is not None)
 
     def write_residuals() -> None:
         import pandas as pd

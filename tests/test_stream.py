@@ -211,3 +211,21 @@ def test_cli_chunk_rows(noisy_files, tmp_path):
     assert refused.exit_code == 2
     assert "--residuals needs the data in memory" in refused.stderr
     assert refused.stdout == ""
+
+
+def test_a_file_over_the_size_limit_is_read_in_chunks_unless_asked_otherwise(
+        noisy_files, monkeypatch, tmp_path):
+    frame, paths = noisy_files
+    monkeypatch.setattr(api, "STREAM_BYTES", 1000)   # the limit (256 MB), made small
+    streamed = hamid.fit(paths["parquet"], method="energy")
+    assert streamed.samples is None
+    memory = hamid.fit(paths["parquet"], method="energy", in_memory=True)
+    assert memory.samples is not None
+    _compare(memory, streamed)
+    out = tmp_path / "residuals.csv"
+    done = CliRunner().invoke(cli, ["fit", paths["parquet"], "--method", "energy",
+                                    "--format", "json", "--residuals", str(out)])
+    assert done.exit_code == 0, done.output
+    assert len(pd.read_csv(out)) == len(frame)
+    with pytest.raises(UsageError, match="--chunk-rows: in_memory asks for the data in memory"):
+        hamid.fit(paths["parquet"], chunk_rows=100, in_memory=True)
