@@ -8,8 +8,10 @@ runs of a command and of its baseline alternating, and the median wall time is r
     hamid --version, hamid --help   against   python -c "import click"
     hamid fit DATA.csv              against   python -c "import numpy, scipy.linalg, pyarrow.csv"
 
-DATA.csv is a peng-quadratic record of `--rows` rows (2 trajectories, noise-free, with
-hamid's metadata line) made with `hamid.simulate` in a temporary folder. Targets: both
+DATA.csv is a peng-quadratic record of `--rows` rows (2 trajectories, with hamid's
+metadata line) made with `hamid.simulate` in a temporary folder, noise-free and with 1%
+noise (a noise-free record makes auto's trajectory refinement integrate at its strict
+tolerance); the noisy one is also fitted with `--method joint`, the linear fit alone. Targets: both
 ratios at most 2. `hamid` is the console script of this interpreter (not a pyenv shim,
 which adds its own start-up). When the fit ratio is above 2, the fit is rerun under
 `python -X importtime` and the imports that dominate are listed.
@@ -42,17 +44,18 @@ def hamid_command():
     return [sys.executable, "-c", "import sys; from hamid.cli import main; sys.exit(main())"]
 
 
-def make_data(folder, rows):
+def make_data(folder, rows, noise=0.0):
     from hamid import io
 
     per_trajectory = rows // 2
     system = {"model": {"builtin": "peng-quadratic"}, "parameters": PENG,
               "initial": [{"u1": 0.3, "u2": -0.2, "v1": 0.1, "v2": 0.2},
                           {"u1": 0.1, "u2": 0.15, "v1": -0.2, "v2": 0.0}],
-              "simulate": {"t_end": (per_trajectory - 1) * 0.05, "dt": 0.05}}
+              "simulate": {"t_end": (per_trajectory - 1) * 0.05, "dt": 0.05, "seed": 1},
+              "noise": {"relative": noise}}
     frame = hamid.simulate(system)
     assert len(frame) == rows, len(frame)
-    path = Path(folder) / "peng.csv"
+    path = Path(folder) / f"peng-noise-{noise:g}.csv"
     io.write_table(frame, str(path), metadata=frame.attrs["hamid"])
     return path
 
@@ -124,18 +127,20 @@ def main():
     click_cmd = [py, "-c", "import click"]
     fit_base_cmd = [py, "-c", "import numpy, scipy.linalg, pyarrow.csv"]
     with tempfile.TemporaryDirectory() as folder:
-        data = make_data(folder, args.rows)
-        fit_cmd = [*hamid_cmd, "fit", str(data)]
+        clean, noisy = make_data(folder, args.rows), make_data(folder, args.rows, 0.01)
+        fits = {f"hamid fit ({args.rows} rows, noise-free)": [*hamid_cmd, "fit", str(clean)],
+                f"hamid fit ({args.rows} rows, 1% noise)": [*hamid_cmd, "fit", str(noisy)],
+                f"hamid fit --method joint ({args.rows} rows, 1% noise)": [
+                    *hamid_cmd, "fit", str(noisy), "--method", "joint"]}
         medians = compare([
             [("hamid --version", [*hamid_cmd, "--version"]), ("import click", click_cmd)],
             [("hamid --help", [*hamid_cmd, "--help"])],
-            [(f"hamid fit ({args.rows} rows)", fit_cmd),
-             ("import numpy, scipy.linalg, pyarrow.csv", fit_base_cmd)],
+            [*fits.items(), ("import numpy, scipy.linalg, pyarrow.csv", fit_base_cmd)],
             [("python -c pass", [py, "-c", "pass"])],
         ], args.runs)
 
         rows = [("hamid --version", "import click"), ("hamid --help", "import click"),
-                (f"hamid fit ({args.rows} rows)", "import numpy, scipy.linalg, pyarrow.csv")]
+                *((name, "import numpy, scipy.linalg, pyarrow.csv") for name in fits)]
         print(f"hamid: {' '.join(hamid_cmd)}; median of {args.runs} runs each\n")
         print("| command | median (ms) | baseline | baseline median (ms) | ratio | target |")
         print("|---|---|---|---|---|---|")
@@ -147,11 +152,12 @@ def main():
                   f"{'ok' if ratios[name] <= TARGET else 'ABOVE'} (<= {TARGET:g}x) |")
         print(f"\n(interpreter alone, `python -c pass`: {medians['python -c pass'] * 1e3:.0f} ms)")
 
-        fit_name = rows[2][0]
-        if ratios[fit_name] > TARGET:
+        above = [name for name in fits if ratios[name] > TARGET]
+        if above:
+            fit_name = above[0]
             print(f"\n`{fit_name}` is above {TARGET:g}x the baseline; "
                   "`python -X importtime` of the fit:")
-            packages, total, tree = import_profile(fit_cmd)
+            packages, total, tree = import_profile(fits[fit_name])
             print(f"\nall imports: {total * 1e3:.0f} ms (self times summed)")
             print("\n| top-level package | import time, self (ms) |")
             print("|---|---|")
