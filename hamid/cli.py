@@ -194,7 +194,8 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
               help="Write per-sample residuals (CSV/Parquet); reads the data into memory.")
 @click.option("--chunk-rows", type=click.IntRange(min=1), metavar="ROWS",
               help="Read the file in chunks of ROWS rows, in bounded memory (default for "
-                   "files over 256 MB).")
+                   "files over 64 MB with --method energy, weak or joint, over 256 MB with "
+                   "auto).")
 def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         time_column: str | None, trajectory: str | None, format_in: str | None,
         velocity: str, window: int | None, order: int, noise: str | None,

@@ -371,17 +371,18 @@ def _parse_metadata(raw: bytes, name: str, line_number: int | None = None) -> di
     return metadata
 
 
-def _not_utf8(data: bytes, name: str) -> DataError:
-    """Helper function building the error for text that is not UTF-8."""
+def _not_utf8(data: bytes, name: str, what: str = "",
+              error: type[DataError | ModelError] = DataError) -> DataError | ModelError:
+    """Helper function building the error for text that is not UTF-8; `what` prefixes the
+    line (e.g. "not valid TOML: ")."""
     try:
         data.decode("utf-8")
     except UnicodeDecodeError as exc:
         line = data.count(b"\n", 0, exc.start) + 1
         byte = data[exc.start]
-        return DataError(
-            f"{name}: line {line} is not UTF-8 text (byte 0x{byte:02x}); save the file as UTF-8"
-        )
-    return DataError(f"{name}: is not UTF-8 text; save the file as UTF-8")
+        return error(f"{name}: {what}line {line} is not UTF-8 text (byte 0x{byte:02x}); "
+                     "save the file as UTF-8")
+    return error(f"{name}: {what}is not UTF-8 text; save the file as UTF-8")
 
 
 def _check_unique(names: Sequence[str], name: str) -> None:
@@ -1028,8 +1029,7 @@ def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
-        line = data.count(b"\n", 0, exc.start) + 1
-        raise ModelError(f"{name}: not valid TOML: line {line} is not UTF-8 text") from exc
+        raise _not_utf8(data, name, "not valid TOML: ", ModelError) from exc
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -1057,8 +1057,7 @@ def read_json(path: str | os.PathLike[str]) -> dict[str, Any]:
     try:
         document = json.loads(data.decode("utf-8-sig"))
     except UnicodeDecodeError as exc:
-        line = data.count(b"\n", 0, exc.start) + 1
-        raise DataError(f"{name}: not valid JSON (line {line} is not UTF-8 text)") from exc
+        raise _not_utf8(data, name, "not valid JSON: ") from exc
     except json.JSONDecodeError as exc:
         raise DataError(
             f"{name}: not valid JSON (line {exc.lineno}, column {exc.colno}): {exc.msg}"

@@ -643,7 +643,8 @@ def test_tiny_time_steps_print_nothing_on_stdout(tmp_path):
 
 @pytest.mark.parametrize(("content", "names"), [
     (b"", ["r.json", "not valid JSON"]),
-    (b"\x89PNG\r\n\x1a\n\x00\x00", ["r.json", "UTF-8"]),
+    (b"\x89PNG\r\n\x1a\n\x00\x00", ["r.json", "not valid JSON", "line 1",
+                                    "not UTF-8 text (byte 0x89)"]),
     (b'{"schema": "hamid.fit/1"', ["r.json", "not valid JSON", "line 1"]),
     (b'"hamid.fit/1"', ["r.json", "JSON object", "a string"]),
     (b'{"schema": "hamid.fit/1"}', ["r.json", "not a hamid fit result"]),

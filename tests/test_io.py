@@ -816,7 +816,8 @@ def test_read_toml_from_stdin(monkeypatch):
     [
         (b"[model]\nbuiltin = \n", r"^system.toml: not valid TOML: .*\(at line 2, column 11\)$"),
         (b"[model]\n[model]\n", r"^system.toml: not valid TOML: .*line 2"),
-        (b"k = '\xff'\n", r"^system.toml: not valid TOML: line 1 is not UTF-8 text$"),
+        (b"k = '\xff'\n", r"^system.toml: not valid TOML: line 1 is not UTF-8 text "
+                           r"\(byte 0xff\); save the file as UTF-8$"),
     ],
 )
 def test_malformed_toml(in_tmp, content, message):

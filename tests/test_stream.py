@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -213,10 +215,16 @@ def test_cli_chunk_rows(noisy_files, tmp_path):
     assert refused.stdout == ""
 
 
-def test_a_file_over_the_size_limit_is_read_in_chunks_unless_asked_otherwise(
+def test_a_file_over_the_size_limits_is_read_in_chunks_unless_asked_otherwise(
         noisy_files, monkeypatch, tmp_path):
     frame, paths = noisy_files
-    monkeypatch.setattr(api, "STREAM_BYTES", 1000)   # the limit (256 MB), made small
+    size = os.path.getsize(paths["parquet"])
+    # the limits (64 MB for the linear methods, 256 MB for auto), made small
+    monkeypatch.setattr(api, "LINEAR_STREAM_BYTES", size - 1)
+    monkeypatch.setattr(api, "STREAM_BYTES", size)
+    assert hamid.fit(paths["parquet"]).samples is not None   # auto: in memory, to refine
+    monkeypatch.setattr(api, "STREAM_BYTES", size - 1)
+    assert hamid.fit(paths["parquet"]).samples is None
     streamed = hamid.fit(paths["parquet"], method="energy")
     assert streamed.samples is None
     memory = hamid.fit(paths["parquet"], method="energy", in_memory=True)
