@@ -391,8 +391,10 @@ def windows_at(records: Records, first: npt.NDArray[np.int64], last: npt.NDArray
     weights = _window_weights(t_all, first, last, row, col)
     values_psi = base**order * weights
     values_dpsi = -2 * order * s * base ** (order - 1) / half * weights
+    # each window's nodes are consecutive samples: the rows of CSR matrices as they are
     shape = (len(first), len(records.group))
-    operator = [sparse.csr_matrix((v, (row, col)), shape=shape)
+    indptr = np.concatenate([[0], np.cumsum(sizes)])
+    operator = [sparse.csr_matrix((v, col, indptr), shape=shape)
                 for v in (values_psi, values_dpsi)]
     return Windows(operator[0], operator[1], (lo + hi) / 2, group, length, first, last, order)
 
