@@ -284,7 +284,8 @@ class Windows:
     """Test functions over overlapping windows, as quadrature operators on the samples.
 
     ``Q_psi @ f`` is the integral of psi_w(t) f(t) over each window w, ``Q_dpsi @ f`` that of
-    psi_w'(t) f(t); both are sparse, shape (n_windows, n_samples).
+    psi_w'(t) f(t); both are sparse, shape (n_windows, n_samples). Windows come in the
+    order of their samples (first and last nondecreasing), as `window_ranges` gives them.
     """
 
     Q_psi: Any
@@ -372,31 +373,39 @@ def windows(records: Records, length: float, order: int | None = None) -> Window
 
 def windows_at(records: Records, first: npt.NDArray[np.int64], last: npt.NDArray[np.int64],
                group: npt.NDArray[np.int64], length: float, order: int | None = None) -> Windows:
-    """Windows over given sample ranges (`window_ranges`), all built at once: a long record
-    holds hundreds of thousands."""
+    """Windows over given sample ranges (`window_ranges`): a long record holds hundreds of
+    thousands, built a block of windows at a time into the operators' arrays."""
     from scipy import sparse
 
     assert records.t is not None
     t_all = records.t
     order = BUMP_ORDER if order is None else order
     sizes = last - first + 1
-    row = np.repeat(np.arange(len(first)), sizes)
-    offsets = np.cumsum(sizes) - sizes
-    col = np.arange(int(sizes.sum())) - np.repeat(offsets, sizes) + np.repeat(first, sizes)
-    nodes = t_all[col]
-    lo, hi = t_all[first], t_all[last]
-    half = ((hi - lo) / 2)[row]
-    s = (nodes - ((lo + hi) / 2)[row]) / half
-    base = np.clip(1 - s**2, 0.0, None)  # rounding can put s a hair past 1
-    weights = _window_weights(t_all, first, last, row, col)
-    values_psi = base**order * weights
-    values_dpsi = -2 * order * s * base ** (order - 1) / half * weights
     # each window's nodes are consecutive samples: the rows of CSR matrices as they are
-    shape = (len(first), len(records.group))
     indptr = np.concatenate([[0], np.cumsum(sizes)])
+    col = np.empty(indptr[-1], dtype=np.int64)
+    values_psi, values_dpsi = np.empty(indptr[-1]), np.empty(indptr[-1])
+    for lo in range(0, len(first), _WINDOW_BLOCK):
+        hi = min(lo + _WINDOW_BLOCK, len(first))
+        a, b = indptr[lo], indptr[hi]
+        block_first, block_last = first[lo:hi], last[lo:hi]
+        row = np.repeat(np.arange(hi - lo), sizes[lo:hi])
+        col[a:b] = np.arange(a, b) - indptr[lo:hi][row] + block_first[row]
+        lo_t, hi_t = t_all[block_first], t_all[block_last]
+        half = ((hi_t - lo_t) / 2)[row]
+        s = (t_all[col[a:b]] - ((lo_t + hi_t) / 2)[row]) / half
+        base = np.clip(1 - s**2, 0.0, None)  # rounding can put s a hair past 1
+        weights = _window_weights(t_all, block_first, block_last, row, col[a:b])
+        values_psi[a:b] = base**order * weights
+        values_dpsi[a:b] = -2 * order * s * base ** (order - 1) / half * weights
+    shape = (len(first), len(records.group))
     operator = [sparse.csr_matrix((v, col, indptr), shape=shape)
                 for v in (values_psi, values_dpsi)]
-    return Windows(operator[0], operator[1], (lo + hi) / 2, group, length, first, last, order)
+    return Windows(operator[0], operator[1], (t_all[first] + t_all[last]) / 2, group, length,
+                   first, last, order)
+
+
+_WINDOW_BLOCK = 4096   # windows built at once: their temporaries stay small
 
 
 def _window_weights(t: np.ndarray, first: np.ndarray, last: np.ndarray, row: np.ndarray,
@@ -429,10 +438,18 @@ def weak_block(model: Model, records: Records, windows: Windows,
     into the parameter-free part (moved to b) and one column per parameter; the damping
     force F_i = -c law(v_i) gives the column -integral(psi_w law(v_i)) in the rows of i.
     """
-    dLdv, dLdq = model.lagrangian.gradients(records.X)   # (n, N, 1 + p)
-    n, N, parts = dLdv.shape
+    n, N = len(records.X), len(model.coordinates)
+    parts = 1 + len(model.parameters)
     rows = windows.n_windows * N
-    integrals = windows.Q_dpsi @ dLdv.reshape(n, -1) + windows.Q_psi @ dLdq.reshape(n, -1)
+    integrals = np.zeros((windows.n_windows, N * parts))
+    # the gradients a chunk of samples at a time, into the windows that reach the chunk
+    for a in range(0, n, _GRADIENT_ROWS):
+        b = min(a + _GRADIENT_ROWS, n)
+        dLdv, dLdq = model.lagrangian.gradients(records.X[a:b])   # (b - a, N, 1 + p)
+        w_lo = int(np.searchsorted(windows.last, a, side="left"))
+        w_hi = int(np.searchsorted(windows.first, b, side="left"))
+        integrals[w_lo:w_hi] += (windows.Q_dpsi[w_lo:w_hi, a:b] @ dLdv.reshape(b - a, -1)
+                                 + windows.Q_psi[w_lo:w_hi, a:b] @ dLdq.reshape(b - a, -1))
     integrals = integrals.reshape(rows, parts)   # rows (window, coordinate)
     A = integrals[:, 1:]
     if damping is not None and damping.kinds:
@@ -445,6 +462,9 @@ def weak_block(model: Model, records: Records, windows: Windows,
         A = np.hstack([A, forces])
     return Block("weak", A, -integrals[:, 0], np.repeat(windows.group, N),
                  np.repeat(windows.centre, N), np.ones(rows), has_level=False)
+
+
+_GRADIENT_ROWS = 1 << 16   # samples whose gradients are held at once
 
 
 _LAW_SLOPES = {"viscous": lambda v: np.ones_like(v), "coulomb": np.zeros_like,

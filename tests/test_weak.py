@@ -11,6 +11,7 @@ from scipy import integrate
 import hamid
 from hamid import design
 from hamid.errors import DataError, FitError, UsageError
+from hamid.model import model_from_spec
 
 
 @pytest.mark.parametrize("method", ["weak", "joint", "auto"])
@@ -20,6 +21,30 @@ def test_clean_data_recover_true_parameters(clean_records, name, method):
     truth = SYSTEMS[name]["parameters"]
     assert result.estimates == pytest.approx(truth, rel=1e-7)
     assert result.method["kind"] == ("joint" if method == "auto" else method)
+
+
+@pytest.mark.parametrize("name", ["peng-quadratic", "elastic-pendulum"])
+def test_windows_and_weak_rows_built_in_pieces_equal_those_built_at_once(
+        clean_records, monkeypatch, name):
+    """Windows a few at a time, gradients a few samples at a time (windows straddling the
+    pieces) against one piece each, and against the operators applied to all gradients."""
+    frame = clean_records[name]
+    model = model_from_spec(SYSTEMS[name]["model"])
+    records = design.Records(frame[[*model.coordinates, *model.velocities]].to_numpy(),
+                             frame["t"].to_numpy(), frame["trajectory"].to_numpy() - 1, (1, 2))
+    whole = design.windows(records, 1.0)
+    dLdv, dLdq = model.lagrangian.gradients(records.X)
+    n = len(records.X)
+    direct = (whole.Q_dpsi @ dLdv.reshape(n, -1) + whole.Q_psi @ dLdq.reshape(n, -1))
+    monkeypatch.setattr(design, "_WINDOW_BLOCK", 3)
+    monkeypatch.setattr(design, "_GRADIENT_ROWS", 37)
+    pieces = design.windows(records, 1.0)
+    assert (pieces.Q_psi != whole.Q_psi).nnz == 0 and (pieces.Q_dpsi != whole.Q_dpsi).nnz == 0
+    block = design.weak_block(model, records, pieces)
+    parts = 1 + len(model.parameters)
+    expected = direct.reshape(-1, parts)
+    np.testing.assert_allclose(block.A, expected[:, 1:], rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(block.b, -expected[:, 0], rtol=1e-12, atol=1e-14)
 
 
 def test_weak_row_equals_the_integral_of_the_exact_solution():
