@@ -382,8 +382,10 @@ def windows_at(records: Records, first: npt.NDArray[np.int64], last: npt.NDArray
     order = BUMP_ORDER if order is None else order
     sizes = last - first + 1
     # each window's nodes are consecutive samples: the rows of CSR matrices as they are
-    indptr = np.concatenate([[0], np.cumsum(sizes)])
-    col = np.empty(indptr[-1], dtype=np.int64)
+    # 32-bit indices where they fit, which both operators then share (scipy's own choice)
+    index = np.int32 if max(int(sizes.sum()), len(records.group)) < 2**31 else np.int64
+    indptr = np.concatenate([[0], np.cumsum(sizes)]).astype(index)
+    col = np.empty(indptr[-1], dtype=index)
     values_psi, values_dpsi = np.empty(indptr[-1]), np.empty(indptr[-1])
     for lo in range(0, len(first), _WINDOW_BLOCK):
         hi = min(lo + _WINDOW_BLOCK, len(first))
