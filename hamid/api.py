@@ -705,10 +705,11 @@ def _balance_blocks(blocks: list[Block], names: list[str], J: int, units: Any,
     The starting point is feasible GLS: each block's row weights scaled by the inverse of
     its weighted residual variance from a fit of that block alone. Rows of overlapping
     windows are correlated, and differently in the two blocks, so that guess can be far
-    from best; the final
-    ratio is the one, on a grid of half decades around it (searched coarse to fine), that
+    from best; the final ratio is the one, on a grid of half decades around it, that
     minimises the determinant of the robust (``hac``) covariance of the parameters, which
-    does not depend on their units.
+    does not depend on their units. The search walks down the whole decades from the
+    guess (ratio 1), then tries the half decades beside the lowest: on every test system
+    the decades' spreads fall to one minimum, which a walk finds with a third of the fits.
     """
     import dataclasses
 
@@ -732,12 +733,25 @@ def _balance_blocks(blocks: list[Block], names: list[str], J: int, units: Any,
         sign, logdet = np.linalg.slogdet(_covariance("hac", fit, units, unit_group).theta)
         return logdet if sign > 0 else np.inf
 
-    # whole decades first, then the half decades beside the best of them
-    spreads = {float(r): spread(r) for r in 10.0 ** np.arange(-4, 5)}
-    coarse = min(spreads, key=spreads.__getitem__)
-    spreads.update((r, spread(r)) for r in (coarse / np.sqrt(10), coarse * np.sqrt(10))
-                   if 1e-4 < r < 1e4)
-    best = min(spreads, key=spreads.__getitem__)
+    spreads: dict[float, float] = {}
+
+    def at(exponent: float) -> float:
+        if exponent not in spreads:
+            spreads[exponent] = spread(10.0**exponent)
+        return spreads[exponent]
+
+    # down the whole decades from the guess until neither neighbour is lower, then the
+    # half decades beside that one
+    exponent = 0.0
+    while True:
+        lowest = min((e for e in (exponent - 1, exponent + 1) if abs(e) <= 4), key=at)
+        if at(lowest) >= at(exponent):
+            break
+        exponent = lowest
+    for half in (exponent - 0.5, exponent + 0.5):
+        if abs(half) < 4:
+            at(half)
+    best = 10.0 ** min(spreads, key=spreads.__getitem__)
     return weighted(best), {k: v / (best if k == first.kind else 1.0)
                             for k, v in variance.items()}
 
