@@ -251,13 +251,7 @@ def _read_text(
 
     if fmt is not None and data.startswith(_PARQUET_MAGIC):
         raise DataError(f"{name}: is a Parquet file, not {fmt.upper()} text")
-    if data.startswith(_GZIP_MAGIC):
-        raise DataError(f"{name}: is gzip-compressed; decompress it first")
-    start = len(_UTF8_BOM) if data.startswith(_UTF8_BOM) else 0
-    start, metadata = _skip_comments(data, start, name)
-    if start >= len(data):
-        raise DataError(f"{name}: has comment lines but no header line")
-    delimiter = _DELIMITERS[fmt] if fmt is not None else _sniff_delimiter(data, start)
+    start, metadata, delimiter = _text_layout(data, name, fmt)
     body = pa.py_buffer(data)[start:]
     try:
         table = _parse_csv(body, delimiter, name)
@@ -272,6 +266,20 @@ def _read_text(
     if table.num_rows == 0:
         raise DataError(f"{name}: has a header but no data rows")
     return table.rename_columns(stripped), metadata
+
+
+def _text_layout(head: bytes, name: str,
+                 fmt: Format | None) -> tuple[int, dict[str, Any] | None, str]:
+    """Helper finding, in the start of delimited text (through its header line), the offset
+    of the header line, the hamid metadata and the delimiter (sniffed when `fmt` is None)."""
+    if head.startswith(_GZIP_MAGIC):
+        raise DataError(f"{name}: is gzip-compressed; decompress it first")
+    start = len(_UTF8_BOM) if head.startswith(_UTF8_BOM) else 0
+    start, metadata = _skip_comments(head, start, name)
+    if start >= len(head):
+        raise DataError(f"{name}: has comment lines but no header line")
+    delimiter = _DELIMITERS[fmt] if fmt is not None else _sniff_delimiter(head, start)
+    return start, metadata, delimiter
 
 
 def _parse_csv(body: pa.Buffer, delimiter: str, name: str) -> pa.Table:
@@ -443,14 +451,7 @@ class TableChunks:
                 text = line.removeprefix(_UTF8_BOM) if head == line else line
                 if text.strip() and not text.startswith(b"#"):
                     break
-        if head.startswith(_GZIP_MAGIC):
-            raise DataError(f"{self.name}: is gzip-compressed; decompress it first")
-        start = len(_UTF8_BOM) if head.startswith(_UTF8_BOM) else 0
-        self.offset, self.metadata = _skip_comments(head, start, self.name)
-        if self.offset >= len(head):
-            raise DataError(f"{self.name}: has comment lines but no header line")
-        self.delimiter = _DELIMITERS[fmt] if fmt is not None else _sniff_delimiter(
-            head, self.offset)
+        self.offset, self.metadata, self.delimiter = _text_layout(head, self.name, fmt)
         try:
             header = head[self.offset:].rstrip(b"\r\n").decode("utf-8")
         except UnicodeDecodeError as exc:
