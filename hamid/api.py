@@ -1083,7 +1083,7 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
                                     source)
         traj_col = _optional_column(names, trajectory, io.default_trajectory_column(names),
                                     "--trajectory", source)
-        n_rows = len(io.column_values(frame[names[0]]))
+        n_rows = len(frame[names[0]])
         X = np.column_stack([io.numeric_column(frame, mapping[v], source=source)
                              if v in mapping else np.zeros(n_rows) for v in m.variables])
         t = io.numeric_column(frame, time_col, source=source) if time_col else None
@@ -1305,9 +1305,14 @@ def _trajectory_keys(values: np.ndarray, column: str, source: str) -> tuple[Any,
         codes = np.fromiter((index.setdefault(v, len(index)) for v in values), np.int64,
                             len(values))
         uniques = list(index)
-    labels = [u.item() if hasattr(u, "item") else u for u in uniques]
-    labels = [int(u) if isinstance(u, float) and u.is_integer() else u for u in labels]
-    return codes.astype(np.int64), labels
+    return codes.astype(np.int64), [trajectory_label(u) for u in uniques]
+
+
+def trajectory_label(value: Any) -> Any:
+    """A trajectory column's value as the label reported: a Python scalar, whole numbers
+    as int (a column with missing cells is read as floats)."""
+    value = value.item() if hasattr(value, "item") else value
+    return int(value) if isinstance(value, float) and value.is_integer() else value
 
 
 def _is_data_frame(data: Any) -> bool:

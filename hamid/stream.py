@@ -86,12 +86,10 @@ class _Reader:
         change = np.flatnonzero(values[1:] != values[:-1]) + 1
         keys = np.empty(n, dtype=np.int64)
         for start, stop in zip([0, *change], [*change, n], strict=True):
-            label = values[start]
-            if label is None or (isinstance(label, float) and np.isnan(label)):
+            if io.is_missing(values[start]):
                 raise DataError(f"{self.table.name}: column {self.trajectory!r}, row "
                                 f"{row + start + 1}: missing trajectory label")
-            label = label.item() if hasattr(label, "item") else label
-            label = int(label) if isinstance(label, float) and label.is_integer() else label
+            label = api.trajectory_label(values[start])
             keys[start:stop] = self.labels.setdefault(label, len(self.labels))
         return keys
 
