@@ -509,11 +509,11 @@ def _choose_method(method: str, model: Model, scales: list[tuple[float | None, f
     elif not model.is_natural:
         obstacle = "the energy is not natural (E = T + V), so Lagrange's equations do not apply"
     elif window is None:
-        periods = [period for period, _ in scales if period is not None]
-        if not periods:
+        period = design.median_period(scales)
+        if period is None:
             obstacle = "no oscillation was found in the coordinates to size the windows"
         else:
-            window = float(np.median(periods)) / 2
+            window = period / 2
     if obstacle is None:
         dt = float(np.median([step for _, step in scales]))
         per_window = window / dt
@@ -560,7 +560,7 @@ def _refine(m: Model, records: Records, dissipation: Any, free: list[int],
             window: float, sigma: Any, velocity: str) -> tuple[Any, dict[str, Any]]:
     """The trajectory refinement of an automatic joint fit (`hamid.trajectory`), or None,
     and what the report says of it."""
-    from hamid import measurement, trajectory
+    from hamid import design, measurement, trajectory
 
     N = len(m.coordinates)
     noise = measurement.estimate_noise(records.X, records.bounds())
@@ -569,8 +569,9 @@ def _refine(m: Model, records: Records, dissipation: Any, free: list[int],
     weight = 1.0 / np.maximum(noise, 1e-9 * records.X.std(axis=0))
     if velocity == "savgol":
         weight[N:] = 0.0  # derived from the positions: no information of their own
-    periods = [period for period, _ in scales if period is not None]
-    period = float(np.median(periods)) if periods else 2 * window
+    period = design.median_period(scales)
+    if period is None:   # windows given with --weak-window, no period found
+        period = 2 * window
     theta_all = fixed_values.copy()
     theta_all[free] = theta
     try:

@@ -17,9 +17,8 @@ import numpy.typing as npt
 
 from hamid.model import DAMPING_KINDS, Model
 
-__all__ = ["Block", "Damping", "Records", "dominant_period", "energy_block", "runs",
-           "trajectory_scales", "weak_block",
-           "window_means", "windows"]
+__all__ = ["Block", "Damping", "Records", "dominant_period", "energy_block", "median_period",
+           "runs", "trajectory_scales", "weak_block", "window_means", "windows"]
 
 
 @dataclass(frozen=True)
@@ -220,8 +219,13 @@ _PAD = 8
 def dominant_period(records: Records, n_coordinates: int) -> float | None:
     """Period of the strongest oscillation of the coordinates: the median of the
     trajectories' peak periods (`trajectory_scales`), None when none can tell."""
-    periods = [period for period, _ in trajectory_scales(records, n_coordinates)
-               if period is not None]
+    return median_period(trajectory_scales(records, n_coordinates))
+
+
+def median_period(scales: list[tuple[float | None, float]]) -> float | None:
+    """The median of the trajectories' periods (`trajectory_scales`), None when no
+    trajectory has one."""
+    periods = [period for period, _ in scales if period is not None]
     return float(np.median(periods)) if periods else None
 
 
