@@ -161,7 +161,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     >>> result.estimates
     {'k': 1.0..., 'k3': 0.5...}
     """
-    from hamid import design
+    from hamid import design, solve
 
     _check_choice(method, METHODS, "method")
     _check_choice(cov, COVARIANCE_KINDS, "cov")
@@ -271,7 +271,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                     theta_cov, cov_text, estimate, blocks, m, records, sigma, free,
                     fixed_values, spans, dissipation)
             h_var = _level_variance(c, estimate.centred.level_means_A)
-        h, h_stderr = _fitted_levels(kind, estimate, energy_rows, h_var, J)
+        h, h_stderr = _fitted_levels(kind, estimate, h_var,
+                                     lambda: solve.level_means(energy_rows, J)[:2])
     energy_residual = energy_rows.A @ theta - energy_rows.b - h[energy_rows.group]
     sums = _ResidualSums(h)
     sums.add(energy_rows, energy_residual)
@@ -303,19 +304,20 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         samples=samples)
 
 
-def _fitted_levels(kind: str, estimate: _Estimate, energy_rows: Block, h_var: Any,
-                   J: int) -> tuple[Any, Any]:
+def _fitted_levels(kind: str, estimate: _Estimate, h_var: Any,
+                   energy_means: Callable[[], tuple[Any, Any]]) -> tuple[Any, Any]:
     """Energy levels of a linear fit and their standard errors.
 
     Without a level in the fit (weak rows, or a trajectory too short for any window of a
-    joint fit) the level is the mean fitted energy, without a standard error.
+    joint fit) the level is the mean fitted energy, without a standard error;
+    `energy_means` gives the means of A and b of each trajectory's energy rows, asked for
+    only then.
     """
+    J = len(estimate.h)
     h_stderr = np.full(J, np.nan) if kind == "weak" else np.sqrt(np.clip(h_var, 0, None))
     if kind != "weak" and not np.any(np.isnan(estimate.h)):
         return estimate.h, h_stderr
-    from hamid import solve
-
-    means_A, means_b, _ = solve.level_means(energy_rows, J)
+    means_A, means_b = energy_means()
     mean_energy = means_A @ estimate.theta - means_b
     if kind == "weak":
         return mean_energy, h_stderr

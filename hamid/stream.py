@@ -308,15 +308,10 @@ def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: fl
     estimate = api._least_squares(blocks, names, J)
     theta = estimate.theta
     c = api._covariance(cov, estimate, units, unit_group)
-    level_A = np.array([totals[j][:-2] / totals[j][-1] for j in range(J)])
-    level_b = np.array([totals[j][-2] / totals[j][-1] for j in range(J)])
-    mean_energy = level_A @ theta - level_b
-    if kind == "weak":
-        h, h_stderr = mean_energy, np.full(J, np.nan)
-    else:
-        h = np.where(np.isnan(estimate.h), mean_energy, estimate.h)
-        h_stderr = np.sqrt(np.clip(api._level_variance(c, estimate.centred.level_means_A),
-                                   0, None))
+    energy_means = np.array([totals[j][:-1] / totals[j][-1] for j in range(J)])
+    h, h_stderr = api._fitted_levels(
+        kind, estimate, api._level_variance(c, estimate.centred.level_means_A),
+        lambda: (energy_means[:, :-1], energy_means[:, -1]))
     residuals = api._ResidualSums(h)
     for records, row in reader:
         block = energy_rows(records, row)
