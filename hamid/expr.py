@@ -279,6 +279,10 @@ class Func:
     def is_zero(self) -> bool:
         raise NotImplementedError
 
+    def is_constant_in(self, names: Sequence[str]) -> bool:
+        """Whether the function does not change with any of the named variables."""
+        return all(self.diff(name).is_zero() for name in names)
+
     @staticmethod
     def combine(funcs: Sequence[Func], weights: Sequence[float]) -> Func:
         """The linear combination sum_k weights[k] * funcs[k] of functions of one kind."""

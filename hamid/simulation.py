@@ -168,7 +168,7 @@ class _Dynamics:
         # the mass matrix is symmetric: its upper triangle, row by row
         self._upper = [(i, j) for i in range(n) for j in range(i, n)]
         self._mass = Func.stack([mass[i][j] for i, j in self._upper])
-        self.constant_mass = all(_is_constant(mass[i][j], q) for i, j in self._upper)
+        self.constant_mass = all(mass[i][j].is_constant_in(q) for i, j in self._upper)
         self.inverse: np.ndarray | None = None
         self.mixed: list[tuple[int, int]] = []
         if self.constant_mass:
@@ -350,10 +350,6 @@ def run(system: System, *, seed: int | None = None,
         "dt": system.dt,
     }
     return columns, provenance
-
-
-def _is_constant(f: Func, coordinates: Sequence[str]) -> bool:
-    return all(f.diff(q).is_zero() for q in coordinates)
 
 
 def _check_mass(dynamics: _Dynamics, Xt: np.ndarray, label: str) -> None:

@@ -90,7 +90,7 @@ class _Dynamics:
                  if not all(d[i].diff(q[k]).is_zero() for d in dv)]
         upper = [(i, j) for i in range(N) for j in range(i, N)]
         mass = [d[i].diff(v[j]) for d in dv for i, j in upper]
-        constant = all(f.diff(x).is_zero() for f in mass for x in (*q, *v))
+        constant = all(f.is_constant_in((*q, *v)) for f in mass)
         forces = [f for part, d in zip(parts, dv, strict=True)
                   for f in [part.diff(qi) for qi in q] + [d[i].diff(q[k]) for i, k in mixed]]
         return mixed, upper, constant, expr.Func.stack(forces), expr.Func.stack(mass)
