@@ -37,7 +37,9 @@ MIN_SEGMENT_PERIODS = 1.0
 MIN_SEGMENT_SAMPLES = 8
 CHI2_LIMIT = 1.5       # weighted misfit per degree of freedom that still counts as a fit
 MAX_ITERATIONS = 20
-BATCH = 32             # segments integrated together as one vectorised system
+# Segments integrated together as one vectorised system: as many as keep the integrated
+# values of a batch (copies x states x samples of a segment) within BATCH_VALUES.
+MAX_BATCH, BATCH_VALUES = 256, 1 << 22
 STEP = 1e-7            # relative forward-difference step of the Jacobian
 # Integration steps allowed per sample time (and a floor): smooth motion needs about one;
 # a motion that is stiff or blows up would otherwise crawl on for hours.
@@ -45,6 +47,7 @@ MAX_STEPS_PER_SAMPLE, MIN_STEP_BUDGET = 50, 1000
 # Gauss-Newton runs at the loose tolerance until it settles, then tightens to the strict
 # one only when the parameters are determined finely enough for it to matter (clean data).
 LOOSE_RTOL, STRICT_RTOL = 1e-8, 1e-11
+TIME_ROUNDING = 16     # in units of the rounding of the largest time: times that close are one
 
 
 class RefinementFailed(Exception):
@@ -194,6 +197,9 @@ def _fit_segments(model: Model, records: Records, damping: Damping,
     dynamics = _Dynamics(model, damping)
     n_states, p = X.shape[1], len(free)
     tau = [t[a:b] - t[a] for a, b in pieces]
+    # t[i] - t[a] carries the rounding of both times: segments sampled alike then differ in
+    # their last bits, and would each add their own times to a batch's integration grid
+    resolution = TIME_ROUNDING * np.finfo(float).eps * float(np.max(np.abs(t)))
     measured = [X[a:b] * weight for a, b in pieces]
     x_step = STEP * np.maximum(np.abs(X).max(axis=0), X.std(axis=0))
     theta = theta_all.copy()
@@ -209,7 +215,7 @@ def _fit_segments(model: Model, records: Records, damping: Damping,
             theta_step = STEP * np.maximum(np.abs(free_theta), 1e-3 * np.abs(free_theta).max())
             theta_step[theta_step == 0] = STEP   # every start at zero: no scale to go by
             normal = _normal_equations(dynamics, tau, measured, theta, X0, free, x_step,
-                                       theta_step, weight, rtol)
+                                       theta_step, weight, rtol, resolution)
             if best is not None and normal.cost > best[0].cost * (1 + 1e-12):
                 # the step made it worse: return to the best point and damp the step
                 normal, theta, X0 = best
@@ -269,12 +275,13 @@ class _Normal:
 
 def _normal_equations(dynamics: _Dynamics, tau: list[Any], measured: list[Any],
                       theta: Any, X0: Any, free: list[int], x_step: Any, theta_step: Any,
-                      weight: Any, rtol: float) -> _Normal:
+                      weight: Any, rtol: float, resolution: float) -> _Normal:
     """Residuals and forward-difference Jacobians of every segment, summed into _Normal.
 
     Each batch of segments is integrated as one system of 1 + 2N + p copies per segment
     (as is, each initial-state component perturbed, each free parameter perturbed); the
     copies share the adaptive steps, so their differences carry almost no integration error.
+    Sample times of the batch that differ by less than `resolution` are integrated to once.
     """
     S, n_states, p = len(tau), X0.shape[1], len(free)
     copies = 1 + n_states + p
@@ -286,14 +293,16 @@ def _normal_equations(dynamics: _Dynamics, tau: list[Any], measured: list[Any],
     shifted = np.repeat(parameters[:, None], copies, axis=1)
     for k, index in enumerate(free):
         shifted[1 + index, 1 + n_states + k] += theta_step[k]
-    for lo in range(0, S, BATCH):
-        batch = range(lo, min(lo + BATCH, S))
+    steps = np.concatenate([x_step, theta_step])
+    batch_size = max(1, min(MAX_BATCH, BATCH_VALUES // (copies * n_states * max(map(len, tau)))))
+    for lo in range(0, S, batch_size):
+        batch = range(lo, min(lo + batch_size, S))
         B = len(batch)
         starts = np.repeat(X0[lo:lo + B][None], copies, axis=0)     # (copies, B, 2N)
         starts[1 + np.arange(n_states), :, np.arange(n_states)] += x_step[:, None]
         W = np.repeat(shifted, B, axis=1)                              # (1 + P, copies * B)
         span = max(tau[s][-1] for s in batch)
-        grid, where = np.unique(np.concatenate([tau[s] for s in batch]), return_inverse=True)
+        grid, where = _common_times([tau[s] for s in batch], resolution)
         budget = _EVALUATIONS_PER_STEP * (MAX_STEPS_PER_SAMPLE * len(grid) + MIN_STEP_BUDGET)
         solution = solve_ivp(_rhs(dynamics, W, budget), (0.0, span),
                              starts.reshape(-1, n_states).T.ravel(), method="DOP853",
@@ -311,15 +320,31 @@ def _normal_equations(dynamics: _Dynamics, tau: list[Any], measured: list[Any],
             offset += m
             base = Y[:, 0]                                              # (2N, m)
             residual = (measured[s].T - base).ravel()
-            J_x = ((Y[:, 1:1 + n_states] - base[:, None]) / x_step[None, :, None])
-            J_t = ((Y[:, 1 + n_states:] - base[:, None]) / theta_step[None, :, None])
-            J_x = J_x.transpose(0, 2, 1).reshape(-1, n_states)
-            J_t = J_t.transpose(0, 2, 1).reshape(-1, p)
+            J = ((Y[:, 1:] - base[:, None]) / steps[None, :, None])     # (2N, c, m)
+            J = J.transpose(0, 2, 1).reshape(-1, copies - 1)
+            H = J.T @ J
+            g = J.T @ residual
             cost += float(residual @ residual)
-            H_xx[s], H_xt[s], g_x[s] = J_x.T @ J_x, J_x.T @ J_t, J_x.T @ residual
-            H_tt += J_t.T @ J_t
-            g_t += J_t.T @ residual
+            H_xx[s], H_xt[s] = H[:n_states, :n_states], H[:n_states, n_states:]
+            g_x[s] = g[:n_states]
+            H_tt += H[n_states:, n_states:]
+            g_t += g[n_states:]
     return _Normal(cost, H_tt, g_t, H_xx, H_xt, g_x)
+
+
+def _common_times(times: list[npt.NDArray[np.float64]],
+                  resolution: float) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.intp]]:
+    """The distinct times of all the arrays, those closer than `resolution` taken as one
+    (the earliest), and the index into them of every time of the concatenated arrays."""
+    joined = np.concatenate(times)
+    order = np.argsort(joined, kind="stable")
+    ordered = joined[order]
+    starts = np.empty(len(ordered), dtype=bool)
+    starts[0] = True
+    starts[1:] = np.diff(ordered) > resolution
+    where = np.empty(len(ordered), dtype=np.intp)
+    where[order] = np.cumsum(starts) - 1
+    return ordered[starts], where
 
 
 _EVALUATIONS_PER_STEP = 12  # DOP853's stages

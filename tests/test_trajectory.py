@@ -13,7 +13,7 @@ import hamid
 from hamid.cli import cli
 from hamid.design import Damping
 from hamid.model import model_from_spec
-from hamid.trajectory import _Dynamics
+from hamid.trajectory import _common_times, _Dynamics
 
 CLEAN = {"peng-quadratic": PENG, "duffing": DUFFING, "two-mass": TWO_MASS,
          "elastic-pendulum": ELASTIC_PENDULUM}
@@ -72,6 +72,20 @@ def test_accelerations_of_a_mass_matrix_that_changes_with_the_state():
     m, k = W[1:]
     expected = np.vstack([(1 + m) * r * vp**2 - k * r, -2 * vr * vp / r])
     np.testing.assert_allclose(dynamics.at(W)(Y), expected, rtol=1e-12)
+
+
+def test_segments_sampled_alike_share_their_integration_times():
+    """Times of two segments that differ only by rounding are integrated to once; times
+    further apart than the resolution stay apart, and every sample finds its time."""
+    t = 7.3 + 0.013 * np.arange(500)
+    first, second = t[:100] - t[0], t[300:400] - t[300]
+    assert not np.array_equal(first, second)            # the rounding this is about
+    shifted = first[:50] + 0.005
+    resolution = 16 * np.finfo(float).eps * t.max()
+    grid, where = _common_times([first, second, shifted], resolution)
+    assert len(grid) == 150
+    joined = np.concatenate([first, second, shifted])
+    assert np.max(np.abs(grid[where] - joined)) <= resolution
 
 
 def test_levels_are_the_energies_of_the_initial_states(clean_records):
