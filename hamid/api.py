@@ -143,13 +143,14 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         Input format when it cannot be told from the file name.
     chunk_rows : int, optional
         Read the file in chunks of this many rows, in memory that does not grow with the
-        file's length (`hamid.stream`). By default a file over 64 MB is read so with
-        ``energy``, ``weak`` and ``joint`` (the same answer, faster), and over 256 MB with
-        ``auto`` (which then skips its trajectory refinement). Needs one file, measured
-        velocities, no noise weighting or damping, and an analytic `cov`.
+        file's length (`hamid.stream`); ``auto`` then skips its trajectory refinement.
+        By default a file over 64 MB is read in chunks of 2^18 rows (the same answer,
+        faster), and ``auto`` refines holding only the records in memory (up to 1 GiB of
+        them). Needs one file, measured velocities, no noise weighting or damping, and an
+        analytic `cov`.
     in_memory : bool
         Read the data into memory whatever the file's size: ``result.samples`` then holds
-        the per-sample residuals, and ``auto`` refines by fitting the trajectories.
+        the per-sample residuals.
 
     Returns
     -------
@@ -188,14 +189,13 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         raise UsageError("--chunk-rows: must be a positive number of rows")
     if chunk_rows is not None and (obstacle or in_memory):
         raise UsageError(f"--chunk-rows: {obstacle or 'in_memory asks for the data in memory'}")
-    if chunk_rows is not None or (not obstacle and not in_memory
-                                  and _reads_in_chunks(data, method)):
+    if chunk_rows is not None or (not obstacle and not in_memory and _reads_in_chunks(data)):
         from hamid import stream
 
         return stream.fit_file(data, model, columns=columns, time=time,
                                trajectory=trajectory, format=format, fix=fix or {},
                                method=method, weak_window=weak_window, cov=cov, level=level,
-                               chunk_rows=chunk_rows or CHUNK_ROWS)
+                               chunk_rows=chunk_rows or CHUNK_ROWS, refine=chunk_rows is None)
     loaded = _load_data(data, model, columns=columns, time=time, trajectory=trajectory,
                         format=format, velocity=velocity, window=window, order=order)
     m, records = loaded.model, loaded.records
@@ -255,9 +255,9 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
 
     if refinement is not None:
         theta, theta_cov, df = refinement.theta, refinement.covariance, refinement.dof
-        cov_text = ("Gauss-Newton covariance of the trajectory fit, scaled by its misfit "
-                    f"per degree of freedom ({refinement.chi2_per_dof:.3g})")
-        h, h_stderr = _refined_levels(energy_rows, theta, theta_cov, J)
+        cov_text = refinement.description
+        means_A, means_b, _ = solve.level_means(energy_rows, J)
+        h = means_A @ theta - means_b
     else:
         if cov == "bootstrap":
             theta_cov, h_var, cov_text = _bootstrap_covariance(
@@ -276,6 +276,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     energy_residual = energy_rows.A @ theta - energy_rows.b - h[energy_rows.group]
     sums = _ResidualSums(h)
     sums.add(energy_rows, energy_residual)
+    if refinement is not None:
+        h_stderr = _refined_level_errors(means_A, theta_cov, sums)
     stats = sums.stats(records.labels)
     stats["blocks"], cond, block_conditions = _block_report(
         blocks, estimate.residual, free_names, records.labels)
@@ -324,22 +326,17 @@ def _fitted_levels(kind: str, estimate: _Estimate, h_var: Any,
     return np.where(np.isnan(estimate.h), mean_energy, estimate.h), h_stderr
 
 
-def _refined_levels(energy_rows: Block, theta: Any, theta_cov: Any, J: int) -> tuple[Any, Any]:
-    """Levels after the trajectory fit: the mean energy at its parameters.
+def _refined_level_errors(means_A: Any, theta_cov: Any, residuals: _ResidualSums) -> Any:
+    """Standard errors of the levels after the trajectory fit, each the mean energy at its
+    parameters (means_A theta - means_b).
 
     The variance adds what the parameters' covariance puts into each mean to that of the
     mean of its energy residuals, which are white once the parameters are right (each is
     the energy of one sample's measurement noise).
     """
-    from hamid import solve
-
-    means_A, means_b, _ = solve.level_means(energy_rows, J)
-    h = means_A @ theta - means_b
-    residual = energy_rows.A @ theta - energy_rows.b - h[energy_rows.group]
-    n = np.bincount(energy_rows.group, minlength=J)
-    mean_noise = np.bincount(energy_rows.group, weights=residual**2, minlength=J) / np.maximum(
-        n * (n - 1), 1)
-    return h, np.sqrt(np.einsum("jk,kl,jl->j", means_A, theta_cov, means_A) + mean_noise)
+    n, squares = residuals.n, residuals.sums[:, 3]
+    mean_noise = squares / np.maximum(n * (n - 1), 1)
+    return np.sqrt(np.einsum("jk,kl,jl->j", means_A, theta_cov, means_A) + mean_noise)
 
 
 def _levels(labels: tuple[str | int, ...], h: Any, stderr: Any,
@@ -417,15 +414,16 @@ class _Loaded:
 # (whose chunked fit is the fit in memory, faster and in a third of the memory) does so
 # from LINEAR_STREAM_BYTES on, auto only when the file is too large to hold, because its
 # trajectory refinement needs the data in memory.
-STREAM_BYTES = 256 << 20
-LINEAR_STREAM_BYTES = 64 << 20
+STREAM_BYTES = 64 << 20   # files larger than this are read in chunks when they can be
 CHUNK_ROWS = 1 << 18
+# The trajectory refinement of a chunked fit holds the records (times, states, trajectory
+# numbers) in memory, 8 bytes a value; larger records are left unrefined.
+REFINEMENT_BYTES = 1 << 30
 
 
-def _reads_in_chunks(data: Any, method: str) -> bool:
+def _reads_in_chunks(data: Any) -> bool:
     """Whether a fit that can read `data` in chunks should, by its size."""
-    limit = STREAM_BYTES if method == "auto" else LINEAR_STREAM_BYTES
-    return os.path.getsize(data) > limit
+    return os.path.getsize(data) > STREAM_BYTES
 
 
 def _needs_memory(data: Any, velocity: str, noise: Any, damping: str | Sequence[str],
@@ -534,7 +532,8 @@ def _choose_method(method: str, model: Model, scales: list[tuple[float | None, f
         window
 
 
-CHUNKED_NOT_REFINED = "it needs the data in memory, and the file is read in chunks"
+CHUNKED_NOT_REFINED = ("it holds the records in memory, and --chunk-rows asks for "
+                       "bounded memory")
 
 
 def _refinement_obstacle(cov: str, bias_correct: bool, damping: tuple[str, ...]) -> str | None:

@@ -11,8 +11,13 @@ Every pass reads the file again, chunk by chunk (Parquet batches, blocks of CSV 
   the next chunk; the window rows (one per window and coordinate, a small fraction of the
   samples) are then fitted in memory as `hamid.api.fit` does, and a last pass gives the
   residual summary of the energy rows.
+- ``auto`` (joint), unless `--chunk-rows` asked for bounded memory: a pass gathers the
+  records (times, states, trajectory numbers; 8 bytes a value, a small part of what a fit
+  in memory holds) for the trajectory refinement, and the residual pass is taken at the
+  refined parameters.
 
-The estimates equal those of the fit in memory up to rounding (tested to 1e-10).
+The estimates equal those of the fit in memory up to rounding (tested to 1e-10; 1e-9
+after the refinement, whose Gauss-Newton search starts from the linear fit).
 """
 
 from __future__ import annotations
@@ -100,8 +105,9 @@ class _Reader:
 def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: str | None,
              trajectory: str | None, format: str | None, fix: Mapping[str, float],
              method: str, weak_window: float | None, cov: str, level: float,
-             chunk_rows: int) -> FitResult:
-    """`hamid.api.fit` of one file, read in chunks of `chunk_rows` rows (see module)."""
+             chunk_rows: int, refine: bool) -> FitResult:
+    """`hamid.api.fit` of one file, read in chunks of `chunk_rows` rows (see module);
+    `refine`: whether ``auto`` may hold the records in memory for its refinement."""
     table = io.TableChunks(path, format=format)
     m, notes = _model(table, model, columns, time, trajectory)
     mapping = io.resolve_columns(table.columns, m.coordinates, m.velocities, mapping=columns,
@@ -136,30 +142,118 @@ def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: 
         if isinstance(fitted, str):   # too few windows: auto falls back to the energy rows
             kind, kind_reason, window = "energy", fitted, None
             fitted = _energy(reader, energy_rows, free_names, cov)
-    theta, theta_cov, cov_text, df, h, h_stderr, stats, cond, block_conditions, \
-        block_variance, sizes = fitted
     refinement_info = None
     if method == "auto" and kind == "joint":
-        refinement_info = {"applied": False, "reason": api._refinement_obstacle(cov, False, ())
-                           or api.CHUNKED_NOT_REFINED}
+        reason = api._refinement_obstacle(cov, False, ()) or _refinement_memory(
+            refine, int(fitted.sizes.sum()), m)
+        if reason is None:
+            records = _whole(reader, int(fitted.sizes.sum()))
+            refinement, refinement_info = api._refine(
+                m, records, design.Damping((), m.coordinates), free, fixed_values,
+                fitted.theta, scales, window, None, "measured")
+            del records
+            if refinement is not None:
+                fitted = _refined(reader, energy_rows, fitted, refinement)
+        else:
+            refinement_info = {"applied": False, "reason": reason}
         kind_reason += api._refinement_note(refinement_info)
+    if fitted.stats is None:
+        fitted = _summarised(reader, energy_rows, fitted)
     labels = reader.label_tuple()
     method_info = {
         "kind": kind, "kind_reason": kind_reason, "weak_window": window, "damping": [],
         "weighting": "none", "noise": None, "weighting_rounds": 0, "bias_correction": False,
-        "covariance": cov, "covariance_description": cov_text, "level": level,
-        "fixed": dict(fixed), "block_variance": block_variance,
+        "covariance": cov, "covariance_description": fitted.description, "level": level,
+        "fixed": dict(fixed), "block_variance": fitted.block_variance,
         "refinement": refinement_info,
     }
-    data_info = {"sources": [table.name], "n_samples": int(sum(sizes)),
+    sizes = [int(size) for size in fitted.sizes]
+    data_info = {"sources": [table.name], "n_samples": sum(sizes),
                  "n_trajectories": len(labels), "columns": dict(mapping),
                  "velocity_source": "measured"}
-    return api._result(m, names, fixed, theta, theta_cov, df,
-                       truth=api._truth(table.metadata, m), levels=api._levels(
-                           labels, h, h_stderr, [int(s) for s in sizes]),
-                       stats=stats, cond=cond, block_conditions=block_conditions,
-                       notes=notes, data_info=data_info, method_info=method_info,
-                       dissipation=None, samples=None)
+    return api._result(m, names, fixed, fitted.theta, fitted.covariance, fitted.df,
+                       truth=api._truth(table.metadata, m),
+                       levels=api._levels(labels, fitted.h, fitted.h_stderr, sizes),
+                       stats=fitted.stats, cond=fitted.cond,
+                       block_conditions=fitted.block_conditions, notes=notes,
+                       data_info=data_info, method_info=method_info, dissipation=None,
+                       samples=None)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Linear:
+    """A linear fit of the chunks, and what the report needs of it.
+
+    `stats` is None until a pass over the energy residuals has summarised them (weak and
+    joint fits, after the refinement, if any); `block_stats` is then their block summary
+    and `energy_means` the means of each trajectory's energy rows [A, b].
+    """
+
+    theta: np.ndarray
+    covariance: np.ndarray
+    description: str
+    df: int
+    h: np.ndarray
+    h_stderr: np.ndarray
+    stats: dict[str, Any] | None
+    cond: Any
+    block_conditions: Any
+    block_variance: Any
+    sizes: np.ndarray
+    block_stats: dict[str, Any] | None = None
+    energy_means: np.ndarray | None = None
+
+
+def _refinement_memory(refine: bool, n_samples: int, m: Model) -> str | None:
+    """Why a chunked auto fit does not hold its records in memory to refine, or None."""
+    if not refine:
+        return api.CHUNKED_NOT_REFINED
+    size = 8 * n_samples * (len(m.variables) + 2)
+    if size > api.REFINEMENT_BYTES:
+        return (f"it holds the records in memory, {size / 2**30:.1f} GiB here, over the "
+                f"limit of {api.REFINEMENT_BYTES / 2**30:g} GiB")
+    return None
+
+
+def _whole(reader: _Reader, n_samples: int) -> Records:
+    """All the records of the file, for the trajectory refinement."""
+    X = np.empty((n_samples, len(reader.model.variables)))
+    t = np.empty(n_samples)
+    group = np.empty(n_samples, dtype=np.int64)
+    for records, row in reader:
+        rows = slice(row, row + len(records.group))
+        X[rows], t[rows], group[rows] = records.X, records.t, records.group
+    return Records(X, t, group, reader.label_tuple())
+
+
+def _refined(reader: _Reader, energy_rows: Any, fitted: _Linear, refinement: Any) -> _Linear:
+    """The fit at the refined parameters: each level the mean energy there, and the
+    residual summary of a pass at them."""
+    assert fitted.energy_means is not None
+    means_A, means_b = fitted.energy_means[:, :-1], fitted.energy_means[:, -1]
+    h = means_A @ refinement.theta - means_b
+    residuals = _residual_sums(reader, energy_rows, refinement.theta, h)
+    return dataclasses.replace(
+        fitted, theta=refinement.theta, covariance=refinement.covariance,
+        description=refinement.description, df=refinement.dof, h=h,
+        h_stderr=api._refined_level_errors(means_A, refinement.covariance, residuals),
+        stats={**residuals.stats(reader.label_tuple()), "blocks": fitted.block_stats})
+
+
+def _summarised(reader: _Reader, energy_rows: Any, fitted: _Linear) -> _Linear:
+    """The fit with the residual summary of its energy rows, from a pass."""
+    residuals = _residual_sums(reader, energy_rows, fitted.theta, fitted.h)
+    return dataclasses.replace(
+        fitted, stats={**residuals.stats(reader.label_tuple()), "blocks": fitted.block_stats})
+
+
+def _residual_sums(reader: _Reader, energy_rows: Any, theta: Any,
+                   h: Any) -> api._ResidualSums:
+    residuals = api._ResidualSums(h)
+    for records, row in reader:
+        block = energy_rows(records, row)
+        residuals.add(block, block.A @ theta - block.b - h[block.group])
+    return residuals
 
 
 def _model(table: io.TableChunks, model: Any, columns: Mapping[str, str] | None,
@@ -201,7 +295,7 @@ def _scales(reader: _Reader, m: Model) -> list[tuple[float | None, float]]:
     return scales
 
 
-def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> tuple:
+def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> _Linear:
     """The energy method in three passes: factor, residuals and bandwidth, meat."""
     p = len(names)
     factor = solve.Factor(p, 0)
@@ -243,13 +337,13 @@ def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> tu
                                   "max_abs": stats["max_abs"]}}
     cond = solve.factor_conditioning(factor, names, reader.label_tuple())
     h_stderr = np.sqrt(np.clip(api._level_variance(c, means_A), 0, None))
-    return (theta, c.theta, c.description, c.df, h, h_stderr, stats, cond, None, None,
-            residuals.n)
+    return _Linear(theta, c.theta, c.description, c.df, h, h_stderr, stats, cond, None, None,
+                   residuals.n.astype(np.int64))
 
 
 def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: float,
               method: str, weak_window: float | None, free: list[int], fixed_values: Any,
-              names: list[str], cov: str) -> tuple | str:
+              names: list[str], cov: str) -> _Linear | str:
     """Weak and joint fits: window rows built chunk by chunk, then fitted in memory; the
     reason to fall back to the energy rows when there are too few windows for `auto`."""
     means, weak = [], []
@@ -312,15 +406,12 @@ def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: fl
     h, h_stderr = api._fitted_levels(
         kind, estimate, api._level_variance(c, estimate.centred.level_means_A),
         lambda: (energy_means[:, :-1], energy_means[:, -1]))
-    residuals = api._ResidualSums(h)
-    for records, row in reader:
-        block = energy_rows(records, row)
-        residuals.add(block, block.A @ theta - block.b - h[block.group])
-    stats = residuals.stats(reader.label_tuple())
-    stats["blocks"], cond, block_conditions = api._block_report(
+    block_stats, cond, block_conditions = api._block_report(
         blocks, estimate.residual, names, reader.label_tuple())
-    return (theta, c.theta, c.description, c.df, h, h_stderr, stats, cond, block_conditions,
-            block_variance, np.array([totals[j][-1] for j in range(J)], dtype=np.int64))
+    return _Linear(theta, c.theta, c.description, c.df, h, h_stderr, None, cond,
+                   block_conditions, block_variance,
+                   np.array([totals[j][-1] for j in range(J)], dtype=np.int64),
+                   block_stats=block_stats, energy_means=energy_means)
 
 
 @dataclasses.dataclass

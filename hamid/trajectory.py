@@ -66,6 +66,12 @@ class Refinement:
     segment_seconds: float
     iterations: int
 
+    @property
+    def description(self) -> str:
+        """What the covariance is, for the report."""
+        return ("Gauss-Newton covariance of the trajectory fit, scaled by its misfit per "
+                f"degree of freedom ({self.chi2_per_dof:.3g})")
+
 
 @dataclass(frozen=True, eq=False)
 class _Dynamics:
@@ -200,7 +206,7 @@ def _fit_segments(model: Model, records: Records, damping: Damping,
     # t[i] - t[a] carries the rounding of both times: segments sampled alike then differ in
     # their last bits, and would each add their own times to a batch's integration grid
     resolution = TIME_ROUNDING * np.finfo(float).eps * float(np.max(np.abs(t)))
-    measured = [X[a:b] * weight for a, b in pieces]
+    measured = [X[a:b] for a, b in pieces]    # views; weighted segment by segment
     x_step = STEP * np.maximum(np.abs(X).max(axis=0), X.std(axis=0))
     theta = theta_all.copy()
     X0 = np.array([X[a] for a, _ in pieces])
@@ -319,7 +325,7 @@ def _normal_equations(dynamics: _Dynamics, tau: list[Any], measured: list[Any],
             Y = values[:, :, b, where[offset:offset + m]] * weight[:, None, None]
             offset += m
             base = Y[:, 0]                                              # (2N, m)
-            residual = (measured[s].T - base).ravel()
+            residual = ((measured[s] * weight).T - base).ravel()
             J = ((Y[:, 1:] - base[:, None]) / steps[None, :, None])     # (2N, c, m)
             J = J.transpose(0, 2, 1).reshape(-1, copies - 1)
             H = J.T @ J

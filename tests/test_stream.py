@@ -215,14 +215,12 @@ def test_cli_chunk_rows(noisy_files, tmp_path):
     assert refused.stdout == ""
 
 
-def test_a_file_over_the_size_limits_is_read_in_chunks_unless_asked_otherwise(
+def test_a_file_over_the_size_limit_is_read_in_chunks_unless_asked_otherwise(
         noisy_files, monkeypatch, tmp_path):
     frame, paths = noisy_files
     size = os.path.getsize(paths["parquet"])
-    # the limits (64 MB for the linear methods, 256 MB for auto), made small
-    monkeypatch.setattr(api, "LINEAR_STREAM_BYTES", size - 1)
-    monkeypatch.setattr(api, "STREAM_BYTES", size)
-    assert hamid.fit(paths["parquet"]).samples is not None   # auto: in memory, to refine
+    monkeypatch.setattr(api, "STREAM_BYTES", size)   # the limit (64 MB), made small
+    assert hamid.fit(paths["parquet"]).samples is not None   # not over it: in memory
     monkeypatch.setattr(api, "STREAM_BYTES", size - 1)
     assert hamid.fit(paths["parquet"]).samples is None
     streamed = hamid.fit(paths["parquet"], method="energy")

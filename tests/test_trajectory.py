@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ from click.testing import CliRunner
 from conftest import DUFFING, ELASTIC_PENDULUM, PENG, TWO_MASS, with_noise
 
 import hamid
+from hamid import api, io
 from hamid.cli import cli
 from hamid.design import Damping
 from hamid.model import model_from_spec
@@ -110,6 +112,38 @@ def test_refinement_beats_the_joint_fit_under_noise(clean_records, name, noise):
             estimate = np.array(list(hamid.fit(frame, method=method).estimates.values()))
             errors[method].append(np.max(np.abs(estimate / truth - 1)))
     assert np.median(errors["auto"]) < np.median(errors["joint"]) / 1.5, errors
+
+
+def test_a_file_read_in_chunks_is_refined_like_one_in_memory(clean_records, monkeypatch,
+                                                             tmp_path):
+    """Over the size limit the linear fit reads the file in chunks and the refinement
+    holds only the records: the same estimates, errors, levels and residual summary."""
+    frame = with_noise(clean_records["duffing"], 0.02, seed=3)
+    path = str(tmp_path / "duffing.parquet")
+    io.write_table(frame, path, metadata=frame.attrs["hamid"])
+    memory = hamid.fit(path)
+    monkeypatch.setattr(api, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
+    chunked = hamid.fit(path)
+    assert chunked.samples is None and memory.samples is not None
+    assert chunked.method["refinement"]["applied"] is True
+    assert chunked.method == memory.method
+    assert chunked.estimates == pytest.approx(memory.estimates, rel=1e-9)
+    assert [p.stderr for p in chunked.parameters] == pytest.approx(
+        [p.stderr for p in memory.parameters], rel=1e-6)
+    for streamed, whole in zip(chunked.energy_levels, memory.energy_levels, strict=True):
+        assert (streamed.h, streamed.stderr) == pytest.approx((whole.h, whole.stderr),
+                                                              rel=1e-8)
+    assert chunked.residuals["rms"] == pytest.approx(memory.residuals["rms"], rel=1e-8)
+    for streamed, whole in zip(chunked.residuals["drift"], memory.residuals["drift"],
+                               strict=True):
+        assert streamed == pytest.approx(whole, rel=1e-6)
+    # records over the memory limit are left unrefined, and the report says why
+    monkeypatch.setattr(api, "REFINEMENT_BYTES", 1000)
+    unrefined = hamid.fit(path)
+    assert unrefined.method["refinement"]["applied"] is False
+    assert "holds the records in memory" in unrefined.method["refinement"]["reason"]
+    assert unrefined.estimates == pytest.approx(hamid.fit(path, method="joint").estimates,
+                                                rel=1e-10)
 
 
 def test_standard_errors_match_the_spread_over_realizations(clean_records):
