@@ -410,11 +410,9 @@ class _Loaded:
         return source, row - first + 1
 
 
-# Files larger than this are read in chunks when the options allow it; a linear method
-# (whose chunked fit is the fit in memory, faster and in a third of the memory) does so
-# from LINEAR_STREAM_BYTES on, auto only when the file is too large to hold, because its
-# trajectory refinement needs the data in memory.
-STREAM_BYTES = 64 << 20   # files larger than this are read in chunks when they can be
+# Files larger than this are read in chunks when the options allow it: the chunked fit is
+# the fit in memory, faster and in a third of the memory.
+STREAM_BYTES = 64 << 20
 CHUNK_ROWS = 1 << 18
 # The trajectory refinement of a chunked fit holds the records (times, states, trajectory
 # numbers) in memory, 8 bytes a value; larger records are left unrefined.

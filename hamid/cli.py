@@ -193,9 +193,9 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--residuals", metavar="FILE",
               help="Write per-sample residuals (CSV/Parquet); reads the data into memory.")
 @click.option("--chunk-rows", type=click.IntRange(min=1), metavar="ROWS",
-              help="Read the file in chunks of ROWS rows, in bounded memory (default for "
-                   "files over 64 MB with --method energy, weak or joint, over 256 MB with "
-                   "auto).")
+              help="Read the file in chunks of ROWS rows, in bounded memory; auto then "
+                   "skips its trajectory refinement (default for files over 64 MB: chunks "
+                   "of 262144 rows, and auto refines holding only the records).")
 def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         time_column: str | None, trajectory: str | None, format_in: str | None,
         velocity: str, window: int | None, order: int, noise: str | None,

@@ -493,7 +493,12 @@ class TableChunks:
         import pyarrow.parquet as pq
 
         if self.format == "parquet":
-            yield from pq.ParquetFile(self.path).iter_batches(batch_size=rows, columns=columns)
+            # one row group at a time: a reader over all of them buffers ever more of the
+            # file (130 MB for twelve groups of 2^18 rows, against 30 MB for two)
+            parquet = pq.ParquetFile(self.path)
+            for group in range(parquet.num_row_groups):
+                yield from parquet.iter_batches(batch_size=rows, columns=columns,
+                                                row_groups=[group])
             return
         stream = open(self.path, "rb")  # noqa: SIM115 (closed below, after the last batch)
         try:

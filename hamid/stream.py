@@ -181,8 +181,9 @@ def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: 
 
 
 @dataclasses.dataclass(frozen=True)
-class _Linear:
-    """A linear fit of the chunks, and what the report needs of it.
+class _Fit:
+    """A fit of the chunks (linear, or refined by the trajectory fit) and what the report
+    needs of it.
 
     `stats` is None until a pass over the energy residuals has summarised them (weak and
     joint fits, after the refinement, if any); `block_stats` is then their block summary
@@ -226,7 +227,7 @@ def _whole(reader: _Reader, n_samples: int) -> Records:
     return Records(X, t, group, reader.label_tuple())
 
 
-def _refined(reader: _Reader, energy_rows: Any, fitted: _Linear, refinement: Any) -> _Linear:
+def _refined(reader: _Reader, energy_rows: Any, fitted: _Fit, refinement: Any) -> _Fit:
     """The fit at the refined parameters: each level the mean energy there, and the
     residual summary of a pass at them."""
     assert fitted.energy_means is not None
@@ -240,7 +241,7 @@ def _refined(reader: _Reader, energy_rows: Any, fitted: _Linear, refinement: Any
         stats={**residuals.stats(reader.label_tuple()), "blocks": fitted.block_stats})
 
 
-def _summarised(reader: _Reader, energy_rows: Any, fitted: _Linear) -> _Linear:
+def _summarised(reader: _Reader, energy_rows: Any, fitted: _Fit) -> _Fit:
     """The fit with the residual summary of its energy rows, from a pass."""
     residuals = _residual_sums(reader, energy_rows, fitted.theta, fitted.h)
     return dataclasses.replace(
@@ -295,7 +296,7 @@ def _scales(reader: _Reader, m: Model) -> list[tuple[float | None, float]]:
     return scales
 
 
-def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> _Linear:
+def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> _Fit:
     """The energy method in three passes: factor, residuals and bandwidth, meat."""
     p = len(names)
     factor = solve.Factor(p, 0)
@@ -337,13 +338,13 @@ def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> _L
                                   "max_abs": stats["max_abs"]}}
     cond = solve.factor_conditioning(factor, names, reader.label_tuple())
     h_stderr = np.sqrt(np.clip(api._level_variance(c, means_A), 0, None))
-    return _Linear(theta, c.theta, c.description, c.df, h, h_stderr, stats, cond, None, None,
+    return _Fit(theta, c.theta, c.description, c.df, h, h_stderr, stats, cond, None, None,
                    residuals.n.astype(np.int64))
 
 
 def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: float,
               method: str, weak_window: float | None, free: list[int], fixed_values: Any,
-              names: list[str], cov: str) -> _Linear | str:
+              names: list[str], cov: str) -> _Fit | str:
     """Weak and joint fits: window rows built chunk by chunk, then fitted in memory; the
     reason to fall back to the energy rows when there are too few windows for `auto`."""
     means, weak = [], []
@@ -408,7 +409,7 @@ def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: fl
         lambda: (energy_means[:, :-1], energy_means[:, -1]))
     block_stats, cond, block_conditions = api._block_report(
         blocks, estimate.residual, names, reader.label_tuple())
-    return _Linear(theta, c.theta, c.description, c.df, h, h_stderr, None, cond,
+    return _Fit(theta, c.theta, c.description, c.df, h, h_stderr, None, cond,
                    block_conditions, block_variance,
                    np.array([totals[j][-1] for j in range(J)], dtype=np.int64),
                    block_stats=block_stats, energy_means=energy_means)

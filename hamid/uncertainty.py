@@ -257,7 +257,7 @@ class ScoreSums:
             after = s[1:] if previous is None else s
             self._lagged += np.einsum("ij,ij->j", after, before)
             self._square += np.einsum("ij,ij->j", before, before)
-            self._last[j] = s[-1]
+            self._last[j] = s[-1].copy()   # not a view, which would keep all of s
         else:
             self._add_boxes(j, s)
 
@@ -277,7 +277,7 @@ class ScoreSums:
         end = np.arange(seen + 1, seen + len(s) + 1)
         box = cum[end - first] - cum[np.maximum(end - L - 1, 0) - first]
         self.meat[j] += box.T @ box / (L + 1)
-        self._tail[j] = cum[max(seen + len(s) - L, 0) - first:]
+        self._tail[j] = cum[max(seen + len(s) - L, 0) - first:].copy()
 
     def close(self, j: int) -> None:
         """End trajectory `j` (hac: add the boxes that run past its last row)."""

@@ -81,6 +81,20 @@ def test_chunked_csv_equals_the_fit_in_memory(noisy_files, method):
              hamid.fit(paths["csv"], method=method, chunk_rows=100))
 
 
+@pytest.mark.parametrize("method", ["energy", "joint"])
+def test_parquet_row_groups_read_one_by_one_equal_the_fit_in_memory(noisy_files, tmp_path,
+                                                                   method):
+    """Row groups of 250 rows read in chunks of 100: chunks end at every group's end."""
+    import pyarrow.parquet as pq
+
+    frame, paths = noisy_files
+    grouped = str(tmp_path / "grouped.parquet")
+    pq.write_table(pq.read_table(paths["parquet"]), grouped, row_group_size=250)
+    assert pq.ParquetFile(grouped).num_row_groups > 3
+    _compare(hamid.fit(frame, method=method),
+             hamid.fit(grouped, method=method, chunk_rows=100))
+
+
 def test_the_file_really_passes_in_many_chunks(noisy_files, monkeypatch):
     """Windows straddle the chunk boundaries: each of many chunks is shorter than a window."""
     frame, paths = noisy_files
