@@ -122,9 +122,10 @@ class _Dynamics:
                 M[:, i, j] = M[:, j, i] = entry
             return M
 
-        inverse = None
+        inverse = None   # (N, N, n): a product and a sum are faster than einsum over n
         if constant and N > 1:
-            inverse = np.linalg.inv(matrix(weighted(mass, len(upper), np.zeros((2 * N, n)))))
+            inverse = np.linalg.inv(matrix(weighted(mass, len(upper), np.zeros((2 * N, n))))
+                                    ).transpose(1, 2, 0).copy()
 
         def accelerations(Y: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
             combined = weighted(forces, N + len(mixed), Y)
@@ -135,7 +136,7 @@ class _Dynamics:
             for k, (_, i, law) in enumerate(self.damping.terms):
                 force[i] -= W[parts + k] * law(V[i])
             if inverse is not None:
-                return np.einsum("nij,jn->in", inverse, force)
+                return (inverse * force).sum(axis=1)
             entries = weighted(mass, len(upper), Y)
             if N == 1:
                 return force / entries[0]
