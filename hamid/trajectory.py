@@ -113,7 +113,9 @@ class _Dynamics:
 
         def weighted(stack: Any, per_part: int,
                      Y: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-            values = np.broadcast_to(stack(Y), (parts * per_part, n))
+            values = stack(Y)
+            if values.shape != (parts * per_part, n):   # constant entries (broadcast is slow)
+                values = np.broadcast_to(values, (parts * per_part, n))
             return np.einsum("pfn,pn->fn", values.reshape(parts, per_part, n), W[:parts])
 
         def matrix(entries: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:

@@ -60,9 +60,17 @@ def make_data(folder, rows, noise=0.0):
     return path
 
 
+# Bytecode may be written: an installed hamid has its own (pip compiles it), like numpy and
+# scipy beside it, while PYTHONDONTWRITEBYTECODE (set on some machines) would make every
+# run of a source checkout compile hamid's modules again, some 0.1 s.
+ENVIRONMENT = {name: value for name, value in os.environ.items()
+               if name != "PYTHONDONTWRITEBYTECODE"}
+
+
 def wall(command):
     start = time.perf_counter()
-    done = subprocess.run(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    done = subprocess.run(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                          env=ENVIRONMENT)
     elapsed = time.perf_counter() - start
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(command)} failed ({done.returncode}): "
@@ -89,7 +97,7 @@ def import_profile(command, top=10, tree_ms=50.0, tree_depth=2):
     the import tree cut to the imports of at least `tree_ms` and depth `tree_depth`:
     (depth, module, cumulative seconds), in import order.
     """
-    env = dict(os.environ, PYTHONPROFILEIMPORTTIME="1")
+    env = dict(ENVIRONMENT, PYTHONPROFILEIMPORTTIME="1")
     done = subprocess.run(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                           env=env, check=True)
     per_package = defaultdict(float)
