@@ -202,6 +202,19 @@ def test_a_model_that_does_not_fit_keeps_the_linear_fit(clean_records):
     assert [p.stderr for p in auto.parameters] == [p.stderr for p in joint.parameters]
 
 
+def test_a_model_that_does_not_fit_keeps_the_linear_fit_read_in_chunks(monkeypatch, tmp_path):
+    damped = hamid.simulate({**DUFFING, "damping": {"c_x": 0.05}})
+    path = str(tmp_path / "damped.parquet")
+    io.write_table(damped, path, metadata=damped.attrs["hamid"])
+    monkeypatch.setattr(api, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
+    auto, joint = hamid.fit(path), hamid.fit(path, method="joint")
+    assert auto.samples is None
+    assert auto.method["refinement"]["applied"] is False
+    assert "does not fit the recording" in auto.method["refinement"]["reason"]
+    assert auto.estimates == joint.estimates
+    assert auto.residuals == joint.residuals
+
+
 @pytest.mark.parametrize("options, reason", [
     ({"damping": "viscous,coulomb"}, "Coulomb friction"),
     ({"cov": "classical"}, "--cov classical"),
