@@ -98,7 +98,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         weak_window: float | None = None, damping: str | Sequence[str] = "none",
         cov: str = "hac", level: float = 0.95, bootstrap: int = 200,
         seed: int | None = None, format: str | None = None,
-        chunk_rows: int | None = None, in_memory: bool = False) -> FitResult:
+        chunk_rows: int | None = None, in_memory: bool = False,
+        progress: Callable[[str], None] | None = None) -> FitResult:
     """Fit the energy of recorded free oscillations.
 
     Parameters
@@ -151,6 +152,10 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     in_memory : bool
         Read the data into memory whatever the file's size: ``result.samples`` then holds
         the per-sample residuals.
+    progress : callable, optional
+        Called with a line of text at each step of a long fit (every chunk of a pass over
+        a file read in chunks, every batch of the trajectory refinement), e.g. for a
+        status line.
 
     Returns
     -------
@@ -195,7 +200,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         return stream.fit_file(data, model, columns=columns, time=time,
                                trajectory=trajectory, format=format, fix=fix or {},
                                method=method, weak_window=weak_window, cov=cov, level=level,
-                               chunk_rows=chunk_rows or CHUNK_ROWS, refine=chunk_rows is None)
+                               chunk_rows=chunk_rows or CHUNK_ROWS, refine=chunk_rows is None,
+                               progress=progress)
     loaded = _load_data(data, model, columns=columns, time=time, trajectory=trajectory,
                         format=format, velocity=velocity, window=window, order=order)
     m, records = loaded.model, loaded.records
@@ -248,7 +254,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         obstacle = _refinement_obstacle(cov, bias_correct, dissipation.kinds)
         if obstacle is None:
             refinement, refinement_info = _refine(m, records, dissipation, free, fixed_values,
-                                                  theta, scales, window, sigma, velocity)
+                                                  theta, scales, window, sigma, velocity,
+                                                  progress)
         else:
             refinement_info = {"applied": False, "reason": obstacle}
         kind_reason += _refinement_note(refinement_info)
@@ -556,7 +563,8 @@ def _refinement_note(info: dict[str, Any]) -> str:
 
 def _refine(m: Model, records: Records, dissipation: Any, free: list[int],
             fixed_values: Any, theta: Any, scales: list[tuple[float | None, float]],
-            window: float, sigma: Any, velocity: str) -> tuple[Any, dict[str, Any]]:
+            window: float, sigma: Any, velocity: str,
+            progress: Callable[[str], None] | None) -> tuple[Any, dict[str, Any]]:
     """The trajectory refinement of an automatic joint fit (`hamid.trajectory`), or None,
     and what the report says of it."""
     from hamid import design, measurement, trajectory
@@ -574,7 +582,8 @@ def _refine(m: Model, records: Records, dissipation: Any, free: list[int],
     theta_all = fixed_values.copy()
     theta_all[free] = theta
     try:
-        refined = trajectory.refine(m, records, dissipation, theta_all, free, period, weight)
+        refined = trajectory.refine(m, records, dissipation, theta_all, free, period, weight,
+                                    progress)
     except trajectory.RefinementFailed as exc:
         return None, {"applied": False, "reason": f"the integrated model does not fit the "
                       f"recording: {exc}"}

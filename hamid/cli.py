@@ -137,6 +137,25 @@ class _progress:
             self.bar.stop()
 
 
+class _status:
+    """A status line on standard error that a long command updates, shown only when it is
+    a terminal (checked before rich is imported, which a pipe then never pays for)."""
+
+    def __init__(self, label: str):
+        self.label, self.line = label, None
+
+    def __enter__(self) -> Any:
+        if not sys.stderr.isatty():
+            return None
+        self.line = _stderr_console().status(self.label)
+        self.line.start()
+        return lambda text: self.line.update(f"{self.label}: {text}")
+
+    def __exit__(self, *exc: object) -> None:
+        if self.line is not None:
+            self.line.stop()
+
+
 def _parse_floats(text: str | None, option: str) -> dict[str, float] | None:
     from hamid import io
 
@@ -220,17 +239,17 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         if destination is not None:
             io.check_destination(destination)
     fmt = fmt or _format_from_name(output, {".json": "json", ".csv": "csv"}, "table")
-    result = run_fit(list(data), model,
-                     columns=None if columns is None else io.parse_mapping(columns,
-                                                                           option="--columns"),
-                     time=time_column, trajectory=trajectory, velocity=velocity,
-                     window=window, order=order, noise=_parse_noise(noise),
-                     bias_correct=bias_correct,
-                     fix=_parse_floats(fix, "--fix"),
-                     method=method, weak_window=weak_window, damping=damping, cov=cov,
-                     level=level,
-                     bootstrap=n_boot, seed=seed, format=format_in, chunk_rows=chunk_rows,
-                     in_memory=residuals is not None)
+    with _status("fitting") as status:
+        result = run_fit(list(data), model,
+                         columns=None if columns is None else io.parse_mapping(
+                             columns, option="--columns"),
+                         time=time_column, trajectory=trajectory, velocity=velocity,
+                         window=window, order=order, noise=_parse_noise(noise),
+                         bias_correct=bias_correct, fix=_parse_floats(fix, "--fix"),
+                         method=method, weak_window=weak_window, damping=damping, cov=cov,
+                         level=level, bootstrap=n_boot, seed=seed, format=format_in,
+                         chunk_rows=chunk_rows, in_memory=residuals is not None,
+                         progress=status)
 
     def write_residuals() -> None:
         import pandas as pd

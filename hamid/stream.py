@@ -23,7 +23,7 @@ after the refinement, whose Gauss-Newton search starts from the linear fit).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 import numpy as np
@@ -42,19 +42,24 @@ class _Reader:
     that every trajectory's rows are contiguous and its times increasing."""
 
     def __init__(self, table: io.TableChunks, model: Model, mapping: Mapping[str, str],
-                 time: str | None, trajectory: str | None, chunk_rows: int) -> None:
+                 time: str | None, trajectory: str | None, chunk_rows: int,
+                 progress: Callable[[str], None] | None) -> None:
         self.table, self.model, self.mapping = table, model, mapping
         self.time, self.trajectory, self.chunk_rows = time, trajectory, chunk_rows
+        self.progress = progress
         # Without a trajectory column the file is one trajectory, labelled 1.
         self.labels: dict[Any, int] = {} if trajectory else {1: 0}
 
-    def __iter__(self) -> Iterator[tuple[Records, int]]:
-        """Each chunk's records and the file row (0-based) of its first row."""
+    def rows(self, purpose: str) -> Iterator[tuple[Records, int]]:
+        """Each chunk's records and the file row (0-based) of its first row, in a pass for
+        `purpose` (what `progress` is told)."""
         name = self.table.name
         wanted = [self.mapping[v] for v in self.model.variables]
         extra = [c for c in (self.time, self.trajectory) if c is not None]
         row, previous, last_t, closed = 0, None, None, set()
         for chunk in self.table.chunks([*wanted, *extra], self.chunk_rows):
+            if self.progress is not None:
+                self.progress(f"{name}: {purpose}, from row {row + 1:,}")
             n = len(chunk[wanted[0]])
             X = np.column_stack([io.numeric_values(chunk[c], c, name, first_row=row + 1)
                                  for c in wanted])
@@ -105,7 +110,8 @@ class _Reader:
 def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: str | None,
              trajectory: str | None, format: str | None, fix: Mapping[str, float],
              method: str, weak_window: float | None, cov: str, level: float,
-             chunk_rows: int, refine: bool) -> FitResult:
+             chunk_rows: int, refine: bool,
+             progress: Callable[[str], None] | None) -> FitResult:
     """`hamid.api.fit` of one file, read in chunks of `chunk_rows` rows (see module);
     `refine`: whether ``auto`` may hold the records in memory for its refinement."""
     table = io.TableChunks(path, format=format)
@@ -117,7 +123,7 @@ def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: 
     traj_col = api._optional_column(table.columns, trajectory,
                                     io.default_trajectory_column(table.columns),
                                     "--trajectory", table.name)
-    reader = _Reader(table, m, mapping, time_col, traj_col, chunk_rows)
+    reader = _Reader(table, m, mapping, time_col, traj_col, chunk_rows, progress)
     names = list(m.parameters)
     fixed = api._check_fixed(fix, tuple(names))
     free = [k for k, name in enumerate(names) if name not in fixed]
@@ -150,7 +156,7 @@ def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: 
             records = _whole(reader, int(fitted.sizes.sum()))
             refinement, refinement_info = api._refine(
                 m, records, design.Damping((), m.coordinates), free, fixed_values,
-                fitted.theta, scales, window, None, "measured")
+                fitted.theta, scales, window, None, "measured", progress)
             del records
             if refinement is not None:
                 fitted = _refined(reader, energy_rows, fitted, refinement)
@@ -221,7 +227,7 @@ def _whole(reader: _Reader, n_samples: int) -> Records:
     X = np.empty((n_samples, len(reader.model.variables)))
     t = np.empty(n_samples)
     group = np.empty(n_samples, dtype=np.int64)
-    for records, row in reader:
+    for records, row in reader.rows("records for the trajectory fit"):
         rows = slice(row, row + len(records.group))
         X[rows], t[rows], group[rows] = records.X, records.t, records.group
     return Records(X, t, group, reader.label_tuple())
@@ -251,7 +257,7 @@ def _summarised(reader: _Reader, energy_rows: Any, fitted: _Fit) -> _Fit:
 def _residual_sums(reader: _Reader, energy_rows: Any, theta: Any,
                    h: Any) -> api._ResidualSums:
     residuals = api._ResidualSums(h)
-    for records, row in reader:
+    for records, row in reader.rows("residual summary"):
         block = energy_rows(records, row)
         residuals.add(block, block.A @ theta - block.b - h[block.group])
     return residuals
@@ -287,7 +293,7 @@ def _scales(reader: _Reader, m: Model) -> list[tuple[float | None, float]]:
                 Records(X, t, np.zeros(len(t), np.int64), (0,)), N))
             held.clear()
 
-    for records, _ in reader:
+    for records, _ in reader.rows("periods of the trajectories"):
         for j, start, stop in design.runs(records.group):
             if held and held[-1].group[0] != j:
                 finish()
@@ -300,7 +306,7 @@ def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> _F
     """The energy method in three passes: factor, residuals and bandwidth, meat."""
     p = len(names)
     factor = solve.Factor(p, 0)
-    for records, row in reader:
+    for records, row in reader.rows("energy rows"):
         factor.add(energy_rows(records, row))
     J = len(reader.labels)
     factor.grow(J)
@@ -313,7 +319,7 @@ def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> _F
     residuals = api._ResidualSums(h)
 
     def score_pass(sums: uncertainty.ScoreSums, summarise: bool) -> uncertainty.ScoreSums:
-        for records, row in reader:
+        for records, row in reader.rows("standard errors"):
             block = energy_rows(records, row)
             r = block.A @ theta - block.b - h[block.group]
             if summarise:
@@ -367,7 +373,7 @@ def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: fl
         held.records = _records_slice(held.records, keep, None)
         held.rows = _block_slice(held.rows, keep, None)
 
-    for records, row in reader:
+    for records, row in reader.rows("window rows"):
         rows = energy_rows(records, row)
         for j, start, stop in design.runs(records.group):
             piece, piece_rows = (_records_slice(records, start, stop),

@@ -18,6 +18,7 @@ complement), so the work grows linearly with the record.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -162,7 +163,8 @@ def _segments(records: Records, t: npt.NDArray[np.float64],
 
 
 def refine(model: Model, records: Records, damping: Damping, theta_all: npt.ArrayLike,
-           free: list[int], period: float, weight: npt.NDArray[np.float64]) -> Refinement:
+           free: list[int], period: float, weight: npt.NDArray[np.float64],
+           progress: Callable[[str], None] | None = None) -> Refinement:
     """Parameters whose integrated segments fit the recording best (module docstring).
 
     `theta_all` holds every parameter (fixed ones at their values) and starts the search;
@@ -170,13 +172,14 @@ def refine(model: Model, records: Records, damping: Damping, theta_all: npt.Arra
     for a variable that carries no independent information, e.g. derived velocities).
     Segments of four periods are tried first and halved while the misfit per degree of
     freedom stays above CHI2_LIMIT or the integration fails; raises RefinementFailed when
-    even one period does not fit.
+    even one period does not fit. `progress`, if given, hears of every batch of segments
+    integrated.
     """
     periods = SEGMENT_PERIODS
     while True:
         try:
             result = _fit_segments(model, records, damping, np.asarray(theta_all, float),
-                                   free, periods * period, weight)
+                                   free, periods * period, weight, progress)
         except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
             failure = f"{exc}"
         else:
@@ -195,7 +198,8 @@ class _SegmentFitFailed(Exception):
 
 def _fit_segments(model: Model, records: Records, damping: Damping,
                   theta_all: npt.NDArray[np.float64], free: list[int], length: float,
-                  weight: npt.NDArray[np.float64]) -> Refinement:
+                  weight: npt.NDArray[np.float64],
+                  progress: Callable[[str], None] | None) -> Refinement:
     """Gauss-Newton over the free parameters and every segment's initial state."""
     assert records.t is not None
     t = records.t
@@ -218,13 +222,19 @@ def _fit_segments(model: Model, records: Records, damping: Damping,
     rtol = LOOSE_RTOL
     damping_factor, best, converged = 0.0, None, False
     iterations = 0
+
+    def batch_done(done: int) -> None:   # during iteration number iterations + 1
+        if progress is not None:
+            progress(f"trajectory fit over segments of {length:.3g} s: iteration "
+                     f"{iterations + 1}, {done:,} of {len(pieces):,} segments")
+
     with np.errstate(all="ignore"):
         for _ in range(MAX_ITERATIONS):
             free_theta = theta[free]
             theta_step = STEP * np.maximum(np.abs(free_theta), 1e-3 * np.abs(free_theta).max())
             theta_step[theta_step == 0] = STEP   # every start at zero: no scale to go by
             normal = _normal_equations(dynamics, tau, measured, theta, X0, free, x_step,
-                                       theta_step, weight, rtol, resolution)
+                                       theta_step, weight, rtol, resolution, batch_done)
             if best is not None and normal.cost > best[0].cost * (1 + 1e-12):
                 # the step made it worse: return to the best point and damp the step
                 normal, theta, X0 = best
@@ -284,13 +294,15 @@ class _Normal:
 
 def _normal_equations(dynamics: _Dynamics, tau: list[Any], measured: list[Any],
                       theta: Any, X0: Any, free: list[int], x_step: Any, theta_step: Any,
-                      weight: Any, rtol: float, resolution: float) -> _Normal:
+                      weight: Any, rtol: float, resolution: float,
+                      batch_done: Callable[[int], None]) -> _Normal:
     """Residuals and forward-difference Jacobians of every segment, summed into _Normal.
 
     Each batch of segments is integrated as one system of 1 + 2N + p copies per segment
     (as is, each initial-state component perturbed, each free parameter perturbed); the
     copies share the adaptive steps, so their differences carry almost no integration error.
-    Sample times of the batch that differ by less than `resolution` are integrated to once.
+    Sample times of the batch that differ by less than `resolution` are integrated to once;
+    `batch_done` hears how many segments are done after each batch.
     """
     S, n_states, p = len(tau), X0.shape[1], len(free)
     copies = 1 + n_states + p
@@ -338,6 +350,7 @@ def _normal_equations(dynamics: _Dynamics, tau: list[Any], measured: list[Any],
             g_x[s] = g[:n_states]
             H_tt += H[n_states:, n_states:]
             g_t += g[n_states:]
+        batch_done(lo + B)
     return _Normal(cost, H_tt, g_t, H_xx, H_xt, g_x)
 
 

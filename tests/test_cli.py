@@ -879,3 +879,36 @@ def test_fit_noise_options_reach_the_report(runner, tmp_path):
     assert_ok(derived)
     data = json.loads(derived.stdout)["data"]
     assert data["velocity_source"] == "savgol" and data["velocity_window"] == 9
+
+
+def test_fit_status_line_only_on_a_terminal(runner, simulated_duffing, monkeypatch):
+    """Piped or redirected, standard error gets no status line; on a terminal, the fit's
+    steps reach rich's status line, and it is stopped at the end."""
+    import hamid.cli
+
+    done = invoke(runner, ["fit", "-", "--format", "json"], input=simulated_duffing)
+    assert_ok(done)
+    assert "fitting" not in done.stderr
+
+    shown: list[str] = []
+
+    class Status:
+        def start(self):
+            shown.append("started")
+
+        def update(self, text):
+            shown.append(text)
+
+        def stop(self):
+            shown.append("stopped")
+
+    class Console:
+        def status(self, label):
+            shown.append(label)
+            return Status()
+
+    monkeypatch.setattr(hamid.cli, "_stderr_console", Console)
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
+    with hamid.cli._status("fitting") as status:
+        status("step 1")
+    assert shown == ["fitting", "started", "fitting: step 1", "stopped"]

@@ -146,6 +146,31 @@ def test_a_file_read_in_chunks_is_refined_like_one_in_memory(clean_records, monk
                                                 rel=1e-10)
 
 
+def test_progress_hears_every_pass_and_every_batch(clean_records, monkeypatch, tmp_path):
+    frame = with_noise(clean_records["duffing"], 0.02, seed=3)
+    path = str(tmp_path / "duffing.parquet")
+    io.write_table(frame, path, metadata=frame.attrs["hamid"])
+    monkeypatch.setattr(api, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
+    heard: list[str] = []
+    result = hamid.fit(path, progress=heard.append)
+    stages = ["periods of the trajectories", "window rows", "records for the trajectory fit",
+              "trajectory fit over segments", "residual summary"]
+    first = [next(i for i, text in enumerate(heard) if stage in text) for stage in stages]
+    assert first == sorted(first)
+    assert all(text.startswith(f"{path}: ") for text in heard if "from row" in text)
+    refinement = result.method["refinement"]
+    length, segments = refinement["segment_seconds"], refinement["segments"]
+    ends = [text for text in heard if text.startswith(f"trajectory fit over segments of "
+                                                       f"{length:.3g} s") and
+            text.endswith(f"{segments:,} of {segments:,} segments")]
+    assert ends == [f"trajectory fit over segments of {length:.3g} s: iteration {k}, "
+                    f"{segments:,} of {segments:,} segments"
+                    for k in range(1, refinement["iterations"] + 1)]
+    in_memory: list[str] = []
+    hamid.fit(frame, progress=in_memory.append)
+    assert in_memory and all(text.startswith("trajectory fit") for text in in_memory)
+
+
 def test_standard_errors_match_the_spread_over_realizations(clean_records):
     """Duffing at 1% noise, 16 realizations: the reported errors are the real spread."""
     fits = [hamid.fit(with_noise(clean_records["duffing"], 0.01, seed)) for seed in range(16)]
