@@ -150,10 +150,11 @@ def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: 
             fitted = _energy(reader, energy_rows, free_names, cov)
     refinement_info = None
     if method == "auto" and kind == "joint":
+        n_samples = int(fitted.sizes.sum())
         reason = api._refinement_obstacle(cov, False, ()) or _refinement_memory(
-            refine, int(fitted.sizes.sum()), m)
+            refine, n_samples, m)
         if reason is None:
-            records = _whole(reader, int(fitted.sizes.sum()))
+            records = _whole(reader, n_samples)
             refinement, refinement_info = api._refine(
                 m, records, design.Damping((), m.coordinates), free, fixed_values,
                 fitted.theta, scales, window, None, "measured", progress)
@@ -345,7 +346,7 @@ def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> _F
     cond = solve.factor_conditioning(factor, names, reader.label_tuple())
     h_stderr = np.sqrt(np.clip(api._level_variance(c, means_A), 0, None))
     return _Fit(theta, c.theta, c.description, c.df, h, h_stderr, stats, cond, None, None,
-                   residuals.n.astype(np.int64))
+                residuals.n.astype(np.int64))
 
 
 def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: float,
@@ -416,9 +417,9 @@ def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: fl
     block_stats, cond, block_conditions = api._block_report(
         blocks, estimate.residual, names, reader.label_tuple())
     return _Fit(theta, c.theta, c.description, c.df, h, h_stderr, None, cond,
-                   block_conditions, block_variance,
-                   np.array([totals[j][-1] for j in range(J)], dtype=np.int64),
-                   block_stats=block_stats, energy_means=energy_means)
+                block_conditions, block_variance,
+                np.array([totals[j][-1] for j in range(J)], dtype=np.int64),
+                block_stats=block_stats, energy_means=energy_means)
 
 
 @dataclasses.dataclass
