@@ -278,7 +278,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                     theta_cov, cov_text, estimate, blocks, m, records, sigma, free,
                     fixed_values, spans, dissipation)
             h_var = _level_variance(c, estimate.centred.level_means_A)
-        h, h_stderr = _fitted_levels(kind, estimate, h_var,
+        h, h_stderr = _fitted_levels(kind, estimate.theta, estimate.h, h_var,
                                      lambda: solve.level_means(energy_rows, J)[:2])
     energy_residual = energy_rows.A @ theta - energy_rows.b - h[energy_rows.group]
     sums = _ResidualSums(h)
@@ -313,7 +313,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         samples=samples)
 
 
-def _fitted_levels(kind: str, estimate: _Estimate, h_var: Any,
+def _fitted_levels(kind: str, theta: Any, fitted_h: Any, h_var: Any,
                    energy_means: Callable[[], tuple[Any, Any]]) -> tuple[Any, Any]:
     """Energy levels of a linear fit and their standard errors.
 
@@ -322,15 +322,15 @@ def _fitted_levels(kind: str, estimate: _Estimate, h_var: Any,
     `energy_means` gives the means of A and b of each trajectory's energy rows, asked for
     only then.
     """
-    J = len(estimate.h)
+    J = len(fitted_h)
     h_stderr = np.full(J, np.nan) if kind == "weak" else np.sqrt(np.clip(h_var, 0, None))
-    if kind != "weak" and not np.any(np.isnan(estimate.h)):
-        return estimate.h, h_stderr
+    if kind != "weak" and not np.any(np.isnan(fitted_h)):
+        return fitted_h, h_stderr
     means_A, means_b = energy_means()
-    mean_energy = means_A @ estimate.theta - means_b
+    mean_energy = means_A @ theta - means_b
     if kind == "weak":
         return mean_energy, h_stderr
-    return np.where(np.isnan(estimate.h), mean_energy, estimate.h), h_stderr
+    return np.where(np.isnan(fitted_h), mean_energy, fitted_h), h_stderr
 
 
 def _refined_level_errors(means_A: Any, theta_cov: Any, residuals: _ResidualSums) -> Any:
@@ -709,16 +709,10 @@ def _covariance(cov: str, fit: _Estimate, units: Any, unit_group: Any) -> Any:
 
 def _balance_blocks(blocks: list[Block], names: list[str], J: int, units: Any,
                     unit_group: Any) -> tuple[list[Block], dict[str, float] | None]:
-    """Weight the blocks of a joint fit against each other.
+    """Weight the blocks of a joint fit against each other (`_balanced_ratio`).
 
     The starting point is feasible GLS: each block's row weights scaled by the inverse of
-    its weighted residual variance from a fit of that block alone. Rows of overlapping
-    windows are correlated, and differently in the two blocks, so that guess can be far
-    from best; the final ratio is the one, on a grid of half decades around it, that
-    minimises the determinant of the robust (``hac``) covariance of the parameters, which
-    does not depend on their units. The search walks down the whole decades from the
-    guess (ratio 1), then tries the half decades beside the lowest: on every test system
-    the decades' spreads fall to one minimum, which a walk finds with a third of the fits.
+    its weighted residual variance from a fit of that block alone.
     """
     import dataclasses
 
@@ -739,9 +733,23 @@ def _balance_blocks(blocks: list[Block], names: list[str], J: int, units: Any,
 
     def spread(ratio: float) -> float:
         fit = _least_squares(weighted(ratio), names, J)
-        sign, logdet = np.linalg.slogdet(_covariance("hac", fit, units, unit_group).theta)
-        return logdet if sign > 0 else np.inf
+        return _log_spread(_covariance("hac", fit, units, unit_group).theta)
 
+    best = _balanced_ratio(spread)
+    return weighted(best), _balanced_variance(variance, first.kind, best)
+
+
+def _balanced_ratio(spread: Callable[[float], float]) -> float:
+    """The weight of the first block against the others (each already divided by its
+    residual variance) that minimises `spread`, the log-determinant of the parameters'
+    robust (``hac``) covariance at that ratio, which does not depend on their units.
+
+    Rows of overlapping windows are correlated, and differently in the two blocks, so
+    the variance guess (ratio 1) can be far from best. The ratio is chosen on a grid of
+    half decades: the search walks down the whole decades from the guess, then tries the
+    half decades beside the lowest. On every test system the decades' spreads fall to one
+    minimum, which a walk finds with a third of the fits.
+    """
     spreads: dict[float, float] = {}
 
     def at(exponent: float) -> float:
@@ -760,9 +768,19 @@ def _balance_blocks(blocks: list[Block], names: list[str], J: int, units: Any,
     for half in (exponent - 0.5, exponent + 0.5):
         if abs(half) < 4:
             at(half)
-    best = 10.0 ** min(spreads, key=spreads.__getitem__)
-    return weighted(best), {k: v / (best if k == first.kind else 1.0)
-                            for k, v in variance.items()}
+    return 10.0 ** min(spreads, key=spreads.__getitem__)
+
+
+def _log_spread(covariance: Any) -> float:
+    """log det of a covariance; infinite when it is not positive definite."""
+    sign, logdet = np.linalg.slogdet(covariance)
+    return logdet if sign > 0 else np.inf
+
+
+def _balanced_variance(variance: dict[str, float], first: str,
+                      ratio: float) -> dict[str, float]:
+    """Each block's residual variance as its weight in the balanced fit implies."""
+    return {k: v / (ratio if k == first else 1.0) for k, v in variance.items()}
 
 
 _TINY = 1e-300

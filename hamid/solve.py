@@ -135,6 +135,36 @@ class Factor:
             self.level[j] = _stack_qr(self.level[j],
                                       np.column_stack([sw[start:stop], rows[start:stop]]))
 
+    def scaled(self, scale: float) -> Factor:
+        """The factor of the same rows with every weight multiplied by `scale`."""
+        root = np.sqrt(scale)
+        copy = Factor(self.p, len(self.level))
+        copy.level = [None if R is None else root * R for R in self.level]
+        copy.free = None if self.free is None else root * self.free
+        copy.weighted_A, copy.weighted_b = scale * self.weighted_A, scale * self.weighted_b
+        copy.total_weight = scale * self.total_weight
+        copy.raw_squares = scale * self.raw_squares
+        copy.n_rows = self.n_rows
+        return copy
+
+    @staticmethod
+    def joined(factors: Sequence[Factor]) -> Factor:
+        """The factor of the rows of all `factors` (of as many trajectories) together."""
+        first = factors[0]
+        whole = Factor(first.p, len(first.level))
+        for factor in factors:
+            whole.level = [R if S is None else S if R is None else _stack_qr(R, S)
+                           for R, S in zip(whole.level, factor.level, strict=True)]
+            if factor.free is not None:
+                whole.free = factor.free if whole.free is None else _stack_qr(whole.free,
+                                                                              factor.free)
+            whole.weighted_A = whole.weighted_A + factor.weighted_A
+            whole.weighted_b = whole.weighted_b + factor.weighted_b
+            whole.total_weight = whole.total_weight + factor.total_weight
+            whole.raw_squares = whole.raw_squares + factor.raw_squares
+            whole.n_rows += factor.n_rows
+        return whole
+
     @property
     def level_means(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """Weighted means of A and b in each trajectory (NaN for one without level rows)."""

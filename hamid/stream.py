@@ -8,9 +8,11 @@ Every pass reads the file again, chunk by chunk (Parquet batches, blocks of CSV 
   takes a third, with the bandwidth found in the second.
 - ``weak`` and ``joint``: the first pass finds each trajectory's period and time step,
   the second builds the window rows, carrying each trajectory's unfinished windows into
-  the next chunk; the window rows (one per window and coordinate, a small fraction of the
-  samples) are then fitted in memory as `hamid.api.fit` does, and a last pass gives the
-  residual summary of the energy rows.
+  the next chunk, and writes them to a temporary file (one record per window: its energy
+  row in joint and its weak rows). The fit then passes over that file: one pass gives
+  each block's triangular factors, which give the estimates at any balance of the blocks;
+  each covariance the balance tries takes two more (``hac``: bandwidth, then meat). A last
+  pass over the data file gives the residual summary of the energy rows.
 - ``auto`` (joint), unless `--chunk-rows` asked for bounded memory: a pass gathers the
   records (times, states, trajectory numbers; 8 bytes a value, a small part of what a fit
   in memory holds) for the trajectory refinement, and the residual pass is taken at the
@@ -352,9 +354,12 @@ def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> _F
 def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: float,
               method: str, weak_window: float | None, free: list[int], fixed_values: Any,
               names: list[str], cov: str) -> _Fit | str:
-    """Weak and joint fits: window rows built chunk by chunk, then fitted in memory; the
-    reason to fall back to the energy rows when there are too few windows for `auto`."""
-    means, weak = [], []
+    """Weak and joint fits: window rows built chunk by chunk into a temporary file, then
+    fitted in passes over it (`_fit_windows`); the reason to fall back to the energy rows
+    when there are too few windows for `auto`."""
+    N = len(m.coordinates)
+    layout = ([("energy", 1, True)] if kind == "joint" else []) + [("weak", N, False)]
+    store = _WindowRows(layout, len(free))
     totals: dict[int, np.ndarray] = {}   # sums of A, b and the count of each trajectory
     held: _Held | None = None
 
@@ -364,62 +369,251 @@ def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: fl
         if len(first):
             spans = design.windows_at(held.records, first, last,
                                       np.full(len(first), held.j), window)
-            if kind == "joint":
-                means.append(design.window_means(held.rows, spans))
-            weak.append(api._hold_fixed(design.weak_block(m, held.records, spans), free,
-                                        fixed_values))
+            weak = api._hold_fixed(design.weak_block(m, held.records, spans), free,
+                                   fixed_values)
+            store.append([design.window_means(held.rows, spans), weak] if kind == "joint"
+                         else [weak])
         # Keep the samples from the first sample of the next window on.
         keep = int(np.searchsorted(held.records.t, held.origin + held.next * window
                                    * design.WINDOW_STEP))
         held.records = _records_slice(held.records, keep, None)
         held.rows = _block_slice(held.rows, keep, None)
 
-    for records, row in reader.rows("window rows"):
-        rows = energy_rows(records, row)
-        for j, start, stop in design.runs(records.group):
-            piece, piece_rows = (_records_slice(records, start, stop),
-                                 _block_slice(rows, start, stop))
-            total = totals.setdefault(j, np.zeros(rows.A.shape[1] + 2))
-            total += np.r_[piece_rows.A.sum(axis=0), piece_rows.b.sum(), stop - start]
-            if held is not None and held.j != j:
-                emit(held, ended=True)
-                held = None
-            if held is None:
-                held = _Held(j, float(piece.t[0]), 0, piece, piece_rows)
-            else:
-                held.records = Records(np.vstack([held.records.X, piece.X]),
-                                       np.concatenate([held.records.t, piece.t]),
-                                       np.concatenate([held.records.group, piece.group]), ())
-                held.rows = _concatenate([held.rows, piece_rows])
-            emit(held, ended=False)
-    if held is not None:
-        emit(held, ended=True)
-    J = len(reader.labels)
-    n_windows = sum(b.n_rows for b in weak) // len(m.coordinates)
-    needed = len(free) + (J if kind == "joint" else 0) + 1
-    if n_windows < needed:
-        shortage = (f"the records hold {n_windows} weak-form windows of {window:.3g} s, "
-                    f"fewer than the {needed} that {needed - 1} unknowns need")
-        if method == "auto" and weak_window is None:
-            return f"{shortage}; fitted the energy rows"
-        raise FitError(f"cannot determine {', '.join(names)}: {shortage}; use "
+    with store:
+        for records, row in reader.rows("window rows"):
+            rows = energy_rows(records, row)
+            for j, start, stop in design.runs(records.group):
+                piece, piece_rows = (_records_slice(records, start, stop),
+                                     _block_slice(rows, start, stop))
+                total = totals.setdefault(j, np.zeros(rows.A.shape[1] + 2))
+                total += np.r_[piece_rows.A.sum(axis=0), piece_rows.b.sum(), stop - start]
+                if held is not None and held.j != j:
+                    emit(held, ended=True)
+                    held = None
+                if held is None:
+                    held = _Held(j, float(piece.t[0]), 0, piece, piece_rows)
+                else:
+                    held.records = Records(np.vstack([held.records.X, piece.X]),
+                                           np.concatenate([held.records.t, piece.t]),
+                                           np.concatenate([held.records.group, piece.group]),
+                                           ())
+                    held.rows = _concatenate([held.rows, piece_rows])
+                emit(held, ended=False)
+        if held is not None:
+            emit(held, ended=True)
+        J = len(reader.labels)
+        needed = len(free) + (J if kind == "joint" else 0) + 1
+        if store.n_windows < needed:
+            shortage = (f"the records hold {store.n_windows} weak-form windows of "
+                        f"{window:.3g} s, fewer than the {needed} that {needed - 1} unknowns "
+                        "need")
+            if method == "auto" and weak_window is None:
+                return f"{shortage}; fitted the energy rows"
+            raise FitError(f"cannot determine {', '.join(names)}: {shortage}; use "
                            "--method energy or a shorter --weak-window")
-    blocks = ([_concatenate(means)] if kind == "joint" else []) + [_concatenate(weak)]
-    units, unit_group = api._resampling_units(blocks, kind)
-    blocks, block_variance = api._balance_blocks(blocks, names, J, units, unit_group)
-    estimate = api._least_squares(blocks, names, J)
-    theta = estimate.theta
-    c = api._covariance(cov, estimate, units, unit_group)
-    energy_means = np.array([totals[j][:-1] / totals[j][-1] for j in range(J)])
-    h, h_stderr = api._fitted_levels(
-        kind, estimate, api._level_variance(c, estimate.centred.level_means_A),
-        lambda: (energy_means[:, :-1], energy_means[:, -1]))
-    block_stats, cond, block_conditions = api._block_report(
-        blocks, estimate.residual, names, reader.label_tuple())
-    return _Fit(theta, c.theta, c.description, c.df, h, h_stderr, None, cond,
-                block_conditions, block_variance,
-                np.array([totals[j][-1] for j in range(J)], dtype=np.int64),
-                block_stats=block_stats, energy_means=energy_means)
+        sizes = np.array([totals[j][-1] for j in range(J)], dtype=np.int64)
+        energy_means = np.array([totals[j][:-1] / totals[j][-1] for j in range(J)])
+        return _fit_windows(store, kind, names, reader.label_tuple(), cov, sizes,
+                            energy_means)
+
+
+class _WindowRows:
+    """The rows of a weak or joint fit in a temporary file, a record per window: the rows
+    of each block it has in the window (`layout`: kind, rows per window, has a level),
+    each row A, b and weight, then the window's trajectory and time. The fit reads them
+    back a chunk of windows at a time, so that memory does not grow with the file."""
+
+    CHUNK_WINDOWS = 1 << 14
+
+    def __init__(self, layout: list[tuple[str, int, bool]], p: int) -> None:
+        self.layout, self.p = layout, p
+        self.width = sum(rows for _, rows, _ in layout) * (p + 2) + 2
+        self.n_windows = 0
+        self.file: Any = None
+
+    def __enter__(self) -> _WindowRows:
+        import tempfile
+
+        self.file = tempfile.TemporaryFile()
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.file.close()
+
+    def append(self, blocks: list[Block]) -> None:
+        """The rows of the same windows, one block per entry of the layout."""
+        n = blocks[0].n_rows // self.layout[0][1]
+        record = np.empty((n, self.width))
+        column = 0
+        for block, (_, rows, _) in zip(blocks, self.layout, strict=True):
+            width = rows * (self.p + 2)
+            record[:, column:column + width] = np.column_stack(
+                [block.A, block.b, block.weight]).reshape(n, width)
+            column += width
+        first = self.layout[0][1]
+        record[:, -2], record[:, -1] = blocks[0].group[::first], blocks[0].time[::first]
+        self.file.write(record.data)
+        self.n_windows += n
+
+    def chunks(self) -> Iterator[tuple[list[Block], np.ndarray]]:
+        """Each chunk's blocks, as the layout lists them, and the trajectory of each window."""
+        self.file.seek(0)
+        left, p = self.n_windows, self.p
+        while left:
+            n = min(left, self.CHUNK_WINDOWS)
+            record = np.empty((n, self.width))
+            self.file.readinto(record.data)
+            left -= n
+            group, time = record[:, -2].astype(np.int64), record[:, -1]
+            blocks, column = [], 0
+            for kind, rows, has_level in self.layout:
+                values = record[:, column:column + rows * (p + 2)].reshape(n * rows, p + 2)
+                column += rows * (p + 2)
+                blocks.append(Block(kind, values[:, :p], values[:, p], np.repeat(group, rows),
+                                    np.repeat(time, rows), values[:, p + 1], has_level))
+            yield blocks, group
+
+
+def _fit_windows(store: _WindowRows, kind: str, names: list[str],
+                 labels: tuple[Any, ...], cov: str, sizes: np.ndarray,
+                 energy_means: np.ndarray) -> _Fit:
+    """The fit of the stored window rows as `hamid.api.fit` makes it of the same rows in
+    memory: the blocks' triangular factors from one pass give the estimates for any
+    balance of the blocks, and each covariance takes one pass (two for ``hac``)."""
+    p, J = len(names), len(labels)
+    factors = [solve.Factor(p, J) for _ in store.layout]
+    squares = np.zeros(len(store.layout))   # sum w b^2 of each block
+    for blocks, _ in store.chunks():
+        for k, (factor, block) in enumerate(zip(factors, blocks, strict=True)):
+            factor.add(block)
+            squares[k] += block.weight @ block.b**2
+    has_levels = kind == "joint"
+
+    def solved(scales: list[float]) -> tuple[solve.Factor, solve.Solution]:
+        joined = solve.Factor.joined([f.scaled(c) for f, c in zip(factors, scales,
+                                                                  strict=True)])
+        return joined, solve.solve_factor(joined.centred(), np.sqrt(joined.raw_squares),
+                                          joined.n_rows, names,
+                                          n_levels=J if has_levels else 0)
+
+    fits: dict[float, _WindowFit] = {}   # the hac fit at each ratio the balance tried
+    if len(factors) == 1:
+        ratio, scales, block_variance = None, [1.0], None
+    else:
+        variance = {}   # each block's mean w r^2 in a fit of its own (api._balance_blocks)
+        for (block_kind, _, level), factor, square in zip(store.layout, factors, squares,
+                                                           strict=True):
+            R = factor.centred()
+            try:
+                solve.solve_factor(R, np.sqrt(factor.raw_squares), factor.n_rows, names,
+                                   n_levels=J if level else 0)
+                residual = R[p, p] ** 2 if R.shape[0] > p else 0.0
+            except FitError:
+                residual = square
+            variance[block_kind] = max(float(residual) / factor.n_rows, api._TINY)
+        kinds = [block_kind for block_kind, _, _ in store.layout]
+
+        def ratio_scales(ratio: float) -> list[float]:
+            return [ratio / variance[kinds[0]], *(1 / variance[k] for k in kinds[1:])]
+
+        def spread(ratio: float) -> float:
+            fits[ratio] = _window_fit(store, *solved(ratio_scales(ratio)), ratio_scales(ratio),
+                                      "hac", names, J)
+            return api._log_spread(fits[ratio].covariance.theta)
+
+        ratio = api._balanced_ratio(spread)
+        scales, block_variance = ratio_scales(ratio), api._balanced_variance(variance,
+                                                                             kinds[0], ratio)
+    joined, solution = solved(scales)
+    fit = fits.get(ratio) if cov == "hac" else None
+    if fit is None:
+        fit = _window_fit(store, joined, solution, scales, cov, names, J)
+    c = fit.covariance
+    means_A = joined.level_means[0]
+    h, h_stderr = api._fitted_levels(kind, solution.theta, fit.h, api._level_variance(c, means_A),
+                                     lambda: (energy_means[:, :-1], energy_means[:, -1]))
+    block_stats = {block_kind: {"n_rows": int(n), "rms": float(np.sqrt(square / n)),
+                                "max_abs": float(largest)}
+                   for (block_kind, _, _), (n, square, largest) in zip(
+                       store.layout, fit.residuals, strict=True)}
+    cond = solve.factor_conditioning(joined, names, labels)
+    each = ({block_kind: solve.factor_conditioning(factor, names, labels).condition_number
+             for (block_kind, _, _), factor in zip(store.layout, factors, strict=True)}
+            if len(factors) > 1 else None)
+    return _Fit(solution.theta, c.theta, c.description, c.df, h, h_stderr, None, cond, each,
+                block_variance, sizes, block_stats=block_stats, energy_means=energy_means)
+
+
+@dataclasses.dataclass(frozen=True)
+class _WindowFit:
+    """A covariance of the stored window rows' fit, its levels, and the number of rows,
+    sum of squared residuals and largest residual of each block."""
+
+    covariance: uncertainty.Covariance
+    h: np.ndarray
+    residuals: list[tuple[int, float, float]]
+
+
+def _window_fit(store: _WindowRows, joined: solve.Factor, solution: solve.Solution,
+                scales: list[float], cov: str, names: list[str], J: int) -> _WindowFit:
+    """The covariance of kind `cov` of the fit `solution` of the stored rows weighted by
+    `scales` (`hamid.api._covariance`: ``hac`` on the series of each window's summed
+    scores)."""
+    p = len(names)
+    theta, inverse = solution.theta, solution.inverse
+    means_A, means_b = joined.level_means
+    h = means_A @ theta - means_b
+    has_levels = any(level for _, _, level in store.layout)
+    fitted = p + (J if has_levels else 0)
+    by_window = cov == "hac"
+
+    def scored(sums: uncertainty.ScoreSums) -> list[tuple[int, float, float]]:
+        residuals = [(0, 0.0, 0.0)] * len(store.layout)
+        for blocks, group in store.chunks():
+            window_scores = np.zeros((len(group), p + 1))
+            for k, (block, scale) in enumerate(zip(blocks, scales, strict=True)):
+                w = scale * block.weight
+                r = block.A @ theta - block.b
+                if block.has_level:
+                    r -= h[block.group]
+                    G = w[:, None] * ((block.A - means_A[block.group]) @ inverse)
+                    lam = w / joined.total_weight[block.group]
+                else:
+                    G, lam = w[:, None] * (block.A @ inverse), np.zeros(len(w))
+                z = np.column_stack([G, lam])
+                n, square, largest = residuals[k]
+                residuals[k] = (n + len(r), square + float(r @ r),
+                                max(largest, float(np.max(np.abs(r)))))
+                if by_window:
+                    window_scores += (z * r[:, None]).reshape(len(group), -1, p + 1).sum(axis=1)
+                else:
+                    for j, start, stop in design.runs(block.group):
+                        sums.add(j, z[start:stop], r[start:stop], w[start:stop])
+            if by_window:
+                for j, start, stop in design.runs(group):
+                    sums.add(j, window_scores[start:stop], np.ones(stop - start),
+                             np.ones(stop - start))
+                    if stop < len(group):   # the trajectory ended inside this chunk
+                        sums.close(j)
+        return residuals
+
+    sums = uncertainty.ScoreSums(cov, p, J)
+    residuals = scored(sums)
+    automatic = sums.needs_bandwidth
+    if automatic:
+        sums = uncertainty.ScoreSums(cov, p, J, sums.andrews_bandwidth())
+        scored(sums)
+    n_rows = sum(n for n, _, _ in residuals)
+    df = store.n_windows - fitted if by_window else n_rows - fitted
+    c = sums.covariance(df, automatic=automatic)
+    if by_window:
+        c = dataclasses.replace(c, description=c.description + uncertainty.UNITS_NOTE.format(
+            n=store.n_windows))
+    absent = sums.sizes == 0   # trajectories too short for any window
+    if np.any(absent):
+        c = dataclasses.replace(c, level=np.where(absent, np.nan, c.level),
+                                theta_level=np.where(absent[:, None], np.nan, c.theta_level))
+    return _WindowFit(c, h, residuals)
 
 
 @dataclasses.dataclass

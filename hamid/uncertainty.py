@@ -49,6 +49,7 @@ __all__ = [
     "ESTIMATORS",
     "Covariance",
     "ScoreSums",
+    "UNITS_NOTE",
     "bartlett_bandwidth",
     "bootstrap",
     "confidence_bounds",
@@ -344,6 +345,8 @@ def _estimate(prob: _Problem, kind: str, bandwidth: int | None) -> _Estimate:
 
 
 ESTIMATORS = ("classical", "hc", "hac")
+# What a description adds when the scores of units of rows were summed first.
+UNITS_NOTE = ", on the summed scores of {n} units of rows"
 
 
 def _by_unit(prob: _Problem, units: npt.ArrayLike) -> _Problem:
@@ -440,7 +443,7 @@ def covariance(
 
     blocks, description, df = _estimate(prob, kind, bandwidth)
     if units is not None:
-        description += f", on the summed scores of {prob.n} units of rows"
+        description += UNITS_NOTE.format(n=prob.n)
     return _covariance(blocks, kind, description, df)
 
 

@@ -126,7 +126,12 @@ def test_a_file_read_in_chunks_is_refined_like_one_in_memory(clean_records, monk
     chunked = hamid.fit(path)
     assert chunked.samples is None and memory.samples is not None
     assert chunked.method["refinement"]["applied"] is True
-    assert chunked.method == memory.method
+    # the linear fits agree to rounding (the chunked one works from triangular factors)
+    rounded = ("block_variance", "refinement")
+    assert ({k: v for k, v in chunked.method.items() if k not in rounded}
+            == {k: v for k, v in memory.method.items() if k not in rounded})
+    for key in rounded:
+        assert chunked.method[key] == pytest.approx(memory.method[key], rel=1e-8)
     assert chunked.estimates == pytest.approx(memory.estimates, rel=1e-9)
     assert [p.stderr for p in chunked.parameters] == pytest.approx(
         [p.stderr for p in memory.parameters], rel=1e-6)
