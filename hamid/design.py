@@ -229,8 +229,17 @@ def median_period(scales: list[tuple[float | None, float]]) -> float | None:
     return float(np.median(periods)) if periods else None
 
 
+# The samples of each trajectory its period and time step are taken from. The padded
+# spectrum of a record of millions of samples would take gigabytes, and a file read in
+# chunks holds no more than these of a trajectory to find them. They hold a few periods
+# unless one spans over 50,000 samples (windows of 25,000 samples, far finer sampling
+# than the weak form needs).
+SCALE_SAMPLES = 1 << 18
+
+
 def trajectory_scales(records: Records, n_coordinates: int) -> list[tuple[float | None, float]]:
-    """Each trajectory's dominant period (None if it cannot tell) and median time step.
+    """Each trajectory's dominant period (None if it cannot tell) and median time step,
+    from its first `SCALE_SAMPLES` samples.
 
     The period is the peak of one power spectrum of the coordinates (standardised, so
     units do not matter, and zero-padded to refine the frequency grid).
@@ -238,7 +247,8 @@ def trajectory_scales(records: Records, n_coordinates: int) -> list[tuple[float 
     if records.t is None:
         return []
     scales = []
-    for start, stop in records.bounds():
+    for start, end in records.bounds():
+        stop = min(end, start + SCALE_SAMPLES)
         t = records.t[start:stop]
         step = float(np.median(np.diff(t))) if stop - start > 1 else np.inf
         q = records.X[start:stop, :n_coordinates]

@@ -282,10 +282,11 @@ def _model(table: io.TableChunks, model: Any, columns: Mapping[str, str] | None,
 
 
 def _scales(reader: _Reader, m: Model) -> list[tuple[float | None, float]]:
-    """Each trajectory's period and time step: its coordinates are held until it ends
-    (memory grows with the longest trajectory, not with the file)."""
+    """Each trajectory's period and time step, from the first samples of each that
+    `design.trajectory_scales` looks at, which are held until the trajectory ends."""
     scales: list[tuple[float | None, float]] = []
     held: list[Records] = []
+    kept = 0   # samples of the current trajectory held
     N = len(m.coordinates)
 
     def finish() -> None:
@@ -300,7 +301,11 @@ def _scales(reader: _Reader, m: Model) -> list[tuple[float | None, float]]:
         for j, start, stop in design.runs(records.group):
             if held and held[-1].group[0] != j:
                 finish()
-            held.append(_records_slice(records, start, stop))
+                kept = 0
+            stop = min(stop, start + design.SCALE_SAMPLES - kept)
+            if stop > start:
+                held.append(_records_slice(records, start, stop))
+                kept += stop - start
     finish()
     return scales
 

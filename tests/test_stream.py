@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from conftest import PENG, with_noise
 
 import hamid
-from hamid import api, io, stream
+from hamid import api, design, io, stream
 from hamid.cli import cli
 from hamid.errors import DataError, UsageError
 
@@ -122,6 +122,27 @@ def test_the_file_really_passes_in_many_chunks(noisy_files, monkeypatch):
     assert max(sizes) == 30 < window_samples
     assert sum(sizes) >= 3 * len(frame)   # three passes over the file
     _compare(hamid.fit(frame), streamed)
+
+
+def test_periods_from_the_first_samples_of_long_trajectories_stream(noisy_files,
+                                                                   monkeypatch):
+    """The period pass holds only the samples the period is found from: fewer than a
+    trajectory here, so the window differs from the whole trajectories' one."""
+    frame, paths = noisy_files
+    whole = hamid.fit(frame).method["weak_window"]
+    monkeypatch.setattr(design, "SCALE_SAMPLES", 150)
+    memory = hamid.fit(frame)
+    assert memory.method["weak_window"] != pytest.approx(whole, rel=1e-3)
+    held = []
+    scales = design.trajectory_scales
+
+    def counted(records, n_coordinates):
+        held.append(len(records.group))
+        return scales(records, n_coordinates)
+
+    monkeypatch.setattr(design, "trajectory_scales", counted)
+    _compare(memory, hamid.fit(paths["parquet"], chunk_rows=100))
+    assert held == [150] * frame.trajectory.nunique()
 
 
 def test_fixed_parameters_stream(noisy_files):

@@ -90,6 +90,21 @@ def test_window_is_half_the_dominant_period():
     assert result.method["weak_window"] == pytest.approx(np.pi / 2, rel=0.02)
 
 
+def test_the_period_comes_from_the_first_samples_of_a_long_trajectory(monkeypatch):
+    """A record whose first 4,000 samples oscillate with period 2 s and the next 12,000
+    with period 5 s: the whole record's spectrum peaks at 5 s, its start's at 2 s."""
+    t = np.arange(16_000) * 0.01
+    q = np.where(t < 40.0, np.sin(2 * np.pi * t / 2.0), np.sin(2 * np.pi * t / 5.0))
+    records = design.Records(np.column_stack([q, np.gradient(q, t)]), t,
+                             np.zeros(len(t), np.int64), (1,))
+    [(whole, step)] = design.trajectory_scales(records, 1)
+    monkeypatch.setattr(design, "SCALE_SAMPLES", 4_000)
+    [(start, start_step)] = design.trajectory_scales(records, 1)
+    assert whole == pytest.approx(5.0, rel=0.01)
+    assert start == pytest.approx(2.0, rel=0.01)
+    assert step == start_step == pytest.approx(0.01)
+
+
 def test_weak_window_can_be_set(clean_records):
     result = hamid.fit(clean_records["duffing"], method="joint", weak_window=2.0)
     assert result.method["weak_window"] == 2.0
