@@ -16,8 +16,9 @@ start-up and imports included) and its peak resident memory, the ratios to the b
 and checks that the energy estimates equal the baseline's to 1e-6; then the peak memory
 of chunked fits of the file and of one twice as long (the same trajectories again under
 new labels), both written in row groups of 2^18 rows (bounded memory: the ratio stays near
-1; the joint fit keeps its window rows, about one per 10-100 samples, so it grows a
-little).
+1), and of the joint fit of the file's trajectories put end to end as one trajectory
+(memory does not grow with a trajectory's length either; the joins are not physical, so
+its estimates are not checked).
 
     python tests/benchmarks/large_fit.py [--rows-per-trajectory 30000] [--repeat 2]
 """
@@ -155,13 +156,26 @@ def main() -> None:
         pq.write_table(table, whole, row_group_size=1 << 18)
         again = table.set_column(0, "trajectory", pc.add(table["trajectory"], 100))
         pq.write_table(pa.concat_tables([table, again]), double, row_group_size=1 << 18)
-        del table, again
+        times = table["t"].to_numpy()
+        span = float(times.max() - times.min()) + float(times[1] - times[0])
+        trajectory = table["trajectory"].to_numpy()
+        end_to_end = table.set_column(1, "t", pa.array(times + span * (trajectory - 1)))
+        end_to_end = end_to_end.set_column(0, "trajectory", pa.array(
+            [1] * len(trajectory), pa.int64()))
+        single = os.path.join(folder, "single.parquet")
+        pq.write_table(end_to_end, single, row_group_size=1 << 18)
+        del table, again, end_to_end
         for method in ("energy", "joint"):
             arguments = json.dumps({"method": method, "chunk_rows": 1 << 18})
             small, large = (run(HAMID, file, arguments) for file in (whole, double))
             print(f"--method {method} in chunks: peak {small['peak_kb'] / 1024:.0f} MB for the "
                   f"file, {large['peak_kb'] / 1024:.0f} MB for one twice as long "
                   f"({large['peak_kb'] / small['peak_kb']:.2f}x)")
+        one = run(HAMID, single, json.dumps({"method": "joint", "chunk_rows": 1 << 18,
+                                             "model": "peng-quadratic"}))
+        print(f"--method joint in chunks, the trajectories end to end as one: peak "
+              f"{one['peak_kb'] / 1024:.0f} MB ({one['peak_kb'] / small['peak_kb']:.2f}x the "
+              f"file's), {one['seconds']:.2f} s")
         import numpy as np
 
         energy = np.array(results["hamid --method energy"]["theta"])
