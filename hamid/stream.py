@@ -364,7 +364,7 @@ def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: fl
     when there are too few windows for `auto`."""
     N = len(m.coordinates)
     layout = ([("energy", 1, True)] if kind == "joint" else []) + [("weak", N, False)]
-    store = _WindowRows(layout, len(free))
+    store = _WindowRows(layout, len(free), reader.table.name)
     totals: dict[int, np.ndarray] = {}   # sums of A, b and the count of each trajectory
     held: _Held | None = None
 
@@ -430,8 +430,8 @@ class _WindowRows:
 
     CHUNK_WINDOWS = 1 << 14
 
-    def __init__(self, layout: list[tuple[str, int, bool]], p: int) -> None:
-        self.layout, self.p = layout, p
+    def __init__(self, layout: list[tuple[str, int, bool]], p: int, source: str) -> None:
+        self.layout, self.p, self.source = layout, p, source
         self.width = sum(rows for _, rows, _ in layout) * (p + 2) + 2
         self.n_windows = 0
         self.file: Any = None
@@ -439,8 +439,18 @@ class _WindowRows:
     def __enter__(self) -> _WindowRows:
         import tempfile
 
-        self.file = tempfile.TemporaryFile()
+        try:
+            self.file = tempfile.TemporaryFile()
+        except OSError as exc:
+            raise self._unwritable(exc) from exc
         return self
+
+    def _unwritable(self, exc: OSError) -> DataError:
+        import tempfile
+
+        return DataError(f"{self.source}: cannot keep its window rows in a temporary file in "
+                         f"{tempfile.gettempdir()!r}: {io._reason(exc)} (the environment "
+                         "variable TMPDIR names another folder)")
 
     def __exit__(self, *_: object) -> None:
         self.file.close()
@@ -457,7 +467,10 @@ class _WindowRows:
             column += width
         first = self.layout[0][1]
         record[:, -2], record[:, -1] = blocks[0].group[::first], blocks[0].time[::first]
-        self.file.write(record.data)
+        try:
+            self.file.write(record.data)
+        except OSError as exc:
+            raise self._unwritable(exc) from exc
         self.n_windows += n
 
     def chunks(self) -> Iterator[tuple[list[Block], np.ndarray]]:

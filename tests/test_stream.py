@@ -145,6 +145,21 @@ def test_periods_from_the_first_samples_of_long_trajectories_stream(noisy_files,
     assert held == [150] * frame.trajectory.nunique()
 
 
+def test_no_folder_for_the_window_rows_is_a_clear_error(noisy_files, tmp_path, monkeypatch):
+    import tempfile
+
+    _, paths = noisy_files
+    missing = str(tmp_path / "missing")
+    monkeypatch.setattr(tempfile, "tempdir", missing)
+    result = CliRunner().invoke(cli, ["fit", paths["parquet"], "--method", "joint",
+                                      "--chunk-rows", "500"])
+    assert result.exit_code == 1
+    assert result.stdout == ""
+    assert "peng.parquet: cannot keep its window rows in a temporary file" in result.stderr
+    assert missing in result.stderr and "TMPDIR" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
 def test_fixed_parameters_stream(noisy_files):
     frame, paths = noisy_files
     _compare(hamid.fit(frame, fix={"a6": 0.2}),
