@@ -326,11 +326,11 @@ def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> _F
     df = factor.n_rows - p - J
     residuals = api._ResidualSums(h)
 
-    def score_pass(sums: uncertainty.ScoreSums, summarise: bool) -> uncertainty.ScoreSums:
+    def score_pass(sums: uncertainty.ScoreSums) -> None:
         for records, row in reader.rows("standard errors"):
             block = energy_rows(records, row)
             r = block.A @ theta - block.b - h[block.group]
-            if summarise:
+            if sums.bandwidth is None:   # the first pass (hac: the one finding the bandwidth)
                 residuals.add(block, r)
             for j, start, stop in design.runs(block.group):
                 w = block.weight[start:stop]
@@ -339,13 +339,8 @@ def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> _F
                 sums.add(j, z, r[start:stop], w)
                 if stop < len(block.group):   # the trajectory ended inside this chunk
                     sums.close(j)
-        return sums
 
-    sums = score_pass(uncertainty.ScoreSums(cov, p, J), summarise=True)
-    automatic = sums.needs_bandwidth
-    if automatic:
-        sums = score_pass(uncertainty.ScoreSums(cov, p, J, sums.andrews_bandwidth()),
-                          summarise=False)
+    sums, automatic = uncertainty.fed_sums(cov, p, J, score_pass)
     c = sums.covariance(df, automatic=automatic)
     stats = residuals.stats(reader.label_tuple())
     stats["blocks"] = {"energy": {"n_rows": int(residuals.n.sum()), "rms": stats["rms"],
@@ -585,8 +580,10 @@ def _window_fit(store: _WindowRows, joined: solve.Factor, solution: solve.Soluti
     fitted = p + (J if has_levels else 0)
     by_window = cov == "hac"
 
-    def scored(sums: uncertainty.ScoreSums) -> list[tuple[int, float, float]]:
-        residuals = [(0, 0.0, 0.0)] * len(store.layout)
+    residuals: list[tuple[int, float, float]] = []   # rows, squares, largest of each block
+
+    def scored(sums: uncertainty.ScoreSums) -> None:
+        residuals[:] = [(0, 0.0, 0.0)] * len(store.layout)
         for blocks, group in store.chunks():
             window_scores = np.zeros((len(group), p + 1))
             for k, (block, scale) in enumerate(zip(blocks, scales, strict=True)):
@@ -613,14 +610,8 @@ def _window_fit(store: _WindowRows, joined: solve.Factor, solution: solve.Soluti
                              np.ones(stop - start))
                     if stop < len(group):   # the trajectory ended inside this chunk
                         sums.close(j)
-        return residuals
 
-    sums = uncertainty.ScoreSums(cov, p, J)
-    residuals = scored(sums)
-    automatic = sums.needs_bandwidth
-    if automatic:
-        sums = uncertainty.ScoreSums(cov, p, J, sums.andrews_bandwidth())
-        scored(sums)
+    sums, automatic = uncertainty.fed_sums(cov, p, J, scored)
     n_rows = sum(n for n, _, _ in residuals)
     df = store.n_windows - fitted if by_window else n_rows - fitted
     c = sums.covariance(df, automatic=automatic)

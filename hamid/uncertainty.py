@@ -54,6 +54,7 @@ __all__ = [
     "bootstrap",
     "confidence_bounds",
     "covariance",
+    "fed_sums",
     "t_quantile",
 ]
 
@@ -334,14 +335,25 @@ def _feed(sums: ScoreSums, prob: _Problem) -> ScoreSums:
     return sums
 
 
-def _estimate(prob: _Problem, kind: str, bandwidth: int | None) -> _Estimate:
-    """Helper running one estimator on all rows (two passes for the automatic bandwidth)."""
-    sums = _feed(ScoreSums(kind, prob.p, prob.n_groups, bandwidth), prob)
+def fed_sums(kind: str, p: int, n_groups: int, feed: Callable[[ScoreSums], object],
+             bandwidth: int | None = None) -> tuple[ScoreSums, bool]:
+    """The sums of estimator `kind` that `feed` fills with all rows, and whether the
+    bandwidth is Andrews' automatic one: Newey-West without a `bandwidth` is fed twice,
+    the first time to find it."""
+    sums = ScoreSums(kind, p, n_groups, bandwidth)
+    feed(sums)
     if not sums.needs_bandwidth:
-        return sums.estimate(prob.df_resid)
-    lags = sums.andrews_bandwidth()
-    return _feed(ScoreSums(kind, prob.p, prob.n_groups, lags), prob).estimate(
-        prob.df_resid, automatic=True)
+        return sums, False
+    automatic = ScoreSums(kind, p, n_groups, sums.andrews_bandwidth())
+    feed(automatic)
+    return automatic, True
+
+
+def _estimate(prob: _Problem, kind: str, bandwidth: int | None) -> _Estimate:
+    """Helper running one estimator on all rows."""
+    sums, automatic = fed_sums(kind, prob.p, prob.n_groups, lambda s: _feed(s, prob),
+                               bandwidth)
+    return sums.estimate(prob.df_resid, automatic)
 
 
 ESTIMATORS = ("classical", "hc", "hac")
