@@ -618,10 +618,6 @@ def _window_fit(store: _WindowRows, joined: solve.Factor, solution: solve.Soluti
     if by_window:
         c = dataclasses.replace(c, description=c.description + uncertainty.UNITS_NOTE.format(
             n=store.n_windows))
-    absent = sums.sizes == 0   # trajectories too short for any window
-    if np.any(absent):
-        c = dataclasses.replace(c, level=np.where(absent, np.nan, c.level),
-                                theta_level=np.where(absent[:, None], np.nan, c.theta_level))
     return _WindowFit(c, h, residuals)
 
 

@@ -160,6 +160,23 @@ def test_no_folder_for_the_window_rows_is_a_clear_error(noisy_files, tmp_path, m
     assert "Traceback" not in result.stderr
 
 
+@pytest.mark.parametrize("method", ["weak", "joint"])
+@pytest.mark.parametrize("cov", ["hac", "hc"])
+def test_a_trajectory_too_short_for_any_window_streams(noisy_files, tmp_path, method, cov):
+    """No window rows for one trajectory: its level is the mean energy, without an error."""
+    frame, _ = noisy_files
+    short = frame[frame.trajectory == 1].iloc[:30].copy()
+    short["trajectory"] = 9
+    with_short = pd.concat([frame, short], ignore_index=True)
+    with_short.attrs = dict(frame.attrs)
+    path = str(tmp_path / "with_short.parquet")
+    io.write_table(with_short, path, metadata=frame.attrs["hamid"])
+    memory = hamid.fit(with_short, method=method, cov=cov)
+    streamed = hamid.fit(path, method=method, cov=cov, chunk_rows=250)
+    assert {h.trajectory: h.stderr for h in streamed.energy_levels}[9] is None
+    _compare(memory, streamed)
+
+
 def test_fixed_parameters_stream(noisy_files):
     frame, paths = noisy_files
     _compare(hamid.fit(frame, fix={"a6": 0.2}),
