@@ -431,6 +431,11 @@ class _WindowRows:
         self.n_windows = 0
         self.file: Any = None
 
+    @property
+    def has_levels(self) -> bool:
+        """Whether some block's rows carry their trajectory's energy level (joint)."""
+        return any(level for _, _, level in self.layout)
+
     def __enter__(self) -> _WindowRows:
         import tempfile
 
@@ -500,14 +505,13 @@ def _fit_windows(store: _WindowRows, kind: str, names: list[str],
         for k, (factor, block) in enumerate(zip(factors, blocks, strict=True)):
             factor.add(block)
             squares[k] += block.weight @ block.b**2
-    has_levels = kind == "joint"
 
     def solved(scales: list[float]) -> tuple[solve.Factor, solve.Solution]:
         joined = solve.Factor.joined([f.scaled(c) for f, c in zip(factors, scales,
                                                                   strict=True)])
         return joined, solve.solve_factor(joined.centred(), np.sqrt(joined.raw_squares),
                                           joined.n_rows, names,
-                                          n_levels=J if has_levels else 0)
+                                          n_levels=J if store.has_levels else 0)
 
     fits: dict[float, _WindowFit] = {}   # the hac fit at each ratio the balance tried
     if len(factors) == 1:
@@ -576,8 +580,7 @@ def _window_fit(store: _WindowRows, joined: solve.Factor, solution: solve.Soluti
     theta, inverse = solution.theta, solution.inverse
     means_A, means_b = joined.level_means
     h = means_A @ theta - means_b
-    has_levels = any(level for _, _, level in store.layout)
-    fitted = p + (J if has_levels else 0)
+    fitted = p + (J if store.has_levels else 0)
     by_window = cov == "hac"
 
     residuals: list[tuple[int, float, float]] = []   # rows, squares, largest of each block
