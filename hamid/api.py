@@ -1075,7 +1075,7 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
                trajectory: str | None, format: str | None, velocity: str = "measured",
                window: int | None = None, order: int = SAVGOL_ORDER) -> _Loaded:
     """Read the sources, settle the model and arrange the rows by trajectory."""
-    from hamid import io
+    from hamid import io, naming
 
     if _is_data_frame(data):
         tables = [("<DataFrame>", data, data.attrs.get("hamid"))]
@@ -1104,11 +1104,11 @@ def _load_data(data: Any, model: str | os.PathLike[str] | Model | None, *,
     for source, frame, _ in tables:
         names = [str(c) for c in frame]
         derived = velocity == "savgol"
-        mapping = io.resolve_columns(names, m.coordinates, () if derived else m.velocities,
+        mapping = naming.resolve_columns(names, m.coordinates, () if derived else m.velocities,
                                      mapping=columns, source=source)
-        time_col = _optional_column(names, time, io.default_time_column(names), "--time",
+        time_col = _optional_column(names, time, naming.default_time_column(names), "--time",
                                     source)
-        traj_col = _optional_column(names, trajectory, io.default_trajectory_column(names),
+        traj_col = _optional_column(names, trajectory, naming.default_trajectory_column(names),
                                     "--trajectory", source)
         n_rows = len(frame[names[0]])
         X = np.column_stack([io.numeric_column(frame, mapping[v], source=source)
@@ -1283,12 +1283,12 @@ def _model_from_metadata(info: Mapping[str, Any], source: str) -> Model:
 def _assumed_model(names: list[str], source: str, columns: Mapping[str, str] | None,
                    time: str | None, trajectory: str | None) -> Model:
     """poly:N:3 over every column that has a velocity column (SPEC section 3, fit)."""
-    from hamid import io
+    from hamid import naming
     from hamid.model import poly_model_over
 
-    exclude = {c for c in (time or io.default_time_column(names),
-                           trajectory or io.default_trajectory_column(names)) if c}
-    pairs = io.find_coordinates(names, exclude=exclude)
+    exclude = {c for c in (time or naming.default_time_column(names),
+                           trajectory or naming.default_trajectory_column(names)) if c}
+    pairs = naming.find_coordinates(names, exclude=exclude)
     if not pairs:
         raise DataError(f"{source}: no model given and no coordinate with a velocity column "
                         f"found (columns: {', '.join(names)}); give --model, or name "

@@ -99,16 +99,16 @@ def _stderr_console() -> Any:
 def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_meta: bool,
              max_samples: int | None) -> None:
     """Integrate a system from its initial states and write the sampled record."""
-    from hamid import io
+    from hamid import writing
     from hamid.api import simulate as run_simulation
 
-    io.table_format(output, fmt)
-    io.check_destination(output)
+    writing.table_format(output, fmt)
+    writing.check_destination(output)
     console = _stderr_console()
     with _progress(console, "simulating") as progress:
         frame = run_simulation(config, seed=seed, max_samples=max_samples, progress=progress)
     meta = frame.attrs["hamid"]
-    io.write_table(frame, output, format=fmt, metadata=None if no_meta else meta)
+    writing.write_table(frame, output, format=fmt, metadata=None if no_meta else meta)
     drift = max(t["energy_drift"] for t in meta["trajectories"])
     console.print(f"simulated {len(meta['trajectories'])} trajectories, {len(frame)} samples "
                   f"(t = 0..{frame['t'].iloc[-1]:g}, dt = {meta['dt']:g}); "
@@ -157,9 +157,9 @@ class _status:
 
 
 def _parse_floats(text: str | None, option: str) -> dict[str, float] | None:
-    from hamid import io
+    from hamid import options
 
-    return None if text is None else io.parse_float_mapping(text, option=option)
+    return None if text is None else options.parse_float_mapping(text, option=option)
 
 
 def _parse_noise(text: str | None) -> str | dict[str, float] | None:
@@ -224,7 +224,7 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         seed: int | None, fmt: str | None, output: str, residuals: str | None,
         chunk_rows: int | None) -> None:
     """Fit the energy of the recorded motion in DATA (CSV, TSV, Parquet; '-' for stdin)."""
-    from hamid import io
+    from hamid import options, writing
     from hamid.api import fit as run_fit
 
     if seed is not None and cov != "bootstrap":
@@ -232,16 +232,16 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
     if residuals is not None and chunk_rows is not None:
         raise click.UsageError("--residuals needs the data in memory; leave out --chunk-rows")
     if residuals is not None:
-        io.table_format(residuals)
+        writing.table_format(residuals)
         if output != "-" and os.path.realpath(output) == os.path.realpath(residuals):
             raise click.UsageError(f"-o and --residuals name the same file {output!r}")
     for destination in (output, residuals):
         if destination is not None:
-            io.check_destination(destination)
+            writing.check_destination(destination)
     fmt = fmt or _format_from_name(output, {".json": "json", ".csv": "csv"}, "table")
     with _status("fitting") as status:
         result = run_fit(list(data), model,
-                         columns=None if columns is None else io.parse_mapping(
+                         columns=None if columns is None else options.parse_mapping(
                              columns, option="--columns"),
                          time=time_column, trajectory=trajectory, velocity=velocity,
                          window=window, order=order, noise=_parse_noise(noise),
@@ -254,7 +254,7 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
     def write_residuals() -> None:
         import pandas as pd
 
-        io.write_table(pd.DataFrame(result.samples), residuals)
+        writing.write_table(pd.DataFrame(result.samples), residuals)
 
     _emit(result.to_dict(), fmt, output, also=None if residuals is None else write_residuals)
 
@@ -266,11 +266,11 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
 @click.option("-o", "--output", default="-", metavar="OUT", help="Write the report here.")
 def report(result_file: str, fmt: str | None, output: str) -> None:
     """Render a saved fit result (JSON) as a table, JSON or markdown."""
-    from hamid import io
+    from hamid import io, writing
     from hamid.report import validate_result
 
     result = validate_result(io.read_json(result_file), source=result_file)
-    io.check_destination(output)
+    writing.check_destination(output)
     fmt = fmt or _format_from_name(output, {".json": "json", ".md": "markdown"}, "table")
     _emit(result, fmt, output)
 
@@ -286,19 +286,19 @@ def _emit(result: dict[str, Any], fmt: str, output: str, *,
     `also` writes further output files; they and the report file appear together or, if
     anything fails, none of them does.
     """
-    from hamid import io
+    from hamid import writing
     from hamid.report import render
 
     to_terminal = output == "-" and sys.stdout.isatty()
     color = to_terminal and "NO_COLOR" not in os.environ
     text = render(result, fmt, color=color)
-    with io.all_or_nothing():
+    with writing.all_or_nothing():
         if also is not None:
             also()
         if output != "-":
-            io.write_text(text, output)
+            writing.write_text(text, output)
     if output == "-":
-        io.write_text(text, output)
+        writing.write_text(text, output)
     if not (fmt == "table" and output == "-"):
         for warning in result["warnings"]:
             click.echo(f"warning: {warning}", err=True)

@@ -1,11 +1,9 @@
-"""Reading and writing files: data tables, metadata, system files and reports.
+"""Reading files: data tables (whole or in chunks), their metadata, system files and reports.
 
-This is the only module of hamid that touches files. Every problem with a file becomes a
-`DataError` (or a `ModelError` for a system file) that names the file, column and row at fault.
-Outputs are written atomically: a temporary file in the destination's folder, then a rename.
+Every problem with a file becomes a `DataError` (or a `ModelError` for a system file) that
+names the file, column and row at fault. Writing is `hamid.writing`.
 
-pandas and pyarrow are imported inside the functions that need them, so the column-resolution
-and option-parsing helpers can be imported without them.
+pandas and pyarrow are imported inside the functions that need them.
 """
 
 from __future__ import annotations
@@ -16,8 +14,7 @@ import math
 import os
 import re
 import sys
-import tempfile
-from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, Literal
 
@@ -30,34 +27,19 @@ if TYPE_CHECKING:
     import pyarrow as pa
 
 __all__ = [
-    "VELOCITY_PATTERNS",
-    "all_or_nothing",
     "as_numpy",
-    "check_destination",
     "column_values",
-    "default_time_column",
-    "default_trajectory_column",
-    "find_coordinates",
-    "find_velocity",
     "is_missing",
     "numeric_column",
     "numeric_values",
-    "parse_float_mapping",
-    "parse_mapping",
     "read_columns",
     "read_json",
     "read_table",
     "read_toml",
-    "resolve_columns",
-    "write_table",
-    "write_text",
 ]
 
 Format = Literal["csv", "tsv", "parquet"]
 
-VELOCITY_PATTERNS = ("v{}", "{}_dot", "{}dot", "d{}")
-TIME_COLUMNS = ("t", "time")
-TRAJECTORY_COLUMN = "trajectory"
 
 STDIN = "<stdin>"
 STDOUT = "<stdout>"
@@ -74,7 +56,7 @@ _DELIMITERS = {"csv": ",", "tsv": "\t"}
 _PARQUET_MAGIC = b"PAR1"
 _GZIP_MAGIC = b"\x1f\x8b"
 _UTF8_BOM = b"\xef\xbb\xbf"
-_METADATA_KEY = b"hamid"
+METADATA_KEY = b"hamid"
 _METADATA_LINE = re.compile(rb"#\s*hamid:(.*)")
 # pyarrow's block_size is an int32; a larger file falls back to reading text columns.
 _MAX_BLOCK = 2**31 - 1
@@ -139,7 +121,7 @@ def _read_arrow(
     source: str | os.PathLike[str], format: str | None
 ) -> tuple[pa.Table, dict[str, Any] | None, str]:
     """Helper reading a table file: its Arrow table, hamid metadata and name for messages."""
-    fmt = _check_format(format) if format is not None else _format_from_suffix(source)
+    fmt = check_format(format) if format is not None else format_from_suffix(source)
     data, name = _read_bytes(source)
     if not data or data.isspace():
         raise DataError(f"{name}: file is empty")
@@ -158,14 +140,14 @@ def _read_parquet(data: bytes, name: str) -> tuple[pa.Table, dict[str, Any] | No
     try:
         parquet = pq.ParquetFile(pa.BufferReader(data))
         names = parquet.schema_arrow.names
-        _check_unique(names, name)
+        check_unique(names, name)
         table = parquet.read()
         # Parquet readers do not check that text is UTF-8; a damaged page would only fail
         # later, in pandas.
         table.validate(full=True)
-        raw = (table.schema.metadata or {}).get(_METADATA_KEY)
+        raw = (table.schema.metadata or {}).get(METADATA_KEY)
     except (pa.ArrowException, OSError, UnicodeDecodeError) as exc:
-        raise DataError(f"{name}: is not a valid Parquet file ({_first_line(exc)})") from exc
+        raise DataError(f"{name}: is not a valid Parquet file ({first_line(exc)})") from exc
     metadata = None
     if raw is not None:
         metadata = _parse_metadata(raw, name)
@@ -220,13 +202,13 @@ def _to_pandas(table: pa.Table, name: str) -> pd.DataFrame:
         try:
             frame = table.to_pandas(ignore_metadata=True)
         except (pa.ArrowException, ValueError, TypeError) as exc:
-            raise DataError(f"{name}: cannot convert the table ({_first_line(exc)})") from exc
+            raise DataError(f"{name}: cannot convert the table ({first_line(exc)})") from exc
     if not _is_default_index(frame):
         # pandas' to_parquet stores the index; a named index is data (e.g. the time column).
         unnamed = all(level is None for level in frame.index.names)
         frame = frame.reset_index(drop=unnamed)
     frame.columns = [str(column) for column in frame.columns]
-    _check_unique(list(frame.columns), name)
+    check_unique(list(frame.columns), name)
     return frame
 
 
@@ -262,7 +244,7 @@ def _read_text(
         # pyarrow reads cells that are not UTF-8 as bytes instead of failing.
         raise _not_utf8(data, name)
     stripped = [column.strip() for column in names]
-    _check_unique(stripped, name)
+    check_unique(stripped, name)
     if table.num_rows == 0:
         raise DataError(f"{name}: has a header but no data rows")
     return table.rename_columns(stripped), metadata
@@ -325,13 +307,13 @@ def _parse_csv(body: pa.Buffer, delimiter: str, name: str) -> pa.Table:
                 f"header has {row.expected_columns}: {_cell(row.text)}"
             ) from exc
         if body.size + 1 <= _MAX_BLOCK:
-            raise DataError(f"{name}: not valid delimited text ({_first_line(exc)})") from exc
+            raise DataError(f"{name}: not valid delimited text ({first_line(exc)})") from exc
     # Larger than one block can be: every column as text, numeric_column converts.
     convert = pacsv.ConvertOptions(null_values=[""], default_column_type=pa.string())
     try:
         return pacsv.read_csv(pa.BufferReader(body), parse_options=parse, convert_options=convert)
     except pa.ArrowException as exc:
-        raise DataError(f"{name}: not valid delimited text ({_first_line(exc)})") from exc
+        raise DataError(f"{name}: not valid delimited text ({first_line(exc)})") from exc
 
 
 def _skip_comments(data: bytes, start: int, name: str) -> tuple[int, dict[str, Any] | None]:
@@ -393,7 +375,7 @@ def _not_utf8(data: bytes, name: str, what: str = "",
     return error(f"{name}: {what}is not UTF-8 text; save the file as UTF-8")
 
 
-def _check_unique(names: Sequence[str], name: str) -> None:
+def check_unique(names: Sequence[str], name: str) -> None:
     """Helper function rejecting duplicated column names."""
     seen: set[str] = set()
     duplicated: list[str] = []
@@ -418,7 +400,7 @@ class TableChunks:
     def __init__(self, source: str | os.PathLike[str], *, format: str | None = None) -> None:
         self.path = source
         self.name = os.fsdecode(source)
-        fmt = _check_format(format) if format is not None else _format_from_suffix(source)
+        fmt = check_format(format) if format is not None else format_from_suffix(source)
         with _opened(source, self.name) as stream:
             head = stream.read(len(_PARQUET_MAGIC))
         if not head:
@@ -437,10 +419,10 @@ class TableChunks:
             schema = pq.ParquetFile(self.path).schema_arrow
         except (pa.ArrowException, OSError) as exc:
             raise DataError(f"{self.name}: is not a valid Parquet file "
-                            f"({_first_line(exc)})") from exc
+                            f"({first_line(exc)})") from exc
         self.columns = [str(name) for name in schema.names]
-        _check_unique(self.columns, self.name)
-        raw = (schema.metadata or {}).get(_METADATA_KEY)
+        check_unique(self.columns, self.name)
+        raw = (schema.metadata or {}).get(METADATA_KEY)
         self.metadata = _parse_metadata(raw, self.name) if raw is not None else None
 
     def _open_text(self, fmt: Format | None) -> None:
@@ -459,7 +441,7 @@ class TableChunks:
         raw = [cell.strip('"') for cell in header.split(self.delimiter)]
         self.columns = [cell.strip() for cell in raw]
         self._raw = dict(zip(self.columns, raw, strict=True))
-        _check_unique(self.columns, self.name)
+        check_unique(self.columns, self.name)
 
     def chunks(self, columns: Sequence[str], rows: int) -> Iterator[dict[str, Any]]:
         """The named columns, about `rows` rows at a time, as numpy arrays."""
@@ -538,7 +520,7 @@ def _arrow_reading(name: str) -> Iterator[None]:
     except UnicodeDecodeError as exc:
         raise DataError(f"{name}: is not UTF-8 text") from exc
     except (pa.ArrowException, OSError) as exc:
-        raise DataError(f"{name}: cannot read ({_first_line(exc)})") from exc
+        raise DataError(f"{name}: cannot read ({first_line(exc)})") from exc
 
 
 # ---------------------------------------------------------------------------------------------
@@ -577,7 +559,7 @@ def numeric_column(table: pd.DataFrame | Mapping[str, Any], column: str, *,
     array([1., 2.])
     """
     if column not in table:
-        listed = _list_columns(list(table))
+        listed = list_columns(list(table))
         raise DataError(f"{source}: no column {column!r} (columns: {listed})")
     return numeric_values(column_values(table[column]), column, source)
 
@@ -663,7 +645,7 @@ def is_missing(cell: object) -> bool:
         return False
 
 
-def _list_columns(columns: Sequence[Any]) -> str:
+def list_columns(columns: Sequence[Any]) -> str:
     """Helper function listing column names in a message."""
     names = [str(column) for column in columns]
     if len(names) > _MAX_LISTED_COLUMNS:
@@ -676,334 +658,6 @@ def _cell(text: str) -> str:
     if len(text) > _MAX_CELL_CHARS:
         text = text[: _MAX_CELL_CHARS - 3] + "..."
     return repr(text)
-
-
-# ---------------------------------------------------------------------------------------------
-# Writing
-
-
-def write_table(
-    table: pd.DataFrame,
-    dest: str | os.PathLike[str],
-    *,
-    format: str | None = None,
-    metadata: Mapping[str, Any] | None = None,
-) -> None:
-    """Write a table as CSV, TSV or Parquet, atomically.
-
-    Parameters
-    ----------
-    table : pandas.DataFrame
-        Table to write; its index is not written.
-    dest : str or path-like
-        Destination file; ``"-"`` writes to standard output.
-    format : {"csv", "tsv", "parquet"}, optional
-        Overrides the format implied by the extension (CSV for standard output).
-    metadata : dict, optional
-        Stored as the first line ``# hamid: {json}`` of CSV/TSV, or as the ``hamid`` key of
-        the Parquet metadata.
-
-    Raises
-    ------
-    UsageError
-        The format cannot be told from the destination's extension.
-    DataError
-        The destination cannot be written.
-
-    Examples
-    --------
-    >>> write_table(table, "run.parquet", metadata={"seed": 0})  # doctest: +SKIP
-    """
-    name = _output_name(dest)
-    fmt = table_format(dest, format)
-    metadata_json = _dump_metadata(metadata) if metadata is not None else None
-    _check_unique([str(column) for column in table.columns], name)
-    arrow = _to_arrow(table, name)
-    _WRITERS[fmt](arrow, metadata_json, dest, name)
-
-
-def table_format(dest: str | os.PathLike[str], format: str | None = None) -> Format:
-    """The format a table written to `dest` will have; a UsageError if it cannot be told.
-
-    Callers check this before long work, so that a bad output name fails at once.
-    """
-    if format is not None:
-        return _check_format(format)
-    if _is_stdio(dest):
-        return "csv"
-    fmt = _format_from_suffix(dest)
-    if fmt is None:
-        raise _unknown_extension(dest)
-    return fmt
-
-
-def _to_arrow(table: pd.DataFrame, name: str) -> pa.Table:
-    """Helper function converting a DataFrame to Arrow before any file is opened."""
-    import pyarrow as pa
-
-    try:
-        return pa.Table.from_pandas(table, preserve_index=False)
-    except (pa.ArrowException, ValueError, TypeError) as exc:
-        raise DataError(f"{name}: cannot write the table ({_first_line(exc)})") from exc
-
-
-def _write_delimited(
-    table: pa.Table,
-    metadata_json: str | None,
-    dest: str | os.PathLike[str],
-    name: str,
-    delimiter: str,
-) -> None:
-    """Helper function writing CSV or TSV, with the metadata as a first comment line."""
-    import pyarrow.csv as pacsv
-
-    # pyarrow quotes every header name unless told not to; a plain header is friendlier to
-    # awk and spreadsheets, and pyarrow refuses "none" for names that need quotes.
-    structural = (delimiter, '"', "\n", "\r")
-    plain = all(not any(c in column for c in structural) for column in table.column_names)
-    plain = plain and not (table.column_names and table.column_names[0].startswith("#"))
-    options = pacsv.WriteOptions(delimiter=delimiter, quoting_header="none" if plain else "needed")
-
-    def write(stream: IO[bytes]) -> None:
-        if metadata_json is not None:
-            stream.write(f"# hamid: {metadata_json}\n".encode())
-        # Floats are written in their shortest round-trip form (1.0 as "1"), integers as
-        # integers.
-        with _arrow_errors(name):
-            pacsv.write_csv(table, stream, write_options=options)
-
-    _write_output(dest, name, write, binary=False)
-
-
-def _write_csv(table: pa.Table, metadata_json: str | None, dest: Any, name: str) -> None:
-    """Helper function writing CSV."""
-    _write_delimited(table, metadata_json, dest, name, ",")
-
-
-def _write_tsv(table: pa.Table, metadata_json: str | None, dest: Any, name: str) -> None:
-    """Helper function writing TSV."""
-    _write_delimited(table, metadata_json, dest, name, "\t")
-
-
-def _write_parquet(table: pa.Table, metadata_json: str | None, dest: Any, name: str) -> None:
-    """Helper function writing Parquet, with the metadata beside pandas' own."""
-    import pyarrow.parquet as pq
-
-    if metadata_json is not None:
-        merged = dict(table.schema.metadata or {})
-        merged[_METADATA_KEY] = metadata_json.encode()
-        table = table.replace_schema_metadata(merged)
-
-    def write(stream: IO[bytes]) -> None:
-        with _arrow_errors(name):
-            pq.write_table(table, stream)
-
-    _write_output(dest, name, write, binary=True)
-
-
-@contextlib.contextmanager
-def _arrow_errors(name: str) -> Iterator[None]:
-    """Helper function turning pyarrow's errors while writing into a DataError."""
-    import pyarrow as pa
-
-    try:
-        yield
-    except pa.ArrowException as exc:
-        raise DataError(f"{name}: cannot write ({_first_line(exc)})") from exc
-
-
-_WRITERS: dict[Format, Callable[[Any, str | None, Any, str], None]] = {
-    "csv": _write_csv,
-    "tsv": _write_tsv,
-    "parquet": _write_parquet,
-}
-
-
-def write_text(text: str, dest: str | os.PathLike[str]) -> None:
-    """Write text as UTF-8, atomically.
-
-    Parameters
-    ----------
-    text : str
-        Text to write, as is.
-    dest : str or path-like
-        Destination file; ``"-"`` writes to standard output.
-
-    Examples
-    --------
-    >>> write_text(json.dumps(result.to_dict()), "result.json")  # doctest: +SKIP
-    """
-    data = text.encode("utf-8")
-    _write_output(dest, _output_name(dest), lambda stream: stream.write(data), binary=False)
-
-
-def _write_output(
-    dest: str | os.PathLike[str],
-    name: str,
-    write: Callable[[IO[bytes]], object],
-    *,
-    binary: bool,
-) -> None:
-    """Helper function sending bytes to standard output or atomically to a file."""
-    if _is_stdio(dest):
-        _write_stdout(write, binary=binary)
-    else:
-        _write_atomic(Path(os.fspath(dest)), name, write)
-
-
-def _write_stdout(write: Callable[[IO[bytes]], object], *, binary: bool) -> None:
-    """Helper function writing bytes to standard output, after any text already there."""
-    import io
-
-    sys.stdout.flush()
-    buffer = getattr(sys.stdout, "buffer", None)
-    if buffer is not None:
-        write(buffer)
-        buffer.flush()
-        return
-    # A text-only stream, as some embedding applications install: text goes through as text.
-    if binary:
-        raise DataError(f"{STDOUT}: cannot write Parquet to a text-only output stream")
-    collected = io.BytesIO()
-    write(collected)
-    sys.stdout.write(collected.getvalue().decode("utf-8"))
-    sys.stdout.flush()
-
-
-def check_destination(dest: str | os.PathLike[str]) -> None:
-    """Fail at once, before long work, if an output file cannot be created.
-
-    Parameters
-    ----------
-    dest : str or path-like
-        Destination file; ``"-"`` (standard output) always passes.
-
-    Raises
-    ------
-    DataError
-        The destination is a folder, or its folder does not exist.
-    """
-    if _is_stdio(dest):
-        return
-    path, name = Path(os.fspath(dest)), os.fsdecode(dest)
-    if path.is_dir():
-        raise DataError(f"{name}: is a folder, not a file")
-    if not path.parent.is_dir():
-        raise DataError(f"{name}: cannot write: folder {str(path.parent)!r} does not exist")
-
-
-# Renames held back by `all_or_nothing`: (temporary, destination, name).
-_held: list[tuple[str, Path, str]] | None = None
-
-
-@contextlib.contextmanager
-def all_or_nothing() -> Iterator[None]:
-    """Files written inside appear together at the end, or none of them does.
-
-    Each file is written to its temporary as usual; the renames onto the destinations wait
-    until the block ends without an error. On any error (Ctrl-C included) the temporaries
-    are removed and every destination is left as it was. Standard output is not held back.
-
-    Examples
-    --------
-    >>> with all_or_nothing():  # doctest: +SKIP
-    ...     write_table(residuals, "residuals.csv")
-    ...     write_text(report, "report.json")
-    """
-    global _held
-    outer, held = _held, []
-    _held = held
-    try:
-        yield
-    except BaseException:
-        for temporary, _, _ in held:
-            _remove_quietly(temporary)
-        raise
-    finally:
-        _held = outer
-    for k, (temporary, path, name) in enumerate(held):
-        try:
-            os.replace(temporary, path)
-        except BaseException as exc:
-            for later, _, _ in held[k:]:
-                _remove_quietly(later)
-            if isinstance(exc, OSError):
-                raise DataError(f"{name}: cannot write: {_reason(exc)}") from exc
-            raise
-        _sync_folder(path.parent)
-
-
-def _write_atomic(path: Path, name: str, write: Callable[[IO[bytes]], object]) -> None:
-    """Helper function writing through a temporary file in the destination's folder."""
-    if path.is_dir():
-        raise DataError(f"{name}: is a folder, not a file")
-    folder = path.parent
-    try:
-        fd, temporary = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
-    except FileNotFoundError as exc:
-        raise DataError(f"{name}: cannot write: folder {str(folder)!r} does not exist") from exc
-    except OSError as exc:
-        raise DataError(f"{name}: cannot write in folder {str(folder)!r}: {_reason(exc)}") from exc
-    try:
-        with os.fdopen(fd, "wb") as stream:
-            write(stream)
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.chmod(temporary, _new_file_mode(path))
-        if _held is not None:
-            _held.append((temporary, path, name))
-            return
-        os.replace(temporary, path)
-    except OSError as exc:
-        _remove_quietly(temporary)
-        raise DataError(f"{name}: cannot write: {_reason(exc)}") from exc
-    except BaseException:
-        # KeyboardInterrupt included: the destination is left as it was.
-        _remove_quietly(temporary)
-        raise
-    _sync_folder(folder)
-
-
-def _new_file_mode(path: Path) -> int:
-    """Helper function giving the permissions the written file should have.
-
-    mkstemp creates files readable by their owner only; an output file should have the
-    permissions the file it replaces had, or the usual ones for a new file.
-    """
-    try:
-        return os.stat(path).st_mode & 0o7777
-    except OSError:
-        umask = os.umask(0)
-        os.umask(umask)
-        return 0o666 & ~umask
-
-
-def _remove_quietly(path: str) -> None:
-    """Helper function removing a temporary file that may already be gone."""
-    with contextlib.suppress(OSError):
-        os.unlink(path)
-
-
-def _sync_folder(folder: Path) -> None:
-    """Helper function making a rename durable; not every system can open a folder."""
-    with contextlib.suppress(OSError):
-        fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-def _dump_metadata(metadata: Mapping[str, Any]) -> str:
-    """Helper function encoding metadata as one line of strict JSON."""
-    return json.dumps(metadata, separators=(",", ":"), allow_nan=False, default=_json_default)
-
-
-def _json_default(value: Any) -> Any:
-    """Helper function encoding numpy scalars and arrays, which json does not know."""
-    if hasattr(value, "tolist"):
-        return value.tolist()
-    raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1085,11 +739,11 @@ def _json_kind(value: object) -> str:
 
 def _read_bytes(source: str | os.PathLike[str]) -> tuple[bytes, str]:
     """Helper function reading a whole file, or standard input for ``"-"``."""
-    if _is_stdio(source):
+    if is_stdio(source):
         try:
             return sys.stdin.buffer.read(), STDIN
         except OSError as exc:
-            raise DataError(f"{STDIN}: cannot read: {_reason(exc)}") from exc
+            raise DataError(f"{STDIN}: cannot read: {os_reason(exc)}") from exc
     name = os.fsdecode(source)
     with _opened(source, name) as stream:
         try:
@@ -1104,20 +758,15 @@ def _file_error(exc: OSError, source: str | os.PathLike[str], name: str) -> Data
         return DataError(f"{name}: no such file")
     if isinstance(exc, IsADirectoryError) or os.path.isdir(source):
         return DataError(f"{name}: is a folder, not a file")
-    return DataError(f"{name}: cannot read: {_reason(exc)}")
+    return DataError(f"{name}: cannot read: {os_reason(exc)}")
 
 
-def _is_stdio(path: str | os.PathLike[str]) -> bool:
+def is_stdio(path: str | os.PathLike[str]) -> bool:
     """Helper function telling whether a file name means standard input or output."""
     return isinstance(path, str) and path == "-"
 
 
-def _output_name(dest: str | os.PathLike[str]) -> str:
-    """Helper function naming a destination in messages."""
-    return STDOUT if _is_stdio(dest) else os.fsdecode(dest)
-
-
-def _check_format(format: str) -> Format:
+def check_format(format: str) -> Format:
     """Helper function validating a format name given by the caller."""
     fmt = format.lower()
     if fmt not in _FORMATS:
@@ -1125,300 +774,19 @@ def _check_format(format: str) -> Format:
     return fmt  # type: ignore[return-value]
 
 
-def _format_from_suffix(path: str | os.PathLike[str]) -> Format | None:
+def format_from_suffix(path: str | os.PathLike[str]) -> Format | None:
     """Helper function giving the format implied by a file's extension, if any."""
-    if _is_stdio(path):
+    if is_stdio(path):
         return None
     return _SUFFIX_FORMATS.get(Path(os.fsdecode(path)).suffix.lower())
 
 
-def _unknown_extension(dest: str | os.PathLike[str]) -> UsageError:
-    """Helper function building the error for an output whose format is not known."""
-    name = os.fsdecode(dest)
-    suffix = Path(name).suffix
-    if not suffix:
-        return UsageError(
-            f"{name}: cannot tell the format without an extension (.csv, .tsv or .parquet); "
-            "give the format"
-        )
-    return UsageError(
-        f"{name}: unknown extension {suffix!r} (use .csv, .tsv, .tab, .parquet or .pq, "
-        "or give the format)"
-    )
-
-
-def _reason(exc: OSError) -> str:
+def os_reason(exc: OSError) -> str:
     """Helper function giving the system's reason for an OSError."""
     return exc.strerror or str(exc)
 
 
-def _first_line(exc: BaseException) -> str:
+def first_line(exc: BaseException) -> str:
     """Helper function giving the first line of an exception's message."""
     lines = str(exc).strip().splitlines()
     return lines[0] if lines else type(exc).__name__
-
-
-# ---------------------------------------------------------------------------------------------
-# Columns
-
-
-def find_velocity(coordinate: str, columns: Sequence[str]) -> str | None:
-    """Return the column holding a coordinate's velocity, by `VELOCITY_PATTERNS`.
-
-    Parameters
-    ----------
-    coordinate : str
-        Name of the coordinate's column.
-    columns : sequence of str
-        Column names to look in.
-
-    Returns
-    -------
-    velocity : str or None
-        The first of ``v<x>``, ``<x>_dot``, ``<x>dot``, ``d<x>`` present, else None.
-
-    Examples
-    --------
-    >>> find_velocity("x", ["t", "x", "x_dot", "dx"])
-    'x_dot'
-    """
-    if not coordinate:
-        return None
-    present = set(columns)
-    for pattern in VELOCITY_PATTERNS:
-        candidate = pattern.format(coordinate)
-        if candidate in present:
-            return candidate
-    return None
-
-
-def find_coordinates(columns: Sequence[str], *, exclude: Collection[str]) -> list[tuple[str, str]]:
-    """Return the coordinate columns of a table and their velocity columns.
-
-    A coordinate is a column, not excluded, that has a velocity column by
-    `VELOCITY_PATTERNS` and is not itself the velocity of another such column.
-
-    Parameters
-    ----------
-    columns : sequence of str
-        Column names in file order.
-    exclude : collection of str
-        Columns that are never coordinates or velocities (time, trajectory).
-
-    Returns
-    -------
-    pairs : list of (str, str)
-        (coordinate column, velocity column), in file order.
-
-    Examples
-    --------
-    >>> find_coordinates(["t", "x", "y", "vx", "vy"], exclude={"t"})
-    [('x', 'vx'), ('y', 'vy')]
-    >>> find_coordinates(["x", "dx", "ddx"], exclude=())
-    [('x', 'dx')]
-    """
-    candidates = [column for column in columns if column and column not in exclude]
-    velocity_of = {column: find_velocity(column, candidates) for column in candidates}
-    # Velocities of velocities (dx of x, then ddx of dx) are accelerations, not coordinates.
-    velocities = {velocity for velocity in velocity_of.values() if velocity is not None}
-    pairs: list[tuple[str, str]] = []
-    used: set[str] = set()
-    for column in candidates:
-        velocity = velocity_of[column]
-        if velocity is None or column in velocities or velocity in used:
-            continue
-        pairs.append((column, velocity))
-        used.add(velocity)
-    return pairs
-
-
-def resolve_columns(
-    columns: Sequence[str],
-    coordinates: Sequence[str],
-    velocities: Sequence[str],
-    *,
-    mapping: Mapping[str, str] | None = None,
-    source: str,
-) -> dict[str, str]:
-    """Find the file column of each coordinate and velocity of a model.
-
-    Each name is looked for in `mapping`, then as the same name; a velocity not found so is
-    looked for by `VELOCITY_PATTERNS`, applied to its coordinate's name and to its
-    coordinate's file column.
-
-    Parameters
-    ----------
-    columns : sequence of str
-        Column names of the file.
-    coordinates, velocities : sequence of str
-        The model's names; ``velocities[i]`` is the velocity of ``coordinates[i]``.
-    mapping : mapping of str to str, optional
-        Model name -> file column, as given by ``--columns``.
-    source : str
-        File name used in messages.
-
-    Returns
-    -------
-    columns : dict
-        Model name -> file column, coordinates first.
-
-    Raises
-    ------
-    UsageError
-        A key of `mapping` is not a name of the model.
-    DataError
-        A name has no column, a mapped column is missing, or two names share a column.
-
-    Examples
-    --------
-    >>> resolve_columns(["t", "pos", "vel"], ["x"], ["v"], mapping={"x": "pos", "v": "vel"},
-    ...                 source="run.csv")
-    {'x': 'pos', 'v': 'vel'}
-    """
-    mapping = dict(mapping or {})
-    names = [*coordinates, *velocities]
-    for key in mapping:
-        if key not in names:
-            raise UsageError(
-                f"--columns: {key!r} is not a coordinate or velocity of the model "
-                f"({', '.join(names)})"
-            )
-    present = set(columns)
-    for key, column in mapping.items():
-        if column not in present:
-            raise DataError(
-                f"{source}: no column {column!r} (given for {key!r} by --columns; "
-                f"columns: {_list_columns(columns)})"
-            )
-    resolved: dict[str, str] = {}
-    for coordinate in coordinates:
-        column = mapping.get(coordinate, coordinate)
-        if column not in present:
-            raise DataError(
-                f"{source}: no column for coordinate {coordinate!r} "
-                f"(columns: {_list_columns(columns)})"
-            )
-        resolved[coordinate] = column
-    # No velocities: they will be derived from the positions.
-    for coordinate, velocity in zip(coordinates if velocities else (), velocities, strict=True):
-        if velocity in mapping:
-            resolved[velocity] = mapping[velocity]
-            continue
-        looked_for = [velocity]
-        for base in (coordinate, resolved[coordinate]):
-            looked_for += [pattern.format(base) for pattern in VELOCITY_PATTERNS]
-        looked_for = list(dict.fromkeys(looked_for))
-        found = next((candidate for candidate in looked_for if candidate in present), None)
-        if found is None:
-            raise DataError(
-                f"{source}: no column for velocity {velocity!r} of coordinate {coordinate!r} "
-                f"(looked for {', '.join(looked_for)})"
-            )
-        resolved[velocity] = found
-    owner: dict[str, str] = {}
-    for model_name, column in resolved.items():
-        if column in owner:
-            raise DataError(
-                f"{source}: column {column!r} is used for both {owner[column]!r} and "
-                f"{model_name!r}"
-            )
-        owner[column] = model_name
-    return resolved
-
-
-def default_time_column(columns: Sequence[str]) -> str | None:
-    """Return the time column, ``t`` or else ``time``, if the table has one."""
-    return next((name for name in TIME_COLUMNS if name in columns), None)
-
-
-def default_trajectory_column(columns: Sequence[str]) -> str | None:
-    """Return the trajectory column, ``trajectory``, if the table has one."""
-    return TRAJECTORY_COLUMN if TRAJECTORY_COLUMN in columns else None
-
-
-# ---------------------------------------------------------------------------------------------
-# Option values
-
-
-def parse_mapping(text: str, *, option: str) -> dict[str, str]:
-    """Parse ``NAME=COLUMN,...`` as given to an option such as ``--columns``.
-
-    Parameters
-    ----------
-    text : str
-        The option's value.
-    option : str
-        The option's name, for messages.
-
-    Returns
-    -------
-    mapping : dict
-        Name -> value, in the order given.
-
-    Raises
-    ------
-    UsageError
-        An item is not ``NAME=VALUE`` or a name is given twice.
-
-    Examples
-    --------
-    >>> parse_mapping("x=pos1, vx=vel1", option="--columns")
-    {'x': 'pos1', 'vx': 'vel1'}
-    """
-    return _parse_items(text, option, "NAME=COLUMN", lambda key, value, item: value)
-
-
-def parse_float_mapping(text: str, *, option: str) -> dict[str, float]:
-    """Parse ``NAME=NUMBER,...`` as given to options such as ``--noise`` and ``--fix``.
-
-    Parameters
-    ----------
-    text : str
-        The option's value.
-    option : str
-        The option's name, for messages.
-
-    Returns
-    -------
-    mapping : dict
-        Name -> finite number, in the order given.
-
-    Raises
-    ------
-    UsageError
-        An item is not ``NAME=NUMBER``, a number is not finite, or a name is given twice.
-
-    Examples
-    --------
-    >>> parse_float_mapping("x=0.01,vx=2e-2", option="--noise")
-    {'x': 0.01, 'vx': 0.02}
-    """
-
-    def to_float(key: str, value: str, item: str) -> float:
-        try:
-            number = float(value)
-        except ValueError:
-            raise UsageError(f"{option}: {item!r}: {value!r} is not a number") from None
-        if not math.isfinite(number):
-            raise UsageError(f"{option}: {item!r}: {value!r} is not a finite number")
-        return number
-
-    return _parse_items(text, option, "NAME=NUMBER", to_float)
-
-
-def _parse_items(
-    text: str, option: str, form: str, convert: Callable[[str, str, str], Any]
-) -> dict[str, Any]:
-    """Helper function splitting ``NAME=VALUE,...`` and checking each item."""
-    result: dict[str, Any] = {}
-    if not text.strip():
-        raise UsageError(f"{option}: empty value; expected {form},...")
-    for raw in text.split(","):
-        item = raw.strip()
-        key, equals, value = (part.strip() for part in item.partition("="))
-        if not equals or not key or not value:
-            raise UsageError(f"{option}: {item!r} is not of the form {form}")
-        if key in result:
-            raise UsageError(f"{option}: {key!r} is given twice")
-        result[key] = convert(key, value, item)
-    return result

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from hamid import api, design, io, solve, uncertainty
+from hamid import api, design, io, naming, solve, uncertainty
 from hamid.design import Block, Records
 from hamid.errors import DataError, FitError, UsageError
 from hamid.model import Model
@@ -118,12 +118,12 @@ def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: 
     `refine`: whether ``auto`` may hold the records in memory for its refinement."""
     table = io.TableChunks(path, format=format)
     m, notes = _model(table, model, columns, time, trajectory)
-    mapping = io.resolve_columns(table.columns, m.coordinates, m.velocities, mapping=columns,
+    mapping = naming.resolve_columns(table.columns, m.coordinates, m.velocities, mapping=columns,
                                  source=table.name)
-    time_col = api._optional_column(table.columns, time, io.default_time_column(table.columns),
+    time_col = api._optional_column(table.columns, time, naming.default_time_column(table.columns),
                                     "--time", table.name)
     traj_col = api._optional_column(table.columns, trajectory,
-                                    io.default_trajectory_column(table.columns),
+                                    naming.default_trajectory_column(table.columns),
                                     "--trajectory", table.name)
     reader = _Reader(table, m, mapping, time_col, traj_col, chunk_rows, progress)
     names = list(m.parameters)
@@ -449,7 +449,7 @@ class _WindowRows:
         import tempfile
 
         return DataError(f"{self.source}: cannot keep its window rows in a temporary file in "
-                         f"{tempfile.gettempdir()!r}: {io._reason(exc)} (the environment "
+                         f"{tempfile.gettempdir()!r}: {io.os_reason(exc)} (the environment "
                          "variable TMPDIR names another folder)")
 
     def __exit__(self, *_: object) -> None:

@@ -706,16 +706,16 @@ def _interrupt_while_writing(monkeypatch):
 
 def _fail_while_writing_text(monkeypatch):
     """Writing the report fails part-way (a full disk) after the residuals were written."""
-    import hamid.io
+    import hamid.writing
 
-    real = hamid.io.write_text
+    real = hamid.writing.write_text
 
     def broken(text, dest):
         if dest != "-":
-            raise hamid.io.DataError(f"{dest}: cannot write: No space left on device")
+            raise hamid.writing.DataError(f"{dest}: cannot write: No space left on device")
         real(text, dest)
 
-    monkeypatch.setattr(hamid.io, "write_text", broken)
+    monkeypatch.setattr(hamid.writing, "write_text", broken)
 
 
 @pytest.mark.parametrize(("case", "code", "names"), [

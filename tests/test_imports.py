@@ -26,11 +26,11 @@ def test_importing_the_cli_loads_nothing_heavy(code):
 
 @pytest.mark.parametrize("suffix", [".csv", ".parquet"])
 def test_fitting_a_builtin_model_imports_neither_sympy_nor_pandas(tmp_path, suffix):
-    from hamid import io
+    from hamid import io, writing
 
     path = tmp_path / f"duffing{suffix}"
     table, metadata = io.read_table(SAMPLE)
-    io.write_table(table, str(path), metadata=metadata)
+    writing.write_table(table, str(path), metadata=metadata)
     loaded = _loaded_after(f"import hamid\nhamid.fit({str(path)!r})")
     assert {"numpy", "pyarrow"} <= loaded  # the probe works
     assert not loaded & {"sympy", "pandas"}

@@ -19,6 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from hamid import io as hio
+from hamid import naming, options, writing
 from hamid.errors import DataError, ModelError, UsageError
 
 FORMATS = {"csv": "run.csv", "tsv": "run.tsv", "parquet": "run.parquet"}
@@ -70,7 +71,7 @@ def in_tmp(tmp_path, monkeypatch):
 def test_round_trip_keeps_values_types_order_and_metadata(tmp_path, fmt):
     table = _table()[["x", "split", "trajectory", "vx", "t"]]  # not alphabetical
     path = tmp_path / FORMATS[fmt]
-    hio.write_table(table, path, metadata=METADATA)
+    writing.write_table(table, path, metadata=METADATA)
     back, metadata = hio.read_table(path)
     assert list(back.columns) == ["x", "split", "trajectory", "vx", "t"]
     assert back["trajectory"].dtype == np.int64
@@ -87,7 +88,7 @@ def test_floats_round_trip_exactly(tmp_path, fmt):
     x = rng.standard_normal(2000) * 10.0 ** rng.integers(-300, 300, 2000)
     x = np.concatenate([x, [5e-324, -0.0, 1e308, 0.1, 1 / 3, 2.0**53 + 2, -1.5]])
     path = tmp_path / FORMATS[fmt]
-    hio.write_table(pd.DataFrame({"x": x}), path)
+    writing.write_table(pd.DataFrame({"x": x}), path)
     y = hio.numeric_column(hio.read_table(path)[0], "x", source=str(path))
     assert np.array_equal(x, y)
     assert np.array_equal(np.signbit(x), np.signbit(y))
@@ -96,7 +97,7 @@ def test_floats_round_trip_exactly(tmp_path, fmt):
 @pytest.mark.parametrize(("fmt", "delimiter"), [("csv", ","), ("tsv", "\t")])
 def test_text_layout_metadata_line_and_integers(tmp_path, fmt, delimiter):
     path = tmp_path / FORMATS[fmt]
-    hio.write_table(_table(3), path, metadata={"seed": 0, "b": [1.5, None]})
+    writing.write_table(_table(3), path, metadata={"seed": 0, "b": [1.5, None]})
     lines = path.read_text().splitlines()
     assert lines[0] == '# hamid: {"seed":0,"b":[1.5,null]}'
     assert lines[1] == delimiter.join(["trajectory", "t", "x", "vx", "split"])
@@ -107,20 +108,20 @@ def test_text_layout_metadata_line_and_integers(tmp_path, fmt, delimiter):
 @pytest.mark.parametrize("fmt", ["csv", "tsv"])
 def test_text_without_metadata_starts_with_header(tmp_path, fmt):
     path = tmp_path / FORMATS[fmt]
-    hio.write_table(_table(2), path)
+    writing.write_table(_table(2), path)
     assert path.read_text().startswith("trajectory")
     assert hio.read_table(path)[1] is None
 
 
 def test_parquet_without_metadata_reads_none(tmp_path):
     path = tmp_path / "run.parquet"
-    hio.write_table(_table(2), path)
+    writing.write_table(_table(2), path)
     assert hio.read_table(path)[1] is None
 
 
 def test_parquet_metadata_sits_beside_pandas_metadata(tmp_path):
     path = tmp_path / "run.parquet"
-    hio.write_table(_table(2), path, metadata={"seed": 3})
+    writing.write_table(_table(2), path, metadata={"seed": 3})
     stored = pq.read_schema(path).metadata
     assert json.loads(stored[b"hamid"]) == {"seed": 3}
     assert b"pandas" in stored
@@ -129,28 +130,28 @@ def test_parquet_metadata_sits_beside_pandas_metadata(tmp_path):
 def test_header_names_that_need_quotes_round_trip(tmp_path):
     table = pd.DataFrame({"a,b": [1.5], 'say "hi"': [2.5], "#t": [3.5]})
     path = tmp_path / "q.csv"
-    hio.write_table(table, path)
+    writing.write_table(table, path)
     assert list(hio.read_table(path)[0].columns) == ["a,b", 'say "hi"', "#t"]
 
 
 def test_metadata_accepts_numpy_values(tmp_path):
     path = tmp_path / "run.csv"
     metadata = {"seed": np.int64(4), "x0": np.array([0.5, 1.0]), "h": np.float64(0.25)}
-    hio.write_table(_table(2), path, metadata=metadata)
+    writing.write_table(_table(2), path, metadata=metadata)
     assert hio.read_table(path)[1] == {"seed": 4, "x0": [0.5, 1.0], "h": 0.25}
 
 
 def test_metadata_with_nan_is_refused_before_writing(tmp_path):
     path = tmp_path / "run.csv"
     with pytest.raises(ValueError, match="Out of range float values"):
-        hio.write_table(_table(2), path, metadata={"h": float("nan")})
+        writing.write_table(_table(2), path, metadata={"h": float("nan")})
     assert not path.exists()
 
 
 def test_index_is_not_written(tmp_path):
     table = _table(4).iloc[[3, 1]]
     path = tmp_path / "run.csv"
-    hio.write_table(table, path)
+    writing.write_table(table, path)
     back = hio.read_table(path)[0]
     assert list(back.columns) == list(table.columns)
     assert list(back["x"]) == list(table["x"])
@@ -166,7 +167,7 @@ def test_index_is_not_written(tmp_path):
 )
 def test_extensions_choose_the_format(tmp_path, name, fmt):
     path = tmp_path / name
-    hio.write_table(_table(3), path)
+    writing.write_table(_table(3), path)
     if fmt == "parquet":
         assert path.read_bytes().startswith(b"PAR1")
     else:
@@ -177,7 +178,7 @@ def test_extensions_choose_the_format(tmp_path, name, fmt):
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_unknown_extension_is_sniffed(tmp_path, fmt):
     path = tmp_path / "run.dat"
-    hio.write_table(_table(3), path, format=fmt, metadata={"fmt": fmt})
+    writing.write_table(_table(3), path, format=fmt, metadata={"fmt": fmt})
     back, metadata = hio.read_table(path)
     assert list(back.columns) == list(_table(3).columns)
     assert metadata == {"fmt": fmt}
@@ -273,7 +274,7 @@ def test_read_columns_of_a_sliced_arrow_column_starts_at_its_offset():
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_stdout_to_stdin_round_trip(monkeypatch, fmt):
     stdout = _fake_stdout(monkeypatch)
-    hio.write_table(_table(), "-", format=fmt, metadata=METADATA)
+    writing.write_table(_table(), "-", format=fmt, metadata=METADATA)
     data = stdout.buffer.getvalue()
     assert data.startswith(b"PAR1" if fmt == "parquet" else b"# hamid: ")
     _fake_stdin(monkeypatch, data)
@@ -284,26 +285,26 @@ def test_stdout_to_stdin_round_trip(monkeypatch, fmt):
 
 def test_stdout_defaults_to_csv(monkeypatch):
     stdout = _fake_stdout(monkeypatch)
-    hio.write_table(_table(2), "-")
+    writing.write_table(_table(2), "-")
     assert stdout.buffer.getvalue().startswith(b"trajectory,t,x,vx,split\n1,0,")
 
 
 def test_stdout_keeps_text_written_before(monkeypatch):
     stdout = _fake_stdout(monkeypatch)
     stdout.write("first\n")
-    hio.write_table(_table(2), "-")
+    writing.write_table(_table(2), "-")
     assert stdout.buffer.getvalue().startswith(b"first\ntrajectory,")
 
 
 def test_text_only_stdout(monkeypatch):
     stdout = io.StringIO()
     monkeypatch.setattr(sys, "stdout", stdout)
-    hio.write_table(_table(2), "-", format="tsv")
-    hio.write_text("done é\n", "-")
+    writing.write_table(_table(2), "-", format="tsv")
+    writing.write_text("done é\n", "-")
     assert stdout.getvalue().startswith("trajectory\tt\t")
     assert stdout.getvalue().endswith("done é\n")
     with pytest.raises(DataError, match="^<stdout>: cannot write Parquet"):
-        hio.write_table(_table(2), "-", format="parquet")
+        writing.write_table(_table(2), "-", format="parquet")
 
 
 def test_stdin_tsv_is_sniffed(monkeypatch):
@@ -325,9 +326,9 @@ def test_stdin_errors_name_stdin(monkeypatch, data, message):
 
 def test_write_text_to_stdout_and_file(monkeypatch, tmp_path):
     stdout = _fake_stdout(monkeypatch)
-    hio.write_text("résumé\n", "-")
+    writing.write_text("résumé\n", "-")
     assert stdout.buffer.getvalue() == "résumé\n".encode()
-    hio.write_text("a\r\nb", tmp_path / "out.txt")
+    writing.write_text("a\r\nb", tmp_path / "out.txt")
     assert (tmp_path / "out.txt").read_bytes() == b"a\r\nb"
 
 
@@ -369,7 +370,7 @@ def test_only_comments(in_tmp):
     ],
 )
 def test_header_only(in_tmp, name, message):
-    hio.write_table(_table().iloc[:0], name, metadata={"seed": 0})
+    writing.write_table(_table().iloc[:0], name, metadata={"seed": 0})
     with pytest.raises(DataError, match=f"^{name}: {message}$"):
         hio.read_table(name)
 
@@ -391,14 +392,14 @@ def test_header_then_blank_lines(in_tmp):
     ],
 )
 def test_corrupt_parquet(in_tmp, damage):
-    hio.write_table(_table(50), "good.parquet")
+    writing.write_table(_table(50), "good.parquet")
     (in_tmp / "bad.parquet").write_bytes(damage((in_tmp / "good.parquet").read_bytes()))
     with pytest.raises(DataError, match=r"^bad.parquet: is not a valid Parquet file \(.+\)$"):
         hio.read_table("bad.parquet")
 
 
 def test_parquet_in_a_csv_file(in_tmp):
-    hio.write_table(_table(3), "run.csv", format="parquet")
+    writing.write_table(_table(3), "run.csv", format="parquet")
     with pytest.raises(DataError, match="^run.csv: is a Parquet file, not CSV text$"):
         hio.read_table("run.csv")
 
@@ -540,7 +541,7 @@ def test_missing_value_before_a_text_cell(tmp_path):
 
 def test_text_column_is_not_a_number(tmp_path):
     path = tmp_path / "run.csv"
-    hio.write_table(_table(), path)
+    writing.write_table(_table(), path)
     table = hio.read_table(path)[0]
     with pytest.raises(DataError, match="^run.csv: column 'split', row 1: 'id' is not a number$"):
         hio.numeric_column(table, "split", source="run.csv")
@@ -626,7 +627,7 @@ def test_bad_cell_after_the_first_block(tmp_path):
     n = 120_000  # about 3 MB: several of pyarrow's 1 MB blocks
     table = _table(n)
     path = tmp_path / "big.csv"
-    hio.write_table(table, path)
+    writing.write_table(table, path)
     lines = path.read_text().splitlines()
     fields = lines[100_001].split(",")
     fields[3] = "n/a"
@@ -666,39 +667,39 @@ def test_fallback_when_pyarrow_refuses_a_late_cell(tmp_path, monkeypatch, max_bl
 )
 def test_write_unknown_extension(in_tmp, name, message):
     with pytest.raises(UsageError, match=message):
-        hio.write_table(_table(2), name)
+        writing.write_table(_table(2), name)
     assert os.listdir(in_tmp) == []
 
 
 def test_write_unknown_format(in_tmp):
     with pytest.raises(UsageError, match="unknown data format 'json'"):
-        hio.write_table(_table(2), "out.csv", format="json")
+        writing.write_table(_table(2), "out.csv", format="json")
 
 
 def test_write_into_missing_folder(in_tmp):
     with pytest.raises(DataError, match="^nowhere/out.csv: cannot write: folder 'nowhere' does"):
-        hio.write_table(_table(2), "nowhere/out.csv")
+        writing.write_table(_table(2), "nowhere/out.csv")
 
 
 def test_write_under_a_file(in_tmp):
     (in_tmp / "plain").write_text("x")
     with pytest.raises(DataError, match="^plain/out.csv: cannot write in folder 'plain': Not a"):
-        hio.write_table(_table(2), "plain/out.csv")
+        writing.write_table(_table(2), "plain/out.csv")
 
 
 def test_write_onto_a_folder(in_tmp):
     (in_tmp / "out.csv").mkdir()
     with pytest.raises(DataError, match="^out.csv: is a folder, not a file$"):
-        hio.write_text("x", "out.csv")
+        writing.write_text("x", "out.csv")
 
 
 def test_write_in_unwritable_folder(in_tmp, monkeypatch):
     def refuse(*args, **kwargs):
         raise PermissionError(errno.EACCES, "Permission denied")
 
-    monkeypatch.setattr(hio.tempfile, "mkstemp", refuse)
+    monkeypatch.setattr(writing.tempfile, "mkstemp", refuse)
     with pytest.raises(DataError, match="^out.csv: cannot write in folder '.': Permission denied"):
-        hio.write_table(_table(2), "out.csv")
+        writing.write_table(_table(2), "out.csv")
 
 
 def _partial_writer(exception: BaseException):
@@ -738,7 +739,7 @@ def test_failed_write_leaves_destination_unchanged(
     monkeypatch.setattr(pacsv, "write_csv", _partial_writer(exception))
     monkeypatch.setattr(pq, "write_table", _partial_writer(exception))
     with pytest.raises(expected, match=match):
-        hio.write_table(_table(), name, metadata={"seed": 1})
+        writing.write_table(_table(), name, metadata={"seed": 1})
     assert (in_tmp / name).read_bytes() == b"precious bytes\n"
     assert os.listdir(in_tmp) == [name]
 
@@ -746,7 +747,7 @@ def test_failed_write_leaves_destination_unchanged(
 def test_failed_write_without_destination_leaves_nothing(in_tmp, monkeypatch):
     monkeypatch.setattr(pacsv, "write_csv", _partial_writer(KeyboardInterrupt()))
     with pytest.raises(KeyboardInterrupt):
-        hio.write_table(_table(), "new.csv")
+        writing.write_table(_table(), "new.csv")
     assert os.listdir(in_tmp) == []
 
 
@@ -756,7 +757,7 @@ def test_unserialisable_cell_leaves_destination_unchanged(in_tmp, fmt):
     (in_tmp / name).write_bytes(b"precious")
     table = pd.DataFrame({"t": [0.0, 1.0], "o": [object(), object()]})
     with pytest.raises(DataError, match=f"^{name}: cannot write the table"):
-        hio.write_table(table, name)
+        writing.write_table(table, name)
     assert (in_tmp / name).read_bytes() == b"precious"
     assert os.listdir(in_tmp) == [name]
 
@@ -767,26 +768,26 @@ def test_failed_fsync_leaves_text_destination_unchanged(in_tmp, monkeypatch):
     def fail(fd):
         raise OSError(errno.EIO, "Input/output error")
 
-    monkeypatch.setattr(hio.os, "fsync", fail)
+    monkeypatch.setattr(writing.os, "fsync", fail)
     with pytest.raises(DataError, match="^report.md: cannot write: Input/output error$"):
-        hio.write_text("new report", "report.md")
+        writing.write_text("new report", "report.md")
     assert (in_tmp / "report.md").read_text() == "old report"
     assert os.listdir(in_tmp) == ["report.md"]
 
 
 def test_duplicated_columns_are_not_written(in_tmp):
     with pytest.raises(DataError, match="^out.csv: duplicated column name 'x'$"):
-        hio.write_table(pd.DataFrame([[1, 2]], columns=["x", "x"]), "out.csv")
+        writing.write_table(pd.DataFrame([[1, 2]], columns=["x", "x"]), "out.csv")
     assert os.listdir(in_tmp) == []
 
 
 def test_written_file_replaces_and_gets_usual_permissions(in_tmp):
     old = os.umask(0o022)
     try:
-        hio.write_text("new", "fresh.txt")
+        writing.write_text("new", "fresh.txt")
         (in_tmp / "kept.txt").write_text("old")
         os.chmod(in_tmp / "kept.txt", 0o600)
-        hio.write_text("new", "kept.txt")
+        writing.write_text("new", "kept.txt")
     finally:
         os.umask(old)
     assert (in_tmp / "fresh.txt").stat().st_mode & 0o777 == 0o644
@@ -879,7 +880,7 @@ def test_missing_json(in_tmp):
     ],
 )
 def test_find_velocity_pattern_order(columns, expected):
-    assert hio.find_velocity("x", columns) == expected
+    assert naming.find_velocity("x", columns) == expected
 
 
 @pytest.mark.parametrize(
@@ -900,12 +901,12 @@ def test_find_velocity_pattern_order(columns, expected):
     ],
 )
 def test_find_coordinates(columns, exclude, expected):
-    assert hio.find_coordinates(columns, exclude=exclude) == expected
+    assert naming.find_coordinates(columns, exclude=exclude) == expected
 
 
 def test_find_coordinates_does_not_give_one_velocity_twice():
     # 'vx_dot' is both vx's velocity (by {}_dot) and x_dot's (by v{}).
-    assert hio.find_coordinates(["vx", "x_dot", "vx_dot"], exclude=()) == [("vx", "vx_dot")]
+    assert naming.find_coordinates(["vx", "x_dot", "vx_dot"], exclude=()) == [("vx", "vx_dot")]
 
 
 PENG = (["u1", "u2"], ["v1", "v2"])
@@ -927,7 +928,7 @@ PENG = (["u1", "u2"], ["v1", "v2"])
     ],
 )
 def test_resolve_columns(columns, mapping, expected):
-    resolved = hio.resolve_columns(columns, *PENG, mapping=mapping, source="data.csv")
+    resolved = naming.resolve_columns(columns, *PENG, mapping=mapping, source="data.csv")
     assert resolved == dict(zip(["u1", "u2", "v1", "v2"], expected, strict=True))
     assert list(resolved) == ["u1", "u2", "v1", "v2"]
 
@@ -937,12 +938,12 @@ def test_resolve_unknown_mapping_key():
         UsageError,
         match=r"^--columns: 'z' is not a coordinate or velocity of the model \(u1, u2, v1, v2\)$",
     ):
-        hio.resolve_columns(["u1", "u2", "v1", "v2"], *PENG, mapping={"z": "u1"}, source="d")
+        naming.resolve_columns(["u1", "u2", "v1", "v2"], *PENG, mapping={"z": "u1"}, source="d")
 
 
 def test_resolve_mapped_column_missing():
     with pytest.raises(DataError, match=r"^data.csv: no column 'pos9' \(given for 'u1' by"):
-        hio.resolve_columns(
+        naming.resolve_columns(
             ["u1", "u2", "v1", "v2"], *PENG, mapping={"u1": "pos9"}, source="data.csv"
         )
 
@@ -953,7 +954,7 @@ def test_resolve_missing_velocity_lists_what_was_looked_for():
         match=r"^data.csv: no column for velocity 'v2' of coordinate 'u2' "
         r"\(looked for v2, vu2, u2_dot, u2dot, du2\)$",
     ):
-        hio.resolve_columns(["t", "u1", "u2", "v1"], *PENG, source="data.csv")
+        naming.resolve_columns(["t", "u1", "u2", "v1"], *PENG, source="data.csv")
 
 
 def test_resolve_missing_velocity_of_mapped_coordinate():
@@ -961,14 +962,14 @@ def test_resolve_missing_velocity_of_mapped_coordinate():
         DataError,
         match=r"\(looked for v1, vu1, u1_dot, u1dot, du1, vp, p_dot, pdot, dp\)$",
     ):
-        hio.resolve_columns(["p", "u2", "v2"], *PENG, mapping={"u1": "p"}, source="data.csv")
+        naming.resolve_columns(["p", "u2", "v2"], *PENG, mapping={"u1": "p"}, source="data.csv")
 
 
 def test_resolve_missing_coordinate():
     with pytest.raises(
         DataError, match=r"^data.csv: no column for coordinate 'u2' \(columns: t, u1, v1, v2\)$"
     ):
-        hio.resolve_columns(["t", "u1", "v1", "v2"], *PENG, source="data.csv")
+        naming.resolve_columns(["t", "u1", "v1", "v2"], *PENG, source="data.csv")
 
 
 @pytest.mark.parametrize(
@@ -981,7 +982,7 @@ def test_resolve_missing_coordinate():
 )
 def test_resolve_two_names_one_column(mapping, message):
     with pytest.raises(DataError, match=f"^data.csv: {message}$"):
-        hio.resolve_columns(["u1", "u2", "v1", "v2"], *PENG, mapping=mapping, source="data.csv")
+        naming.resolve_columns(["u1", "u2", "v1", "v2"], *PENG, mapping=mapping, source="data.csv")
 
 
 @pytest.mark.parametrize(
@@ -994,8 +995,8 @@ def test_resolve_two_names_one_column(mapping, message):
     ],
 )
 def test_default_columns(columns, time, trajectory):
-    assert hio.default_time_column(columns) == time
-    assert hio.default_trajectory_column(columns) == trajectory
+    assert naming.default_time_column(columns) == time
+    assert naming.default_trajectory_column(columns) == trajectory
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1003,7 +1004,7 @@ def test_default_columns(columns, time, trajectory):
 
 
 def test_parse_mapping():
-    assert hio.parse_mapping(" x = pos1 ,vx=vel 1", option="--columns") == {
+    assert options.parse_mapping(" x = pos1 ,vx=vel 1", option="--columns") == {
         "x": "pos1",
         "vx": "vel 1",
     }
@@ -1023,11 +1024,11 @@ def test_parse_mapping():
 )
 def test_parse_mapping_rejects(text, message):
     with pytest.raises(UsageError, match=f"^--columns: {message}"):
-        hio.parse_mapping(text, option="--columns")
+        options.parse_mapping(text, option="--columns")
 
 
 def test_parse_float_mapping():
-    assert hio.parse_float_mapping("x=0.01, vx=2e-2,k=-1", option="--noise") == {
+    assert options.parse_float_mapping("x=0.01, vx=2e-2,k=-1", option="--noise") == {
         "x": 0.01,
         "vx": 0.02,
         "k": -1.0,
@@ -1046,7 +1047,7 @@ def test_parse_float_mapping():
 )
 def test_parse_float_mapping_rejects(text, message):
     with pytest.raises(UsageError, match=f"^--fix: {message}$"):
-        hio.parse_float_mapping(text, option="--fix")
+        options.parse_float_mapping(text, option="--fix")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from conftest import PENG, with_noise
 
 import hamid
-from hamid import api, design, io, stream
+from hamid import api, design, io, stream, writing
 from hamid.cli import cli
 from hamid.errors import DataError, UsageError
 
@@ -24,7 +24,7 @@ def noisy_files(clean_records, tmp_path_factory):
     paths = {}
     for suffix in ("parquet", "csv"):
         paths[suffix] = str(folder / f"peng.{suffix}")
-        io.write_table(frame, paths[suffix], metadata=frame.attrs["hamid"])
+        writing.write_table(frame, paths[suffix], metadata=frame.attrs["hamid"])
     return frame, paths
 
 
@@ -170,7 +170,7 @@ def test_a_trajectory_too_short_for_any_window_streams(noisy_files, tmp_path, me
     with_short = pd.concat([frame, short], ignore_index=True)
     with_short.attrs = dict(frame.attrs)
     path = str(tmp_path / "with_short.parquet")
-    io.write_table(with_short, path, metadata=frame.attrs["hamid"])
+    writing.write_table(with_short, path, metadata=frame.attrs["hamid"])
     memory = hamid.fit(with_short, method=method, cov=cov)
     streamed = hamid.fit(path, method=method, cov=cov, chunk_rows=250)
     assert {h.trajectory: h.stderr for h in streamed.energy_levels}[9] is None
@@ -186,7 +186,7 @@ def test_fixed_parameters_stream(noisy_files):
 def test_no_time_column_falls_back_to_energy_rows(noisy_files, tmp_path):
     frame, _ = noisy_files
     path = str(tmp_path / "untimed.parquet")
-    io.write_table(frame.drop(columns="t"), path)
+    writing.write_table(frame.drop(columns="t"), path)
     memory = hamid.fit(frame.drop(columns="t"), model="peng-quadratic")
     streamed = hamid.fit(path, model="peng-quadratic", chunk_rows=300)
     assert streamed.method["kind"] == "energy"
@@ -197,7 +197,7 @@ def test_auto_falls_back_when_windows_are_too_few(noisy_files, tmp_path):
     frame, _ = noisy_files
     short = frame[frame.t <= 4.0]
     path = str(tmp_path / "short.parquet")
-    io.write_table(short, path, metadata=frame.attrs["hamid"])
+    writing.write_table(short, path, metadata=frame.attrs["hamid"])
     memory = hamid.fit(short)
     streamed = hamid.fit(path, chunk_rows=64)
     assert streamed.method["kind"] == "energy"
@@ -257,7 +257,7 @@ def test_time_going_back_across_a_chunk_boundary(noisy_files, tmp_path):
     bad = frame.copy()
     bad.iloc[700, bad.columns.get_loc("t")] = bad.t.iloc[698]
     path = str(tmp_path / "back.parquet")
-    io.write_table(bad, path)
+    writing.write_table(bad, path)
     with pytest.raises(DataError, match="column 't', row 701: time does not increase"):
         hamid.fit(path, model="peng-quadratic", chunk_rows=700)
 
@@ -267,7 +267,7 @@ def test_non_finite_energy_names_the_file_row(noisy_files, tmp_path):
     bad = frame.copy()
     bad.iloc[900, bad.columns.get_loc("u1")] = 1e200
     path = str(tmp_path / "huge.parquet")
-    io.write_table(bad, path)
+    writing.write_table(bad, path)
     with pytest.raises(DataError, match="row 901: the .* of the energy is not finite"):
         hamid.fit(path, model="peng-quadratic", chunk_rows=256)
 

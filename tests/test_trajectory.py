@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from conftest import DUFFING, ELASTIC_PENDULUM, PENG, TWO_MASS, with_noise
 
 import hamid
-from hamid import api, io
+from hamid import api, writing
 from hamid.cli import cli
 from hamid.design import Damping
 from hamid.model import model_from_spec
@@ -120,7 +120,7 @@ def test_a_file_read_in_chunks_is_refined_like_one_in_memory(clean_records, monk
     holds only the records: the same estimates, errors, levels and residual summary."""
     frame = with_noise(clean_records["duffing"], 0.02, seed=3)
     path = str(tmp_path / "duffing.parquet")
-    io.write_table(frame, path, metadata=frame.attrs["hamid"])
+    writing.write_table(frame, path, metadata=frame.attrs["hamid"])
     memory = hamid.fit(path)
     monkeypatch.setattr(api, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
     chunked = hamid.fit(path)
@@ -154,7 +154,7 @@ def test_a_file_read_in_chunks_is_refined_like_one_in_memory(clean_records, monk
 def test_progress_hears_every_pass_and_every_batch(clean_records, monkeypatch, tmp_path):
     frame = with_noise(clean_records["duffing"], 0.02, seed=3)
     path = str(tmp_path / "duffing.parquet")
-    io.write_table(frame, path, metadata=frame.attrs["hamid"])
+    writing.write_table(frame, path, metadata=frame.attrs["hamid"])
     monkeypatch.setattr(api, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
     heard: list[str] = []
     result = hamid.fit(path, progress=heard.append)
@@ -235,7 +235,7 @@ def test_a_model_that_does_not_fit_keeps_the_linear_fit(clean_records):
 def test_a_model_that_does_not_fit_keeps_the_linear_fit_read_in_chunks(monkeypatch, tmp_path):
     damped = hamid.simulate({**DUFFING, "damping": {"c_x": 0.05}})
     path = str(tmp_path / "damped.parquet")
-    io.write_table(damped, path, metadata=damped.attrs["hamid"])
+    writing.write_table(damped, path, metadata=damped.attrs["hamid"])
     monkeypatch.setattr(api, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
     auto, joint = hamid.fit(path), hamid.fit(path, method="joint")
     assert auto.samples is None

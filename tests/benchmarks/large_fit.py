@@ -97,9 +97,9 @@ def make_data(path: str, rows_per_trajectory: int) -> None:
         "noise": {"relative": 0.01},
     }
     frame = hamid.simulate(system)
-    from hamid import io
+    from hamid import writing
 
-    io.write_table(frame, path, metadata=frame.attrs["hamid"])
+    writing.write_table(frame, path, metadata=frame.attrs["hamid"])
 
 
 def run(code: str, *args: str) -> dict:

@@ -45,7 +45,7 @@ def hamid_command():
 
 
 def make_data(folder, rows, noise=0.0):
-    from hamid import io
+    from hamid import writing
 
     per_trajectory = rows // 2
     system = {"model": {"builtin": "peng-quadratic"}, "parameters": PENG,
@@ -56,7 +56,7 @@ def make_data(folder, rows, noise=0.0):
     frame = hamid.simulate(system)
     assert len(frame) == rows, len(frame)
     path = Path(folder) / f"peng-noise-{noise:g}.csv"
-    io.write_table(frame, str(path), metadata=frame.attrs["hamid"])
+    writing.write_table(frame, str(path), metadata=frame.attrs["hamid"])
     return path
 
 
