@@ -16,10 +16,9 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from hamid.errors import DataError, UsageError
+from hamid.result import SCHEMA
 
 __all__ = ["FORMATS", "SCHEMA", "render", "validate_result"]
-
-SCHEMA = "hamid.fit/1"
 
 ReportFormat = Literal["table", "json", "markdown", "csv"]
 
