@@ -32,10 +32,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from hamid.design import Block, Records, Windows
+from hamid.design import Block, Windows
 from hamid.errors import UsageError
 from hamid.expr import Polynomial
 from hamid.model import Model
+from hamid.records import Records
 
 __all__ = ["Moments", "adjusted_moments", "unbiased"]
 

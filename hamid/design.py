@@ -8,6 +8,7 @@ column; the solver and the covariance estimators only see blocks.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -15,43 +16,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from hamid.errors import DataError, FitError
 from hamid.model import DAMPING_KINDS, Model
+from hamid.records import Records
 
-__all__ = ["Block", "Damping", "Records", "dominant_period", "energy_block", "median_period",
-           "runs", "trajectory_scales", "weak_block", "window_means", "windows"]
-
-
-@dataclass(frozen=True)
-class Records:
-    """Recorded states of one or more trajectories, rows grouped by trajectory in time order.
-
-    X : shape (n_samples, 2N), the coordinates then the velocities, in model order.
-    t : shape (n_samples,), or None when the data have no time column.
-    group : shape (n_samples,), trajectory index 0..J-1, contiguous.
-    labels : the trajectory labels shown to the user, one per index.
-    """
-
-    X: npt.NDArray[np.float64]
-    t: npt.NDArray[np.float64] | None
-    group: npt.NDArray[np.int64]
-    labels: tuple[str | int, ...]
-
-    @property
-    def n_trajectories(self) -> int:
-        return len(self.labels)
-
-    def bounds(self) -> list[tuple[int, int]]:
-        """(start, stop) row range of each trajectory."""
-        return [(start, stop) for _, start, stop in runs(self.group)]
-
-
-def runs(group: npt.NDArray[np.int64]) -> list[tuple[int, int, int]]:
-    """(trajectory, start, stop) of each run of consecutive rows of one trajectory."""
-    if len(group) == 0:
-        return []
-    edges = (np.flatnonzero(np.diff(group)) + 1).tolist()
-    return [(int(group[start]), start, stop)
-            for start, stop in zip([0, *edges], [*edges, len(group)], strict=True)]
+__all__ = ["Block", "Damping", "dominant_period", "energy_block", "median_period",
+           "trajectory_scales", "weak_block", "window_means", "windows"]
 
 
 @dataclass(frozen=True)
@@ -592,3 +562,92 @@ def _add_work_sensitivity(g: np.ndarray, spread: np.ndarray, records: Records,
         for k, (_, i, _) in enumerate(damping.terms):
             slope = _POWER_SLOPES[damping.kinds[k // N]](records.X[start:stop, N + i])
             g[start:stop, N + i, :] += (theta[n_energy + k] * (slope * weight))[:, None] * later
+
+
+def build_blocks(kind: str, kind_reason: str, window: float | None, method: str,
+                  weak_window: float | None, m: Model, records: Records, energy_rows: Block,
+                  dissipation: Any, free: list[int], fixed_values: Any,
+                  free_names: list[str]) -> tuple[str, str, float | None, Any, list[Block]]:
+    """The row blocks of the chosen method (energy rows, weak rows, or both).
+
+    Windows are the independent units of the weak and joint errors, so more are needed
+    than unknowns (the levels count in joint); `auto` falls back to the energy rows when
+    the records hold too few.
+    """
+    from hamid import design
+
+    spans = design.windows(records, window) if kind != "energy" else None
+    needed = len(free) + (records.n_trajectories if kind == "joint" else 0) + 1
+    if spans is not None and spans.n_windows < needed:
+        shortage = (f"the records hold {spans.n_windows} weak-form windows of {window:.3g} s, "
+                    f"fewer than the {needed} that {needed - 1} unknowns need")
+        if method == "auto" and weak_window is None:
+            kind, kind_reason, window, spans = (
+                "energy", f"{shortage}; fitted the energy rows", None, None)
+        elif spans.n_windows > 0:
+            raise FitError(f"cannot determine {', '.join(free_names)}: {shortage}; use "
+                           "--method energy or a shorter --weak-window")
+    blocks = []
+    if kind == "energy":
+        blocks.append(energy_rows)
+    if kind in ("weak", "joint"):
+        if kind == "joint":
+            blocks.append(design.window_means(energy_rows, spans))
+        weak = design.weak_block(m, records, spans, dissipation)
+        bad = np.flatnonzero(~np.all(np.isfinite(np.column_stack([weak.A, weak.b])), axis=1))
+        if bad.size:
+            raise DataError(f"the weak-form rows are not finite (window at t = "
+                            f"{weak.time[bad[0]]:g} of trajectory "
+                            f"{records.labels[weak.group[bad[0]]]}): the energy's derivatives "
+                            "are not finite there; use --method energy")
+        if weak.n_rows == 0:
+            raise DataError(f"the records are too short for one weak-form window of "
+                            f"{window:.4g} s; use --method energy or a shorter --weak-window")
+        blocks.append(hold_fixed(weak, free, fixed_values))
+    return kind, kind_reason, window, spans, blocks
+
+
+def check_finite(block: Block, locate: Callable[[int], tuple[str, int]],
+                  names: list[str]) -> None:
+    """Energy terms must be finite at every sample (data inside the energy's domain)."""
+    if np.isfinite(block.A.sum() + block.b.sum()):   # a finite sum has finite terms
+        return
+    values = np.column_stack([block.b, block.A])
+    bad = np.flatnonzero(~np.all(np.isfinite(values), axis=1))
+    if not bad.size:
+        return
+    row = int(bad[0])
+    column = int(np.flatnonzero(~np.isfinite(values[row]))[0])
+    term = "the parameter-free part" if column == 0 else f"the term of {names[column - 1]!r}"
+    source, local = locate(row)
+    raise DataError(f"{source}: row {local}: {term} of the energy is not finite there "
+                    "(the data are outside the energy's domain, or too large)")
+
+
+def hold_fixed(block: Block, free: list[int], values: Any) -> Block:
+    """Move the terms of fixed parameters into the known side of the rows."""
+    import dataclasses
+
+    if len(free) == block.A.shape[1]:
+        return block
+    return dataclasses.replace(block, A=block.A[:, free], b=block.b - block.A @ values)
+
+
+def fitted_energy(rows: Block, model: Model, estimates: dict[str, float]) -> Any:
+    """E(x_i; theta) at every sample, from the energy rows already built (A theta - b)."""
+    n_energy = len(model.parameters)
+    theta = np.array([estimates[name] for name in model.parameters])
+    return rows.A[:, :n_energy] @ theta - rows.b
+
+
+def sample_weights(kind: str, blocks: list[Block], energy_rows: Block, spans: Any) -> Any:
+    """The weight each sample's energy equation carried in the fit.
+
+    In `joint` the energy rows are window means, so a sample's weight is its share of the
+    windows that hold it; in `weak` the energy equations were not fitted (weight 0).
+    """
+    if kind == "energy":
+        return blocks[0].weight
+    if kind == "weak":
+        return np.zeros(energy_rows.n_rows)
+    return spans.means.T @ blocks[0].weight

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import keyword
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
@@ -357,3 +358,27 @@ def model_from_spec(spec: Mapping[str, Any], *, where: str = "[model]") -> Model
         raise ModelError(f"{where}: 'name' must be a string")
     return model_from_expression(name, spec["energy"], spec["coordinates"],
                                  spec["velocities"], spec.get("parameters"), where=where)
+
+
+_MODEL_FILE_KEYS = ("model", "parameters", "initial", "simulate", "noise", "damping")
+
+
+def load_model(name_or_path: str | os.PathLike[str]) -> Model:
+    """A built-in model by name (``duffing``, ``poly:2:3``, ...) or the model of a TOML file.
+
+    Examples
+    --------
+    >>> hamid.load_model("duffing").parameters
+    ('k', 'k3')
+    """
+    text = os.fspath(name_or_path)
+    if not text.endswith(".toml"):
+        return builtin_model(text)
+    from hamid import io
+    from hamid.config import check_keys
+
+    document = io.read_toml(text)
+    check_keys(document, _MODEL_FILE_KEYS, where=text)
+    if "model" not in document:
+        raise ModelError(f"{text}: no [model] table")
+    return model_from_spec(document["model"], where=f"{text}: [model]")

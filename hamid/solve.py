@@ -13,8 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from hamid.design import Block, runs
+from hamid.design import Block
 from hamid.errors import FitError
+from hamid.records import runs
 
 __all__ = ["Centred", "Conditioning", "Factor", "Solution", "centre", "conditioning",
            "factor_conditioning", "solve", "solve_adjusted", "solve_factor"]

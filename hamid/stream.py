@@ -30,10 +30,23 @@ from typing import Any
 
 import numpy as np
 
-from hamid import api, design, io, naming, solve, uncertainty
-from hamid.design import Block, Records
+from hamid import (
+    design,
+    estimate,
+    io,
+    loading,
+    naming,
+    options,
+    plan,
+    refine,
+    solve,
+    summary,
+    uncertainty,
+)
+from hamid.design import Block
 from hamid.errors import DataError, FitError, UsageError
-from hamid.model import Model
+from hamid.model import Model, load_model
+from hamid.records import Records, runs
 from hamid.result import FitResult
 
 __all__ = ["fit_file"]
@@ -101,7 +114,7 @@ class _Reader:
             if io.is_missing(values[start]):
                 raise DataError(f"{self.table.name}: column {self.trajectory!r}, row "
                                 f"{row + start + 1}: missing trajectory label")
-            label = api.trajectory_label(values[start])
+            label = loading.trajectory_label(values[start])
             keys[start:stop] = self.labels.setdefault(label, len(self.labels))
         return keys
 
@@ -112,22 +125,23 @@ class _Reader:
 def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: str | None,
              trajectory: str | None, format: str | None, fix: Mapping[str, float],
              method: str, weak_window: float | None, cov: str, level: float,
-             chunk_rows: int, refine: bool,
+             chunk_rows: int, may_refine: bool,
              progress: Callable[[str], None] | None) -> FitResult:
     """`hamid.api.fit` of one file, read in chunks of `chunk_rows` rows (see module);
-    `refine`: whether ``auto`` may hold the records in memory for its refinement."""
+    `may_refine`: whether ``auto`` may hold the records in memory for its refinement."""
     table = io.TableChunks(path, format=format)
     m, notes = _model(table, model, columns, time, trajectory)
-    mapping = naming.resolve_columns(table.columns, m.coordinates, m.velocities, mapping=columns,
-                                 source=table.name)
-    time_col = api._optional_column(table.columns, time, naming.default_time_column(table.columns),
-                                    "--time", table.name)
-    traj_col = api._optional_column(table.columns, trajectory,
+    mapping = naming.resolve_columns(table.columns, m.coordinates, m.velocities,
+                                     mapping=columns, source=table.name)
+    time_col = loading.optional_column(table.columns, time,
+                                       naming.default_time_column(table.columns), "--time",
+                                       table.name)
+    traj_col = loading.optional_column(table.columns, trajectory,
                                     naming.default_trajectory_column(table.columns),
                                     "--trajectory", table.name)
     reader = _Reader(table, m, mapping, time_col, traj_col, chunk_rows, progress)
     names = list(m.parameters)
-    fixed = api._check_fixed(fix, tuple(names))
+    fixed = options.check_fixed(fix, tuple(names))
     free = [k for k, name in enumerate(names) if name not in fixed]
     if not free:
         raise UsageError("every parameter is fixed; nothing is left to fit")
@@ -135,12 +149,12 @@ def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: 
     fixed_values = np.array([fixed.get(name, 0.0) for name in names])
 
     scales = _scales(reader, m) if method != "energy" and time_col is not None else None
-    kind, kind_reason, window = api._choose_method(method, m, scales, weak_window)
+    kind, kind_reason, window = plan.choose_method(method, m, scales, weak_window)
 
     def energy_rows(records: Records, first_row: int) -> Block:
         rows = design.energy_block(m, records)
-        api._check_finite(rows, lambda r: (table.name, first_row + r + 1), names)
-        return api._hold_fixed(rows, free, fixed_values)
+        design.check_finite(rows, lambda r: (table.name, first_row + r + 1), names)
+        return design.hold_fixed(rows, free, fixed_values)
 
     if kind == "energy":
         fitted = _energy(reader, energy_rows, free_names, cov)
@@ -153,11 +167,11 @@ def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: 
     refinement_info = None
     if method == "auto" and kind == "joint":
         n_samples = int(fitted.sizes.sum())
-        reason = api._refinement_obstacle(cov, False, ()) or _refinement_memory(
-            refine, n_samples, m)
+        reason = plan.refinement_obstacle(cov, False, ()) or _refinement_memory(
+            may_refine, n_samples, m)
         if reason is None:
             records = _whole(reader, n_samples)
-            refinement, refinement_info = api._refine(
+            refinement, refinement_info = refine.refine_joint(
                 m, records, design.Damping((), m.coordinates), free, fixed_values,
                 fitted.theta, scales, window, None, "measured", progress)
             del records
@@ -165,7 +179,7 @@ def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: 
                 fitted = _refined(reader, energy_rows, fitted, refinement)
         else:
             refinement_info = {"applied": False, "reason": reason}
-        kind_reason += api._refinement_note(refinement_info)
+        kind_reason += plan.refinement_note(refinement_info)
     if fitted.stats is None:
         fitted = _summarised(reader, energy_rows, fitted)
     labels = reader.label_tuple()
@@ -180,9 +194,9 @@ def fit_file(path: str, model: Any, *, columns: Mapping[str, str] | None, time: 
     data_info = {"sources": [table.name], "n_samples": sum(sizes),
                  "n_trajectories": len(labels), "columns": dict(mapping),
                  "velocity_source": "measured"}
-    return api._result(m, names, fixed, fitted.theta, fitted.covariance, fitted.df,
-                       truth=api._truth(table.metadata, m),
-                       levels=api._levels(labels, fitted.h, fitted.h_stderr, sizes),
+    return summary.fit_result(m, names, fixed, fitted.theta, fitted.covariance, fitted.df,
+                       truth=loading.truth_of(table.metadata, m),
+                       levels=summary.energy_levels(labels, fitted.h, fitted.h_stderr, sizes),
                        stats=fitted.stats, cond=fitted.cond,
                        block_conditions=fitted.block_conditions, notes=notes,
                        data_info=data_info, method_info=method_info, dissipation=None,
@@ -214,14 +228,14 @@ class _Fit:
     energy_means: np.ndarray | None = None
 
 
-def _refinement_memory(refine: bool, n_samples: int, m: Model) -> str | None:
+def _refinement_memory(may_refine: bool, n_samples: int, m: Model) -> str | None:
     """Why a chunked auto fit does not hold its records in memory to refine, or None."""
-    if not refine:
-        return api.CHUNKED_NOT_REFINED
+    if not may_refine:
+        return plan.CHUNKED_NOT_REFINED
     size = 8 * n_samples * (len(m.variables) + 2)
-    if size > api.REFINEMENT_BYTES:
+    if size > options.REFINEMENT_BYTES:
         return (f"it holds the records in memory, {size / 2**30:.1f} GiB here, over the "
-                f"limit of {api.REFINEMENT_BYTES / 2**30:g} GiB")
+                f"limit of {options.REFINEMENT_BYTES / 2**30:g} GiB")
     return None
 
 
@@ -246,7 +260,7 @@ def _refined(reader: _Reader, energy_rows: Any, fitted: _Fit, refinement: Any) -
     return dataclasses.replace(
         fitted, theta=refinement.theta, covariance=refinement.covariance,
         description=refinement.description, df=refinement.dof, h=h,
-        h_stderr=api._refined_level_errors(means_A, refinement.covariance, residuals),
+        h_stderr=refine.refined_level_errors(means_A, refinement.covariance, residuals),
         stats={**residuals.stats(reader.label_tuple()), "blocks": fitted.block_stats})
 
 
@@ -258,8 +272,8 @@ def _summarised(reader: _Reader, energy_rows: Any, fitted: _Fit) -> _Fit:
 
 
 def _residual_sums(reader: _Reader, energy_rows: Any, theta: Any,
-                   h: Any) -> api._ResidualSums:
-    residuals = api._ResidualSums(h)
+                   h: Any) -> summary.ResidualSums:
+    residuals = summary.ResidualSums(h)
     for records, row in reader.rows("residual summary"):
         block = energy_rows(records, row)
         residuals.add(block, block.A @ theta - block.b - h[block.group])
@@ -273,10 +287,10 @@ def _model(table: io.TableChunks, model: Any, columns: Mapping[str, str] | None,
     if isinstance(model, Model):
         return model, ()
     if model is not None:
-        return api.load_model(model), ()
+        return load_model(model), ()
     if metadata and isinstance(metadata.get("model"), Mapping):
-        return api._model_from_metadata(metadata["model"], table.name), ()
-    m = api._assumed_model(table.columns, table.name, columns, time, trajectory)
+        return loading.model_from_metadata(metadata["model"], table.name), ()
+    m = loading.assumed_model(table.columns, table.name, columns, time, trajectory)
     return m, (f"no model given: assumed {m.name} over the coordinates "
                f"{', '.join(m.coordinates)} (pick one with --model)",)
 
@@ -298,7 +312,7 @@ def _scales(reader: _Reader, m: Model) -> list[tuple[float | None, float]]:
             held.clear()
 
     for records, _ in reader.rows("periods of the trajectories"):
-        for j, start, stop in design.runs(records.group):
+        for j, start, stop in runs(records.group):
             if held and held[-1].group[0] != j:
                 finish()
                 kept = 0
@@ -324,7 +338,7 @@ def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> _F
     means_A, means_b = factor.level_means
     h = means_A @ theta - means_b
     df = factor.n_rows - p - J
-    residuals = api._ResidualSums(h)
+    residuals = summary.ResidualSums(h)
 
     def score_pass(sums: uncertainty.ScoreSums) -> None:
         for records, row in reader.rows("standard errors"):
@@ -332,7 +346,7 @@ def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> _F
             r = block.A @ theta - block.b - h[block.group]
             if sums.bandwidth is None:   # the first pass (hac: the one finding the bandwidth)
                 residuals.add(block, r)
-            for j, start, stop in design.runs(block.group):
+            for j, start, stop in runs(block.group):
                 w = block.weight[start:stop]
                 G = w[:, None] * ((block.A[start:stop] - means_A[j]) @ solution.inverse)
                 z = np.column_stack([G, w / factor.total_weight[j]])
@@ -346,7 +360,7 @@ def _energy(reader: _Reader, energy_rows: Any, names: list[str], cov: str) -> _F
     stats["blocks"] = {"energy": {"n_rows": int(residuals.n.sum()), "rms": stats["rms"],
                                   "max_abs": stats["max_abs"]}}
     cond = solve.factor_conditioning(factor, names, reader.label_tuple())
-    h_stderr = np.sqrt(np.clip(api._level_variance(c, means_A), 0, None))
+    h_stderr = np.sqrt(np.clip(estimate.level_variance(c, means_A), 0, None))
     return _Fit(theta, c.theta, c.description, c.df, h, h_stderr, stats, cond, None, None,
                 residuals.n.astype(np.int64))
 
@@ -369,7 +383,7 @@ def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: fl
         if len(first):
             spans = design.windows_at(held.records, first, last,
                                       np.full(len(first), held.j), window)
-            weak = api._hold_fixed(design.weak_block(m, held.records, spans), free,
+            weak = design.hold_fixed(design.weak_block(m, held.records, spans), free,
                                    fixed_values)
             store.append([design.window_means(held.rows, spans), weak] if kind == "joint"
                          else [weak])
@@ -382,7 +396,7 @@ def _windowed(reader: _Reader, energy_rows: Any, m: Model, kind: str, window: fl
     with store:
         for records, row in reader.rows("window rows"):
             rows = energy_rows(records, row)
-            for j, start, stop in design.runs(records.group):
+            for j, start, stop in runs(records.group):
                 piece, piece_rows = (_records_slice(records, start, stop),
                                      _block_slice(rows, start, stop))
                 total = totals.setdefault(j, np.zeros(rows.A.shape[1] + 2))
@@ -517,7 +531,7 @@ def _fit_windows(store: _WindowRows, kind: str, names: list[str],
     if len(factors) == 1:
         ratio, scales, block_variance = None, [1.0], None
     else:
-        variance = {}   # each block's mean w r^2 in a fit of its own (api._balance_blocks)
+        variance = {}   # each block's mean w r^2 in a fit of its own (estimate.balance_blocks)
         for (block_kind, _, level), factor, square in zip(store.layout, factors, squares,
                                                            strict=True):
             R = factor.centred()
@@ -527,7 +541,7 @@ def _fit_windows(store: _WindowRows, kind: str, names: list[str],
                 residual = R[p, p] ** 2 if R.shape[0] > p else 0.0
             except FitError:
                 residual = square
-            variance[block_kind] = max(float(residual) / factor.n_rows, api._TINY)
+            variance[block_kind] = max(float(residual) / factor.n_rows, estimate.TINY)
         kinds = [block_kind for block_kind, _, _ in store.layout]
 
         def ratio_scales(ratio: float) -> list[float]:
@@ -536,10 +550,10 @@ def _fit_windows(store: _WindowRows, kind: str, names: list[str],
         def spread(ratio: float) -> float:
             fits[ratio] = _window_fit(store, *solved(ratio_scales(ratio)), ratio_scales(ratio),
                                       "hac", names, J)
-            return api._log_spread(fits[ratio].covariance.theta)
+            return estimate.log_spread(fits[ratio].covariance.theta)
 
-        ratio = api._balanced_ratio(spread)
-        scales, block_variance = ratio_scales(ratio), api._balanced_variance(variance,
+        ratio = estimate.balanced_ratio(spread)
+        scales, block_variance = ratio_scales(ratio), estimate.balanced_variance(variance,
                                                                              kinds[0], ratio)
     joined, solution = solved(scales)
     fit = fits.get(ratio) if cov == "hac" else None
@@ -547,8 +561,9 @@ def _fit_windows(store: _WindowRows, kind: str, names: list[str],
         fit = _window_fit(store, joined, solution, scales, cov, names, J)
     c = fit.covariance
     means_A = joined.level_means[0]
-    h, h_stderr = api._fitted_levels(kind, solution.theta, fit.h, api._level_variance(c, means_A),
-                                     lambda: (energy_means[:, :-1], energy_means[:, -1]))
+    h, h_stderr = estimate.fitted_levels(kind, solution.theta, fit.h,
+                                         estimate.level_variance(c, means_A),
+                                         lambda: (energy_means[:, :-1], energy_means[:, -1]))
     block_stats = {block_kind: {"n_rows": int(n), "rms": float(np.sqrt(square / n)),
                                 "max_abs": float(largest)}
                    for (block_kind, _, _), (n, square, largest) in zip(
@@ -574,7 +589,7 @@ class _WindowFit:
 def _window_fit(store: _WindowRows, joined: solve.Factor, solution: solve.Solution,
                 scales: list[float], cov: str, names: list[str], J: int) -> _WindowFit:
     """The covariance of kind `cov` of the fit `solution` of the stored rows weighted by
-    `scales` (`hamid.api._covariance`: ``hac`` on the series of each window's summed
+    `scales` (`hamid.estimate.covariance`: ``hac`` on the series of each window's summed
     scores)."""
     p = len(names)
     theta, inverse = solution.theta, solution.inverse
@@ -605,10 +620,10 @@ def _window_fit(store: _WindowRows, joined: solve.Factor, solution: solve.Soluti
                 if by_window:
                     window_scores += (z * r[:, None]).reshape(len(group), -1, p + 1).sum(axis=1)
                 else:
-                    for j, start, stop in design.runs(block.group):
+                    for j, start, stop in runs(block.group):
                         sums.add(j, z[start:stop], r[start:stop], w[start:stop])
             if by_window:
-                for j, start, stop in design.runs(group):
+                for j, start, stop in runs(group):
                     sums.add(j, window_scores[start:stop], np.ones(stop - start),
                              np.ones(stop - start))
                     if stop < len(group):   # the trajectory ended inside this chunk

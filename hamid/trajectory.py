@@ -28,8 +28,9 @@ import numpy.typing as npt
 from scipy.integrate import solve_ivp
 
 from hamid import expr
-from hamid.design import Damping, Records
+from hamid.design import Damping
 from hamid.model import Model
+from hamid.records import Records
 
 __all__ = ["Refinement", "RefinementFailed", "refine"]
 

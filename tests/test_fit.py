@@ -11,6 +11,7 @@ import pytest
 from conftest import DUFFING, PENG, SYSTEMS, coverage, with_noise
 
 import hamid
+import hamid.model
 from hamid.errors import FitError, UsageError
 from hamid.result import FitResult
 
@@ -121,14 +122,14 @@ def test_bad_fix_is_a_usage_error(clean_records, fix, message):
 def test_term_that_never_varies_is_named(clean_records):
     frame = clean_records["duffing"].copy()
     frame["y"], frame["vy"] = 0.7, 0.0
-    model = hamid.api.model_from_expression(
+    model = hamid.model.model_from_expression(
         "m", "v**2/2 + vy**2/2 + k*x**2/2 + k3*x**4/4 + c*y**2", ["x", "y"], ["v", "vy"])
     with pytest.raises(FitError, match=r"cannot determine c: its term does not vary"):
         hamid.fit(frame, model, method="energy")
 
 
 def test_collinear_terms_are_named(clean_records):
-    model = hamid.api.model_from_expression(
+    model = hamid.model.model_from_expression(
         "m", "v**2/2 + k*x**2/2 + k3*x**4/4 + k2*x**2", ["x"], ["v"])
     with pytest.raises(FitError, match=r"cannot determine k, k2: .*collinear.*rank 2 of 3"):
         hamid.fit(clean_records["duffing"], model)

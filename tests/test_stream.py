@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from conftest import PENG, with_noise
 
 import hamid
-from hamid import api, design, io, stream, writing
+from hamid import design, io, options, plan, stream, writing
 from hamid.cli import cli
 from hamid.errors import DataError, UsageError
 
@@ -32,16 +32,16 @@ def noisy_files(clean_records, tmp_path_factory):
 def linear_fits_in_memory(monkeypatch):
     """The fits in memory here stop where a chunked fit stops: before the trajectory
     refinement, which needs the data in memory (tested in test_trajectory.py)."""
-    obstacle = api._refinement_obstacle
-    monkeypatch.setattr(api, "_refinement_obstacle", lambda cov, bias, damping: obstacle(
-        cov, bias, damping) or api.CHUNKED_NOT_REFINED)
+    obstacle = plan.refinement_obstacle
+    monkeypatch.setattr(plan, "refinement_obstacle", lambda cov, bias, damping: obstacle(
+        cov, bias, damping) or plan.CHUNKED_NOT_REFINED)
 
 
 def test_chunked_auto_fits_say_they_are_not_refined(noisy_files):
     _, paths = noisy_files
     streamed = hamid.fit(paths["parquet"], chunk_rows=1000)
     assert streamed.method["refinement"] == {"applied": False,
-                                                     "reason": api.CHUNKED_NOT_REFINED}
+                                                     "reason": plan.CHUNKED_NOT_REFINED}
     assert "not refined" in streamed.method["kind_reason"]
 
 
@@ -295,9 +295,9 @@ def test_a_file_over_the_size_limit_is_read_in_chunks_unless_asked_otherwise(
         noisy_files, monkeypatch, tmp_path):
     frame, paths = noisy_files
     size = os.path.getsize(paths["parquet"])
-    monkeypatch.setattr(api, "STREAM_BYTES", size)   # the limit (64 MB), made small
+    monkeypatch.setattr(options, "STREAM_BYTES", size)   # the limit (64 MB), made small
     assert hamid.fit(paths["parquet"]).samples is not None   # not over it: in memory
-    monkeypatch.setattr(api, "STREAM_BYTES", size - 1)
+    monkeypatch.setattr(options, "STREAM_BYTES", size - 1)
     assert hamid.fit(paths["parquet"]).samples is None
     streamed = hamid.fit(paths["parquet"], method="energy")
     assert streamed.samples is None

@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from conftest import DUFFING, ELASTIC_PENDULUM, PENG, TWO_MASS, with_noise
 
 import hamid
-from hamid import api, writing
+from hamid import options, writing
 from hamid.cli import cli
 from hamid.design import Damping
 from hamid.model import model_from_spec
@@ -122,7 +122,7 @@ def test_a_file_read_in_chunks_is_refined_like_one_in_memory(clean_records, monk
     path = str(tmp_path / "duffing.parquet")
     writing.write_table(frame, path, metadata=frame.attrs["hamid"])
     memory = hamid.fit(path)
-    monkeypatch.setattr(api, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
+    monkeypatch.setattr(options, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
     chunked = hamid.fit(path)
     assert chunked.samples is None and memory.samples is not None
     assert chunked.method["refinement"]["applied"] is True
@@ -143,7 +143,7 @@ def test_a_file_read_in_chunks_is_refined_like_one_in_memory(clean_records, monk
                                strict=True):
         assert streamed == pytest.approx(whole, rel=1e-6)
     # records over the memory limit are left unrefined, and the report says why
-    monkeypatch.setattr(api, "REFINEMENT_BYTES", 1000)
+    monkeypatch.setattr(options, "REFINEMENT_BYTES", 1000)
     unrefined = hamid.fit(path)
     assert unrefined.method["refinement"]["applied"] is False
     assert "holds the records in memory" in unrefined.method["refinement"]["reason"]
@@ -155,7 +155,7 @@ def test_progress_hears_every_pass_and_every_batch(clean_records, monkeypatch, t
     frame = with_noise(clean_records["duffing"], 0.02, seed=3)
     path = str(tmp_path / "duffing.parquet")
     writing.write_table(frame, path, metadata=frame.attrs["hamid"])
-    monkeypatch.setattr(api, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
+    monkeypatch.setattr(options, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
     heard: list[str] = []
     result = hamid.fit(path, progress=heard.append)
     stages = ["periods of the trajectories", "window rows", "records for the trajectory fit",
@@ -236,7 +236,7 @@ def test_a_model_that_does_not_fit_keeps_the_linear_fit_read_in_chunks(monkeypat
     damped = hamid.simulate({**DUFFING, "damping": {"c_x": 0.05}})
     path = str(tmp_path / "damped.parquet")
     writing.write_table(damped, path, metadata=damped.attrs["hamid"])
-    monkeypatch.setattr(api, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
+    monkeypatch.setattr(options, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
     auto, joint = hamid.fit(path), hamid.fit(path, method="joint")
     assert auto.samples is None
     assert auto.method["refinement"]["applied"] is False

@@ -9,9 +9,11 @@ from conftest import DUFFING, PENG, SYSTEMS, coverage, finite_difference_fit, wi
 from scipy import integrate
 
 import hamid
+import hamid.model
 from hamid import design
 from hamid.errors import DataError, FitError, UsageError
 from hamid.model import model_from_spec
+from hamid.records import Records
 
 
 @pytest.mark.parametrize("method", ["weak", "joint", "auto"])
@@ -30,7 +32,7 @@ def test_windows_and_weak_rows_built_in_pieces_equal_those_built_at_once(
     pieces) against one piece each, and against the operators applied to all gradients."""
     frame = clean_records[name]
     model = model_from_spec(SYSTEMS[name]["model"])
-    records = design.Records(frame[[*model.coordinates, *model.velocities]].to_numpy(),
+    records = Records(frame[[*model.coordinates, *model.velocities]].to_numpy(),
                              frame["t"].to_numpy(), frame["trajectory"].to_numpy() - 1, (1, 2))
     whole = design.windows(records, 1.0)
     dLdv, dLdq = model.lagrangian.gradients(records.X)
@@ -51,9 +53,9 @@ def test_weak_row_equals_the_integral_of_the_exact_solution():
     k, A = 2.0, 0.7
     w = np.sqrt(k)
     t = np.linspace(0.0, 12.0, 6001)
-    records = design.Records(np.column_stack([A * np.cos(w * t), -A * w * np.sin(w * t)]), t,
+    records = Records(np.column_stack([A * np.cos(w * t), -A * w * np.sin(w * t)]), t,
                              np.zeros(len(t), dtype=np.int64), (1,))
-    model = hamid.api.model_from_expression("h", "v**2/2 + k*x**2/2", ["x"], ["v"])
+    model = hamid.model.model_from_expression("h", "v**2/2 + k*x**2/2", ["x"], ["v"])
     length = 2.0
     spans = design.windows(records, length)
     block = design.weak_block(model, records, spans)
@@ -95,7 +97,7 @@ def test_the_period_comes_from_the_first_samples_of_a_long_trajectory(monkeypatc
     with period 5 s: the whole record's spectrum peaks at 5 s, its start's at 2 s."""
     t = np.arange(16_000) * 0.01
     q = np.where(t < 40.0, np.sin(2 * np.pi * t / 2.0), np.sin(2 * np.pi * t / 5.0))
-    records = design.Records(np.column_stack([q, np.gradient(q, t)]), t,
+    records = Records(np.column_stack([q, np.gradient(q, t)]), t,
                              np.zeros(len(t), np.int64), (1,))
     [(whole, step)] = design.trajectory_scales(records, 1)
     monkeypatch.setattr(design, "SCALE_SAMPLES", 4_000)
@@ -156,7 +158,7 @@ def test_auto_falls_back_for_coarse_sampling(clean_records):
 
 def test_auto_falls_back_for_an_energy_that_is_not_natural(clean_records):
     frame = clean_records["duffing"]
-    model = hamid.api.model_from_expression(
+    model = hamid.model.model_from_expression(
         "gyro", "v**2/2 + k*x**2/2 + k3*x**4/4 + g*x*v", ["x"], ["v"])
     result = hamid.fit(frame, model)
     assert result.method["kind"] == "energy"

@@ -1,0 +1,43 @@
+"""Recorded states, grouped by trajectory: what every step after loading works on."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["Records", "runs"]
+
+
+@dataclass(frozen=True)
+class Records:
+    """Recorded states of one or more trajectories, rows grouped by trajectory in time order.
+
+    X : shape (n_samples, 2N), the coordinates then the velocities, in model order.
+    t : shape (n_samples,), or None when the data have no time column.
+    group : shape (n_samples,), trajectory index 0..J-1, contiguous.
+    labels : the trajectory labels shown to the user, one per index.
+    """
+
+    X: npt.NDArray[np.float64]
+    t: npt.NDArray[np.float64] | None
+    group: npt.NDArray[np.int64]
+    labels: tuple[str | int, ...]
+
+    @property
+    def n_trajectories(self) -> int:
+        return len(self.labels)
+
+    def bounds(self) -> list[tuple[int, int]]:
+        """(start, stop) row range of each trajectory."""
+        return [(start, stop) for _, start, stop in runs(self.group)]
+
+
+def runs(group: npt.NDArray[np.int64]) -> list[tuple[int, int, int]]:
+    """(trajectory, start, stop) of each run of consecutive rows of one trajectory."""
+    if len(group) == 0:
+        return []
+    edges = (np.flatnonzero(np.diff(group)) + 1).tolist()
+    return [(int(group[start]), start, stop)
+            for start, stop in zip([0, *edges], [*edges, len(group)], strict=True)]
