@@ -267,12 +267,13 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
 def report(result_file: str, fmt: str | None, output: str) -> None:
     """Render a saved fit result (JSON) as a table, JSON or markdown."""
     from hamid import io, writing
-    from hamid.report import validate_result
+    from hamid.result import FitResult
 
-    result = validate_result(io.read_json(result_file), source=result_file)
+    source = io.STDIN if io.is_stdio(result_file) else result_file
+    result = FitResult.from_dict(io.read_json(result_file), source=source)
     writing.check_destination(output)
     fmt = fmt or _format_from_name(output, {".json": "json", ".md": "markdown"}, "table")
-    _emit(result, fmt, output)
+    _emit(result.to_dict(), fmt, output)
 
 
 def _format_from_name(output: str, by_suffix: dict[str, str], default: str) -> str:

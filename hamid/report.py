@@ -1,8 +1,9 @@
 """Render a fit result as a table, JSON, markdown or CSV.
 
 Presentation only: every number shown is already in the result dict (schema "hamid.fit/1",
-SPEC section 4); the only arithmetic here is the relative error against a known truth.
-No file access: the caller reads and writes.
+docs/output.md); the only arithmetic here is the relative error against a known truth.
+No file access and no checking: the caller reads and writes, and a loaded report is
+checked by `FitResult.from_dict` before it gets here.
 """
 
 from __future__ import annotations
@@ -10,15 +11,14 @@ from __future__ import annotations
 import csv
 import io
 import json
-import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from hamid.errors import DataError, UsageError
+from hamid.errors import UsageError
 from hamid.result import SCHEMA
 
-__all__ = ["FORMATS", "SCHEMA", "render", "validate_result"]
+__all__ = ["FORMATS", "SCHEMA", "render"]
 
 ReportFormat = Literal["table", "json", "markdown", "csv"]
 
@@ -36,190 +36,6 @@ _CSV_HEADER = (
     "relative_error",
     "fixed",
 )
-
-
-# --- validation ---------------------------------------------------------------------------
-
-
-def _is_number(value: object) -> bool:
-    """Helper: a finite JSON number (bool is not a number here)."""
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-
-
-# Each kind is named by the words the error message uses for it.
-_KINDS: dict[str, Callable[[object], bool]] = {
-    "a string": lambda v: isinstance(v, str),
-    "a number": _is_number,
-    "a number or null": lambda v: v is None or _is_number(v),
-    "true or false": lambda v: isinstance(v, bool),
-    "a list": lambda v: isinstance(v, list),
-    "a list of strings": lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v),
-    "an object": lambda v: isinstance(v, dict),
-    "an object of numbers": lambda v: (
-        isinstance(v, dict) and all(_is_number(x) for x in v.values())
-    ),
-    "an object of numbers, or null": lambda v: (
-        v is None or (isinstance(v, dict) and all(_is_number(x) for x in v.values()))
-    ),
-    "anything": lambda v: True,
-}
-
-# SPEC section 4, key by key; more keys may be present, none of these may be missing.
-_TOP_KEYS = {
-    "schema": "a string",
-    "hamid_version": "a string",
-    "model": "an object",
-    "data": "an object",
-    "method": "an object",
-    "parameters": "a list",
-    "energy_levels": "a list",
-    "residuals": "an object",
-    "conditioning": "an object",
-    "warnings": "a list of strings",
-}
-_OBJECT_KEYS = {
-    "model": {
-        "name": "a string",
-        "energy": "a string",
-        "coordinates": "a list",
-        "velocities": "a list",
-        "parameters": "a list",
-    },
-    "data": {
-        "sources": "a list",
-        "n_samples": "a number",
-        "n_trajectories": "a number",
-        "columns": "an object",
-        "velocity_source": "a string",
-    },
-    "method": {
-        "kind": "a string",
-        "kind_reason": "a string",
-        "weak_window": "a number or null",
-        "damping": "a list of strings",
-        "weighting": "a string",
-        "noise": "an object of numbers, or null",
-        "bias_correction": "true or false",
-        "covariance": "a string",
-        "level": "a number",
-        "fixed": "an object of numbers",
-    },
-    "residuals": {
-        "rms": "a number or null",
-        "max_abs": "a number or null",
-        "relative_rms": "a number or null",
-        "r_squared": "a number or null",
-        "lag1_autocorrelation": "a number or null",
-        "drift": "a list",
-    },
-    "conditioning": {
-        "condition_number": "a number or null",
-        "singular_values": "a list",
-        "weakest_direction": "an object of numbers",
-        "status": "a string",
-    },
-}
-_ENTRY_KEYS = {
-    ("parameters",): {
-        "name": "a string",
-        "role": "a string",
-        "estimate": "a number",
-        "stderr": "a number or null",
-        "ci_low": "a number or null",
-        "ci_high": "a number or null",
-        "truth": "a number or null",
-        "fixed": "true or false",
-    },
-    ("energy_levels",): {
-        "trajectory": "anything",
-        "h": "a number",
-        "stderr": "a number or null",
-        "n_samples": "a number",
-    },
-    ("residuals", "drift"): {
-        "trajectory": "anything",
-        "relative_change": "a number or null",
-    },
-}
-
-
-def _describe(value: object) -> str:
-    """Helper: a short description of a JSON value for an error message."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, str):
-        return repr(value if len(value) <= 40 else value[:37] + "...")
-    if isinstance(value, int | float):
-        return repr(value)
-    return "a list" if isinstance(value, list) else "an object"
-
-
-def _check_keys(obj: dict, keys: Mapping[str, str], path: str) -> str | None:
-    """Helper: what is wrong with one object's keys, or None."""
-    for key, kind in keys.items():
-        where = f"{path}.{key}" if path else key
-        if key not in obj:
-            return f"missing key '{where}'"
-        if not _KINDS[kind](obj[key]):
-            return f"key '{where}' is {_describe(obj[key])}, expected {kind}"
-    return None
-
-
-def _problem(result: object) -> str | None:
-    """Helper: what keeps a loaded JSON value from being a fit result, or None."""
-    if not isinstance(result, dict):
-        return f"top level is {_describe(result)}, expected an object"
-    if "schema" not in result:
-        return "missing key 'schema'"
-    if result["schema"] != SCHEMA:
-        return f"schema is {_describe(result['schema'])}, expected '{SCHEMA}'"
-    problem = _check_keys(result, _TOP_KEYS, "")
-    for name, keys in _OBJECT_KEYS.items():
-        problem = problem or _check_keys(result[name], keys, name)
-    if problem:
-        return problem
-    for (*parents, name), keys in _ENTRY_KEYS.items():
-        container = result
-        for parent in parents:
-            container = container[parent]
-        path = ".".join([*parents, name])
-        for i, entry in enumerate(container[name]):
-            if not isinstance(entry, dict):
-                return f"{path}[{i}] is {_describe(entry)}, expected an object"
-            problem = _check_keys(entry, keys, f"{path}[{i}]")
-            if problem:
-                return problem
-    return None
-
-
-def validate_result(result: object, *, source: str) -> dict:
-    """Check that a loaded JSON value is a hamid fit result.
-
-    Parameters
-    ----------
-    result : object
-        The value decoded from the JSON file.
-    source : str
-        The file name, used in the error message.
-
-    Returns
-    -------
-    dict
-        `result` itself, unchanged.
-
-    Raises
-    ------
-    DataError
-        If `result` lacks the schema "hamid.fit/1" or a key of SPEC section 4, or a value
-        has the wrong type; the message names `source` and the key.
-    """
-    problem = _problem(result)
-    if problem:
-        raise DataError(f"{source}: not a hamid fit result ({problem})")
-    assert isinstance(result, dict)  # narrowed by _problem, for type checkers
-    return result
 
 
 # --- formatting of single values ----------------------------------------------------------
@@ -628,8 +444,8 @@ def render(
     Parameters
     ----------
     result : dict
-        A fit result of schema "hamid.fit/1" (`FitResult.to_dict()`, or a loaded JSON
-        checked by `validate_result`).
+        A fit result of schema "hamid.fit/1": `FitResult.to_dict()` (a loaded JSON report
+        goes through `FitResult.from_dict` first, which checks it).
     format : {"table", "json", "markdown", "csv"}
         "table" is for a terminal; "json" is the result itself; "markdown" for notes and
         issues; "csv" has one row per parameter.

@@ -1,14 +1,140 @@
-"""The fit result: fixed fields, one way out to plain data (schema ``hamid.fit/1``)."""
+"""The fit result: fixed fields, one way out to plain data and one way back in, checked.
+
+`FitResult.to_dict()` is the JSON report of schema ``hamid.fit/1``, described key by key
+in docs/output.md and as a JSON Schema in hamid/schema/fit-1.json; `FitResult.from_dict`
+checks a loaded report against that schema before building the result. The TypedDicts
+below are the dict parts of a result, as the fit builds them.
+"""
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
-from typing import Any
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Literal, NotRequired, TypedDict
 
-__all__ = ["SCHEMA", "EnergyLevel", "FitResult", "ParameterEstimate"]
+__all__ = [
+    "SCHEMA",
+    "BlockResiduals",
+    "ConditioningInfo",
+    "DataInfo",
+    "DissipationInfo",
+    "DriftInfo",
+    "EnergyLevel",
+    "EnergyLost",
+    "FitResult",
+    "MethodInfo",
+    "ModelInfo",
+    "ParameterEstimate",
+    "RefinementInfo",
+    "ResidualSummary",
+]
 
 SCHEMA = "hamid.fit/1"
+
+
+class ModelInfo(TypedDict):
+    """The model fitted (`Model.info()`)."""
+
+    name: str
+    energy: str
+    coordinates: list[str]
+    velocities: list[str]
+    parameters: list[str]
+
+
+class DataInfo(TypedDict):
+    """What was read: files, sizes, which column holds each model name."""
+
+    sources: list[str]
+    n_samples: int
+    n_trajectories: int
+    columns: dict[str, str]
+    velocity_source: Literal["measured", "savgol"]
+    velocity_window: NotRequired[int]   # with savgol: the filter's window, in samples
+    velocity_order: NotRequired[int]    # and its polynomial order
+
+
+class RefinementInfo(TypedDict):
+    """Whether the trajectory refinement of `auto` ran; its figures, or why not."""
+
+    applied: bool
+    reason: NotRequired[str]             # when not applied
+    segments: NotRequired[int]           # the rest when applied
+    segment_seconds: NotRequired[float]
+    iterations: NotRequired[int]
+    chi2_per_dof: NotRequired[float]
+
+
+class MethodInfo(TypedDict):
+    """How the fit was made (docs/method.md)."""
+
+    kind: Literal["energy", "weak", "joint"]
+    kind_reason: str
+    weak_window: float | None
+    damping: list[str]
+    weighting: Literal["none", "noise"]
+    noise: dict[str, float] | None
+    weighting_rounds: NotRequired[int]
+    bias_correction: bool
+    covariance: Literal["classical", "hc", "hac", "bootstrap"]
+    covariance_description: NotRequired[str]
+    level: float
+    fixed: dict[str, float]
+    block_variance: NotRequired[dict[str, float] | None]
+    refinement: NotRequired[RefinementInfo | None]
+
+
+class DriftInfo(TypedDict):
+    """The trend of one trajectory's energy residuals over its record."""
+
+    trajectory: str | int | float
+    relative_change: float | None
+    trend_share: NotRequired[float | None]
+
+
+class BlockResiduals(TypedDict):
+    """Residual size of one block of rows (energy or weak)."""
+
+    n_rows: int
+    rms: float | None
+    max_abs: float | None
+
+
+class ResidualSummary(TypedDict):
+    """Statistics of the energy residuals, and of each block's own residuals."""
+
+    rms: float | None
+    max_abs: float | None
+    relative_rms: float | None
+    r_squared: float | None
+    lag1_autocorrelation: float | None
+    drift: list[DriftInfo]
+    blocks: NotRequired[dict[str, BlockResiduals]]
+
+
+class ConditioningInfo(TypedDict):
+    """Conditioning of the column-scaled design, levels included."""
+
+    condition_number: float | None
+    singular_values: list[float | None]
+    weakest_direction: dict[str, float]
+    status: Literal["ok", "moderate", "severe"]
+    blocks: NotRequired[dict[str, float | None] | None]
+
+
+class EnergyLost(TypedDict):
+    """The share of one trajectory's energy dissipated over its record."""
+
+    trajectory: str | int | float
+    energy_lost_fraction: float | None
+
+
+class DissipationInfo(TypedDict):
+    """What a damped fit says of the energy lost."""
+
+    trajectories: list[EnergyLost]
+    equivalent_damping_ratio: float | None
+    period: float | None
 
 
 @dataclass(frozen=True, slots=True)
@@ -37,18 +163,18 @@ class EnergyLevel:
 
 @dataclass(frozen=True, slots=True)
 class FitResult:
-    """Everything `hamid fit` reports; `to_dict()` is the JSON of SPEC section 4."""
+    """Everything `hamid fit` reports; `to_dict()` is the JSON report of docs/output.md."""
 
     hamid_version: str
-    model: dict[str, Any]
-    data: dict[str, Any]
-    method: dict[str, Any]
+    model: ModelInfo
+    data: DataInfo
+    method: MethodInfo
     parameters: tuple[ParameterEstimate, ...]
     energy_levels: tuple[EnergyLevel, ...]
-    residuals: dict[str, Any]
-    conditioning: dict[str, Any]
+    residuals: ResidualSummary
+    conditioning: ConditioningInfo
     warnings: tuple[str, ...] = field(default=())
-    dissipation: dict[str, Any] | None = None
+    dissipation: DissipationInfo | None = None
     # Per-sample energy rows (trajectory, t, energy, residual, weight) for --residuals;
     # bulk data, so not part of the JSON nor of equality.
     samples: dict[str, Any] | None = field(default=None, compare=False, repr=False)
@@ -75,20 +201,48 @@ class FitResult:
         })
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> FitResult:
-        """The inverse of `to_dict` (for `hamid report`, which never refits)."""
+    def from_dict(cls, data: Any, *, source: str | None = None) -> FitResult:
+        """The inverse of `to_dict`, checked (for `hamid report`, which never refits).
+
+        Parameters
+        ----------
+        data : object
+            A decoded JSON report of schema "hamid.fit/1".
+        source : str, optional
+            The file it was read from, named in the error message.
+
+        Raises
+        ------
+        DataError
+            `data` does not follow hamid/schema/fit-1.json; the one-line message names
+            `source` and the key at fault.
+
+        Keys that this version does not know are kept inside the dict parts (model, data,
+        method, ...) and dropped at the top level and in parameters and energy levels.
+        """
+        from hamid import validation
+
+        validation.check_result(data, source=source)
         return cls(
             hamid_version=data["hamid_version"],
             model=data["model"],
             data=data["data"],
             method=data["method"],
-            parameters=tuple(ParameterEstimate(**p) for p in data["parameters"]),
-            energy_levels=tuple(EnergyLevel(**h) for h in data["energy_levels"]),
+            parameters=tuple(ParameterEstimate(**_known(ParameterEstimate, p))
+                             for p in data["parameters"]),
+            energy_levels=tuple(EnergyLevel(**_known(EnergyLevel, h))
+                                for h in data["energy_levels"]),
             residuals=data["residuals"],
             conditioning=data["conditioning"],
             warnings=tuple(data["warnings"]),
             dissipation=data.get("dissipation"),
         )
+
+
+def _known(kind: type, entry: dict[str, Any]) -> dict[str, Any]:
+    """Helper: the keys of a report entry that are fields of `kind`."""
+    names = {f.name for f in fields(kind)}
+    return {k: v for k, v in entry.items() if k in names}
 
 
 def _finite(value: Any) -> Any:

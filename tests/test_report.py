@@ -1,4 +1,5 @@
-"""Tests for hamid.report: rendering a "hamid.fit/1" result and validating loaded JSON."""
+"""Tests for hamid.report: rendering a "hamid.fit/1" result; and checking loaded JSON
+(`FitResult.from_dict`, against hamid/schema/fit-1.json)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ import re
 import pytest
 
 from hamid.errors import DataError, UsageError
-from hamid.report import render, validate_result
+from hamid.report import render
+from hamid.result import FitResult
 
 ANSI = re.compile(r"\x1b\[")
 TEXT_FORMATS = ["table", "markdown"]
@@ -402,23 +404,34 @@ def test_render_unknown_format(result):
         render(result, "xml")
 
 
-# --- validate_result ---------------------------------------------------------------------
+# --- checking loaded JSON (FitResult.from_dict) -----------------------------------------
+
+
+def validate_result(result, *, source):
+    """The check `hamid report` makes; returns the dict the report is rendered from."""
+    return FitResult.from_dict(result, source=source).to_dict()
 
 
 def test_validate_accepts_fit_result(any_result):
-    assert validate_result(any_result, source="result.json") is any_result
+    assert validate_result(any_result, source="result.json") == {**any_result,
+                                                                  "dissipation": None}
 
 
 def test_validate_accepts_extra_keys(result):
     result["extra"] = {"anything": 1}
     result["parameters"][0]["note"] = "new in a later version"
-    assert validate_result(result, source="result.json") is result
+    result["method"]["note"] = "kept"
+    checked = validate_result(result, source="result.json")
+    assert "extra" not in checked
+    assert "note" not in checked["parameters"][0]
+    assert checked["method"]["note"] == "kept"
 
 
 def test_validate_rejects_wrong_schema(result):
     result["schema"] = "foo"
     message = (
-        r"^result\.json: not a hamid fit result \(schema is 'foo', expected 'hamid\.fit/1'\)$"
+        r"^result\.json: not a hamid fit result "
+        r"\(key 'schema' is 'foo', expected 'hamid\.fit/1'\)$"
     )
     with pytest.raises(DataError, match=message):
         validate_result(result, source="result.json")
@@ -462,9 +475,9 @@ def test_validate_rejects_missing_nested_key(result, section, key):
         (("parameters", 0, "estimate"), "1.0", r"'parameters\[0\]\.estimate' is '1\.0'"),
         (("parameters", 1, "fixed"), 0, r"'parameters\[1\]\.fixed' is 0, expected true or"),
         (("parameters", 1, "stderr"), float("nan"), r"'parameters\[1\]\.stderr' is nan"),
-        (("residuals", "drift", 1), [0.1], r"residuals\.drift\[1\] is a list, expected an"),
+        (("residuals", "drift", 1), [0.1], r"'residuals\.drift\[1\]' is a list, expected an"),
         (("method", "level"), None, r"'method\.level' is null, expected a number"),
-        (("warnings",), [3], r"'warnings' is a list, expected a list of strings"),
+        (("warnings",), [3], r"'warnings\[0\]' is 3, expected a string"),
     ],
 )
 def test_validate_rejects_wrong_type(result, path, value, message):
