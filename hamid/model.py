@@ -51,8 +51,8 @@ BUILTINS: dict[str, dict[str, Any]] = {
 }
 POLY_HELP = "poly:N:D"
 
-# Dissipative force on coordinate i of each kind (SPEC section 1): F_i = -coefficient *
-# law(v_i); the coefficient is named <prefix>_<coordinate>.
+# Dissipative force on coordinate i of each kind (docs/method.md, "Damping: the energy
+# balance"): F_i = -coefficient * law(v_i); the coefficient is named <prefix>_<coordinate>.
 DAMPING_KINDS: dict[str, tuple[str, Any]] = {
     "viscous": ("c", lambda v: v),
     "coulomb": ("mu", np.sign),

@@ -1,7 +1,8 @@
 """Simulate a system: Lagrange's equations from the model's energy, integrated and sampled.
 
 The equations of motion are derived from L = T - V of the model (with the true
-parameters substituted) and the dissipative forces of SPEC section 1:
+parameters substituted) and the dissipative forces of docs/method.md ("Damping: the energy
+balance"):
 
     M(q) a = dL/dq - (d/dq (dL/dv)) v + F,      M = d2L/dv2,
 
@@ -28,7 +29,8 @@ __all__ = ["DAMPING_KINDS", "INTEGRATORS", "System", "parse_system", "run"]
 
 INTEGRATORS = {"dop853": "DOP853", "rk45": "RK45", "rk23": "RK23", "radau": "Radau",
                "bdf": "BDF", "lsoda": "LSODA"}
-# Dissipative force of each kind on coordinate i (SPEC section 1), and the power it drains.
+# Dissipative force of each kind on coordinate i (docs/method.md, "Damping: the energy
+# balance"), and the power it drains.
 DAMPING_KINDS: dict[str, tuple[str, Callable[[np.ndarray], np.ndarray]]] = {
     "viscous": ("c", lambda v: v),
     "coulomb": ("mu", np.sign),
@@ -254,7 +256,7 @@ def run(system: System, *, seed: int | None = None,
     columns : dict of name -> ndarray
         ``trajectory``, ``t``, the coordinates, then the velocities.
     provenance : dict
-        What the metadata of the output records (SPEC section 3, simulate).
+        What the metadata of the output records (README.md, "Simulating").
     """
     from scipy.integrate import solve_ivp
 
