@@ -27,6 +27,7 @@ __all__ = [
     "ParameterEstimate",
     "RefinementInfo",
     "ResidualSummary",
+    "plain_data",
 ]
 
 SCHEMA = "hamid.fit/1"
@@ -186,7 +187,7 @@ class FitResult:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready data (built-in types; non-finite numbers become null)."""
-        return _finite({
+        return plain_data({
             "schema": SCHEMA,
             "hamid_version": self.hamid_version,
             "model": self.model,
@@ -245,12 +246,13 @@ def _known(kind: type, entry: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in entry.items() if k in names}
 
 
-def _finite(value: Any) -> Any:
-    """Recursively turn numpy scalars into Python ones and NaN/inf into None."""
+def plain_data(value: Any) -> Any:
+    """Recursively turn numpy scalars into Python ones, tuples into lists and NaN/inf into
+    None: what `to_dict` does to every part of a result."""
     if isinstance(value, dict):
-        return {str(k): _finite(v) for k, v in value.items()}
+        return {str(k): plain_data(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_finite(v) for v in value]
+        return [plain_data(v) for v in value]
     if isinstance(value, bool) or value is None or isinstance(value, str):
         return value
     if hasattr(value, "item"):
@@ -258,3 +260,6 @@ def _finite(value: Any) -> Any:
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     return value
+
+
+_finite = plain_data   # the old private name, still imported by summary.py
