@@ -57,8 +57,14 @@ def _count(value: float) -> str:
 
 
 def _level(level: float) -> str:
-    """Helper: a confidence level as a percentage, e.g. 95%."""
-    return f"{100 * level:g}%"
+    """Helper: a confidence level as a percentage, e.g. 95%, never rounded to 100%.
+
+    Decimal arithmetic on the level's shortest repr: 100 * 0.9 is 90.00000000000001 in
+    binary, and 6 digits would turn 0.9999999999999999 into "100%".
+    """
+    from decimal import Decimal
+
+    return f"{(Decimal(repr(float(level))) * 100).normalize():f}%"
 
 
 def _relative_error(parameter: Mapping[str, Any]) -> float | None:

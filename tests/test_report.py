@@ -240,6 +240,18 @@ def test_text_level_follows_method(result, fmt):
     assert "95%" not in text
 
 
+@pytest.mark.parametrize(("level", "shown"), [
+    (0.95, "95%"), (0.9, "90%"), (0.975, "97.5%"), (0.5, "50%"), (1e-05, "0.001%"),
+    (0.9999999999999999, "99.99999999999999%"),
+])
+def test_text_level_is_never_rounded(result, level, shown):
+    result["method"]["level"] = level
+    text = render(result, "markdown")
+    assert f"{shown} CI low" in text
+    assert f"{shown} intervals" in text
+    assert "100%" not in text
+
+
 @pytest.mark.parametrize("fmt", TEXT_FORMATS)
 def test_text_warnings_last(result, fmt):
     text = render(result, fmt)
