@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from hamid.errors import DataError, FitError
+from hamid.errors import DataError
 from hamid.model import DAMPING_KINDS, Model
 from hamid.records import Records
 
@@ -564,47 +564,16 @@ def _add_work_sensitivity(g: np.ndarray, spread: np.ndarray, records: Records,
             g[start:stop, N + i, :] += (theta[n_energy + k] * (slope * weight))[:, None] * later
 
 
-def build_blocks(kind: str, kind_reason: str, window: float | None, method: str,
-                  weak_window: float | None, m: Model, records: Records, energy_rows: Block,
-                  dissipation: Any, free: list[int], fixed_values: Any,
-                  free_names: list[str]) -> tuple[str, str, float | None, Any, list[Block]]:
-    """The row blocks of the chosen method (energy rows, weak rows, or both).
-
-    Windows are the independent units of the weak and joint errors, so more are needed
-    than unknowns (the levels count in joint); `auto` falls back to the energy rows when
-    the records hold too few.
-    """
-    from hamid import design
-
-    spans = design.windows(records, window) if kind != "energy" else None
-    needed = len(free) + (records.n_trajectories if kind == "joint" else 0) + 1
-    if spans is not None and spans.n_windows < needed:
-        shortage = (f"the records hold {spans.n_windows} weak-form windows of {window:.3g} s, "
-                    f"fewer than the {needed} that {needed - 1} unknowns need")
-        if method == "auto" and weak_window is None:
-            kind, kind_reason, window, spans = (
-                "energy", f"{shortage}; fitted the energy rows", None, None)
-        elif spans.n_windows > 0:
-            raise FitError(f"cannot determine {', '.join(free_names)}: {shortage}; use "
-                           "--method energy or a shorter --weak-window")
-    blocks = []
-    if kind == "energy":
-        blocks.append(energy_rows)
-    if kind in ("weak", "joint"):
-        if kind == "joint":
-            blocks.append(design.window_means(energy_rows, spans))
-        weak = design.weak_block(m, records, spans, dissipation)
-        bad = np.flatnonzero(~np.all(np.isfinite(np.column_stack([weak.A, weak.b])), axis=1))
-        if bad.size:
-            raise DataError(f"the weak-form rows are not finite (window at t = "
-                            f"{weak.time[bad[0]]:g} of trajectory "
-                            f"{records.labels[weak.group[bad[0]]]}): the energy's derivatives "
-                            "are not finite there; use --method energy")
-        if weak.n_rows == 0:
-            raise DataError(f"the records are too short for one weak-form window of "
-                            f"{window:.4g} s; use --method energy or a shorter --weak-window")
-        blocks.append(hold_fixed(weak, free, fixed_values))
-    return kind, kind_reason, window, spans, blocks
+def check_weak_rows(block: Block, labels: tuple[str | int, ...]) -> None:
+    """Weak-form rows must be finite (the energy's derivatives are, along the records)."""
+    if block.kind != "weak":
+        return
+    bad = np.flatnonzero(~np.all(np.isfinite(np.column_stack([block.A, block.b])), axis=1))
+    if bad.size:
+        raise DataError(f"the weak-form rows are not finite (window at t = "
+                        f"{block.time[bad[0]]:g} of trajectory "
+                        f"{labels[block.group[bad[0]]]}): the energy's derivatives "
+                        "are not finite there; use --method energy")
 
 
 def check_finite(block: Block, locate: Callable[[int], tuple[str, int]],
@@ -622,15 +591,6 @@ def check_finite(block: Block, locate: Callable[[int], tuple[str, int]],
     source, local = locate(row)
     raise DataError(f"{source}: row {local}: {term} of the energy is not finite there "
                     "(the data are outside the energy's domain, or too large)")
-
-
-def hold_fixed(block: Block, free: list[int], values: Any) -> Block:
-    """Move the terms of fixed parameters into the known side of the rows."""
-    import dataclasses
-
-    if len(free) == block.A.shape[1]:
-        return block
-    return dataclasses.replace(block, A=block.A[:, free], b=block.b - block.A @ values)
 
 
 def fitted_energy(rows: Block, model: Model, estimates: dict[str, float]) -> Any:

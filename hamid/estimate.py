@@ -1,37 +1,78 @@
-"""Linear least squares on row blocks: solving, block balance, noise weights, covariances."""
+"""Linear least squares on row blocks: the solution, the balance of the blocks of a joint
+fit, noise weighting, and the covariances (docs/method.md, "The linear fit").
+
+A fit of rows in memory (`fit_rows`) and one of rows streamed from a file
+(`hamid.stream`) give the same `LinearFit`, through the same scores (`Scores`) and the
+same balance (`balance`).
+"""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import dataclasses
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
-from hamid.design import Block
+from hamid import design, solve, uncertainty
+from hamid.design import Block, Damping, Windows
 from hamid.errors import FitError
+from hamid.loading import Loaded
 from hamid.model import Model
-from hamid.records import Records
+from hamid.options import FitOptions
+from hamid.plan import FitPlan
+from hamid.records import Records, runs
+from hamid.unknowns import Unknowns
+
+__all__ = ["LinearFit", "ResidualSums", "Rows", "Scores", "balance", "fit_rows",
+           "fitted_levels", "residual_sums"]
+
+TINY = 1e-300
+_MAX_ROUNDS = 20
 
 
-def fitted_levels(kind: str, theta: Any, fitted_h: Any, h_var: Any,
-                   energy_means: Callable[[], tuple[Any, Any]]) -> tuple[Any, Any]:
-    """Energy levels of a linear fit and their standard errors.
+@dataclass(frozen=True)
+class LinearFit:
+    """A fit's estimates and what the report needs of them, however the rows were read.
 
-    Without a level in the fit (weak rows, or a trajectory too short for any window of a
-    joint fit) the level is the mean fitted energy, without a standard error;
-    `energy_means` gives the means of A and b of each trajectory's energy rows, asked for
-    only then.
+    theta, covariance : the free parameters' estimates and covariance.
+    description, df : how the covariance was computed, and its t degrees of freedom.
+    h, h_stderr : each trajectory's energy level and its standard error (NaN: none).
+    block_variance : each block's residual variance in a joint fit's balance, else None.
+    block_stats : each block's rows, rms and largest residual.
+    conditioning, block_conditions : of all the rows, and of each block alone (joint).
+    energy_means : each trajectory's mean energy row, (A, b): the level at other
+        parameters is means_A @ theta - means_b.
+    sizes : samples of each trajectory.
+    weighting_rounds : iterations of the noise weighting (0 without it).
     """
-    J = len(fitted_h)
-    h_stderr = np.full(J, np.nan) if kind == "weak" else np.sqrt(np.clip(h_var, 0, None))
-    if kind != "weak" and not np.any(np.isnan(fitted_h)):
-        return fitted_h, h_stderr
-    means_A, means_b = energy_means()
-    mean_energy = means_A @ theta - means_b
-    if kind == "weak":
-        return mean_energy, h_stderr
-    return np.where(np.isnan(fitted_h), mean_energy, fitted_h), h_stderr
+
+    theta: npt.NDArray[np.float64]
+    covariance: npt.NDArray[np.float64]
+    description: str
+    df: int
+    h: npt.NDArray[np.float64]
+    h_stderr: npt.NDArray[np.float64]
+    block_variance: dict[str, float] | None
+    block_stats: dict[str, dict[str, Any]]
+    conditioning: solve.Conditioning
+    block_conditions: dict[str, float] | None
+    energy_means: tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]
+    sizes: npt.NDArray[np.int64]
+    weighting_rounds: int = 0
+    residuals: ResidualSums | None = None   # the residual summary's sums, when at hand
+
+
+@dataclass(frozen=True)
+class Rows:
+    """The rows of a fit in memory, kept for what the report says of each sample."""
+
+    energy: Block          # every sample's energy row, fixed parameters held
+    all_energy: Block      # the same with every parameter's column
+    blocks: list[Block]    # the rows fitted, as weighted
+    windows: Windows | None
 
 
 @dataclass(frozen=True)
@@ -41,18 +82,14 @@ class Solved:
     theta: Any
     h: Any
     residual: Any      # unweighted, all blocks stacked
-    weight: Any
-    group: Any
     centred: Any
     solution: Any
     df_resid: int
 
 
 def least_squares(blocks: list[Block], names: list[str], J: int,
-                   correction: tuple[Any, Any] | None = None) -> Solved:
+                  correction: tuple[Any, Any] | None = None) -> Solved:
     """Solve stacked blocks; with `correction` (noise-bias terms), adjusted least squares."""
-    from hamid import solve
-
     has_levels = any(b.has_level for b in blocks)
     centred = solve.centre(blocks, J)
     if correction is None:
@@ -63,88 +100,120 @@ def least_squares(blocks: list[Block], names: list[str], J: int,
     h = centred.level_means_A @ theta - centred.level_means_b
     residual = np.concatenate([b.A @ theta - b.b - (h[b.group] if b.has_level else 0.0)
                                for b in blocks])
-    return Solved(theta, h, residual, np.concatenate([b.weight for b in blocks]),
-                     np.concatenate([b.group for b in blocks]), centred, solution,
-                     len(residual) - len(names) - (J if has_levels else 0))
+    return Solved(theta, h, residual, centred, solution,
+                  len(residual) - len(names) - (J if has_levels else 0))
 
 
-def covariance(cov: str, fit: Solved, units: Any, unit_group: Any) -> Any:
-    """Covariance of a fit: the analytic kinds of `hamid.uncertainty` on the right rows.
+class Scores:
+    """Each row's influence on the estimates, fed to the covariance estimators' sums.
 
-    Rows are first summed into their units (windows, when weak-form rows are present: a
-    window's energy row and its weak rows share samples), so that ``hac`` runs Newey-West
-    over the time series of window scores of each trajectory. Its automatic bandwidth
-    grows with their autocorrelation: overlapping windows, and the long memory that the
-    cumulative work of an energy balance brings.
+    Row i's error moves theta by G_i = w_i (a_i - abar_j) M^-1 (a_i alone for rows
+    without a level) and its trajectory's level by lam_i = w_i / W_j; the estimators
+    work from z_i = [G_i, lam_i] and the residual r_i (`hamid.uncertainty`). Rows of
+    weak and joint fits share their errors within a window, so with ``hac`` the scores of
+    each window are summed first and the kernel runs over the windows.
     """
-    import dataclasses
 
-    from hamid import uncertainty
+    def __init__(self, theta: npt.NDArray[np.float64], inverse: npt.NDArray[np.float64],
+                 means_A: npt.NDArray[np.float64], means_b: npt.NDArray[np.float64],
+                 total_weight: npt.NDArray[np.float64]) -> None:
+        self.theta, self.inverse, self.means_A = theta, inverse, means_A
+        self.total_weight = total_weight
+        self.h = means_A @ theta - means_b
 
-    # A trajectory too short for any window has no weak rows: number the ones present.
-    present, group = np.unique(fit.group, return_inverse=True)
-    n_units = len(unit_group)
-    if n_units == len(units) and np.array_equal(units, np.arange(n_units)):
-        c = uncertainty.covariance(cov, fit.solution.G, fit.centred.level_weight,
-                                   fit.residual, fit.weight, group, df_resid=fit.df_resid)
-    else:
-        order = np.argsort(group, kind="stable")
-        c = uncertainty.covariance(cov, fit.solution.G[order],
-                                   fit.centred.level_weight[order], fit.residual[order],
-                                   fit.weight[order], group[order], df_resid=fit.df_resid,
-                                   units=units[order] if cov == "hac" else None)
+    def feed(self, sums: uncertainty.ScoreSums, blocks: list[Block], scales: list[float],
+             window_group: npt.NDArray[np.int64] | None) -> list[tuple[int, float, float]]:
+        """Feed one piece of rows: `blocks` over the same windows (weak and joint fits, in
+        window order) or energy rows; `scales` multiply each block's weights.
+        `window_group`, the trajectory of each window, asks for the windows' summed
+        scores. Returns each block's rows, sum of squared residuals and largest one."""
+        p = len(self.theta)
+        if window_group is not None:
+            window_scores = np.zeros((len(window_group), p + 1))
+        stats = []
+        for block, scale in zip(blocks, scales, strict=True):
+            w = scale * block.weight
+            r = block.A @ self.theta - block.b
+            if block.has_level:
+                r -= self.h[block.group]
+                G = w[:, None] * ((block.A - self.means_A[block.group]) @ self.inverse)
+                lam = w / self.total_weight[block.group]
+            else:
+                G, lam = w[:, None] * (block.A @ self.inverse), np.zeros(len(w))
+            z = np.column_stack([G, lam])
+            stats.append((len(r), float(r @ r), float(np.max(np.abs(r), initial=0.0))))
+            if window_group is not None:
+                window_scores += (z * r[:, None]).reshape(len(window_group), -1,
+                                                          p + 1).sum(axis=1)
+            else:
+                for j, start, stop in runs(block.group):
+                    sums.add(j, z[start:stop], r[start:stop], w[start:stop])
+        if window_group is not None:
+            for j, start, stop in runs(window_group):
+                sums.add(j, window_scores[start:stop], np.ones(stop - start),
+                         np.ones(stop - start))
+                if stop < len(window_group):   # the trajectory ended inside this piece
+                    sums.close(j)
+        return stats
+
+
+def windows_covariance(c: uncertainty.Covariance, n_windows: int) -> uncertainty.Covariance:
+    """A covariance on the windows' summed scores, saying so."""
+    return dataclasses.replace(c, description=c.description + uncertainty.UNITS_NOTE.format(
+        n=n_windows))
+
+
+def covariance(kind: str, fit: Solved, blocks: list[Block],
+               window_group: npt.NDArray[np.int64] | None) -> uncertainty.Covariance:
+    """Covariance of a fit of rows in memory: the analytic kinds of `hamid.uncertainty`,
+    ``hac`` on the windows' summed scores for weak and joint rows (`Scores`), whose
+    windows belong to the trajectories `window_group` (None for energy rows).
+
+    Its automatic bandwidth grows with the windows' autocorrelation: overlapping windows,
+    and the long memory that the cumulative work of an energy balance brings.
+    """
+    p = len(fit.theta)
     J = fit.centred.level_means_A.shape[0]
-    if len(present) == J:
-        return c
-    level = np.full(J, np.nan)
-    level[present] = c.level
-    theta_level = np.full((J, c.theta.shape[0]), np.nan)
-    theta_level[present] = c.theta_level
-    return dataclasses.replace(c, level=level, theta_level=theta_level)
+    level = next((b for b in blocks if b.has_level), None)
+    total_weight = (np.ones(J) if level is None
+                    else np.bincount(level.group, weights=level.weight, minlength=J))
+    scores = Scores(fit.theta, fit.solution.inverse, fit.centred.level_means_A,
+                    fit.centred.level_means_b, total_weight)
+    by_window = kind == "hac" and window_group is not None
+    fed = window_group if by_window else None
+    sums, automatic = uncertainty.fed_sums(
+        kind, p, J, lambda s: scores.feed(s, blocks, [1.0] * len(blocks), fed))
+    fitted = fit.centred.A.shape[0] - fit.df_resid
+    if not by_window:
+        return sums.covariance(fit.df_resid, automatic=automatic)
+    n_windows = len(window_group)
+    return windows_covariance(sums.covariance(n_windows - fitted, automatic=automatic),
+                              n_windows)
 
 
-def balance_blocks(blocks: list[Block], names: list[str], J: int, units: Any,
-                    unit_group: Any) -> tuple[list[Block], dict[str, float] | None]:
-    """Weight the blocks of a joint fit against each other (`balanced_ratio`).
-
-    The starting point is feasible GLS: each block's row weights scaled by the inverse of
-    its weighted residual variance from a fit of that block alone.
-    """
-    import dataclasses
-
-    if len(blocks) == 1:
-        return blocks, None
-    variance = {}
-    for block in blocks:
-        try:
-            residual = least_squares([block], names, J).residual
-            variance[block.kind] = max(float(np.mean(block.weight * residual**2)), TINY)
-        except FitError:
-            variance[block.kind] = max(float(np.mean(block.weight * block.b**2)), TINY)
-    first, rest = blocks[0], blocks[1:]
-
-    def weighted(ratio: float) -> list[Block]:
-        return [dataclasses.replace(first, weight=first.weight * ratio / variance[first.kind]),
-                *(dataclasses.replace(b, weight=b.weight / variance[b.kind]) for b in rest)]
-
-    def spread(ratio: float) -> float:
-        fit = least_squares(weighted(ratio), names, J)
-        return log_spread(covariance("hac", fit, units, unit_group).theta)
-
-    best = balanced_ratio(spread)
-    return weighted(best), balanced_variance(variance, first.kind, best)
+def own_variance(fit_alone: Callable[[], float], fallback: float) -> float:
+    """A block's mean weighted squared residual in a fit of its own rows (`fit_alone`),
+    or of its known side (`fallback`) when they cannot be fitted alone: where the balance
+    of a joint fit starts."""
+    try:
+        return max(fit_alone(), TINY)
+    except FitError:
+        return max(fallback, TINY)
 
 
-def balanced_ratio(spread: Callable[[float], float]) -> float:
-    """The weight of the first block against the others (each already divided by its
-    residual variance) that minimises `spread`, the log-determinant of the parameters'
-    robust (``hac``) covariance at that ratio, which does not depend on their units.
+def balance(variance: dict[str, float], first: str,
+            spread: Callable[[float], float]) -> tuple[float, dict[str, float]]:
+    """The weight of the first block of a joint fit against the others, and the residual
+    variance of each block that it implies.
 
-    Rows of overlapping windows are correlated, and differently in the two blocks, so
-    the variance guess (ratio 1) can be far from best. The ratio is chosen on a grid of
-    half decades: the search walks down the whole decades from the guess, then tries the
-    half decades beside the lowest. On every test system the decades' spreads fall to one
-    minimum, which a walk finds with a third of the fits.
+    The starting point is feasible GLS: each block's weights divided by its residual
+    variance in a fit of its own (`variance`). Rows of overlapping windows are
+    correlated, and differently in the two blocks, so that guess (ratio 1) can be far
+    from best; the ratio is chosen to minimise `spread`, the log-determinant of the
+    parameters' ``hac`` covariance at that ratio, which does not depend on their units.
+    It walks down whole decades from the guess, then tries the half decades beside the
+    lowest: on every test system the decades' spreads fall to one minimum, which a walk
+    finds with a third of the fits.
     """
     spreads: dict[float, float] = {}
 
@@ -153,8 +222,6 @@ def balanced_ratio(spread: Callable[[float], float]) -> float:
             spreads[exponent] = spread(10.0**exponent)
         return spreads[exponent]
 
-    # down the whole decades from the guess until neither neighbour is lower, then the
-    # half decades beside that one
     exponent = 0.0
     while True:
         lowest = min((e for e in (exponent - 1, exponent + 1) if abs(e) <= 4), key=at)
@@ -164,7 +231,8 @@ def balanced_ratio(spread: Callable[[float], float]) -> float:
     for half in (exponent - 0.5, exponent + 0.5):
         if abs(half) < 4:
             at(half)
-    return 10.0 ** min(spreads, key=spreads.__getitem__)
+    ratio = 10.0 ** min(spreads, key=spreads.__getitem__)
+    return ratio, {k: v / (ratio if k == first else 1.0) for k, v in variance.items()}
 
 
 def log_spread(covariance: Any) -> float:
@@ -173,34 +241,45 @@ def log_spread(covariance: Any) -> float:
     return logdet if sign > 0 else np.inf
 
 
-def balanced_variance(variance: dict[str, float], first: str,
-                      ratio: float) -> dict[str, float]:
-    """Each block's residual variance as its weight in the balanced fit implies."""
-    return {k: v / (ratio if k == first else 1.0) for k, v in variance.items()}
+def _balance_blocks(blocks: list[Block], names: list[str], J: int,
+                    window_group: Any) -> tuple[list[Block], dict[str, float] | None]:
+    """The blocks of a joint fit in memory, weighted against each other (`balance`)."""
+    if len(blocks) == 1:
+        return blocks, None
+    variance = {b.kind: own_variance(
+        lambda b=b: float(np.mean(b.weight * least_squares([b], names, J).residual ** 2)),
+        float(np.mean(b.weight * b.b**2))) for b in blocks}
+    first, rest = blocks[0], blocks[1:]
+
+    def weighted(ratio: float) -> list[Block]:
+        return [dataclasses.replace(first, weight=first.weight * ratio / variance[first.kind]),
+                *(dataclasses.replace(b, weight=b.weight / variance[b.kind]) for b in rest)]
+
+    def spread(ratio: float) -> float:
+        trial = weighted(ratio)
+        return log_spread(covariance("hac", least_squares(trial, names, J), trial,
+                                     window_group).theta)
+
+    ratio, block_variance = balance(variance, first.kind, spread)
+    return weighted(ratio), block_variance
 
 
-TINY = 1e-300
+def fitted_levels(kind: str, theta: Any, fitted_h: Any, h_var: Any,
+                  energy_means: tuple[Any, Any]) -> tuple[Any, Any]:
+    """Energy levels of a linear fit and their standard errors.
 
-
-def resampling_units(blocks: list[Block], kind: str) -> tuple[Any, Any]:
-    """Units of the robust covariances and the bootstrap, and the trajectory of each.
-
-    Energy rows alone: every row is a unit (the HAC kernel and moving blocks handle their
-    correlation). With weak-form rows: windows, each holding its weak rows and its energy
-    row, numbered in time order within each trajectory.
+    Without a level in the fit (weak rows, or a trajectory too short for any window of a
+    joint fit) the level is the mean fitted energy, without a standard error.
     """
-    group = np.concatenate([b.group for b in blocks])
-    if kind == "energy":
-        return np.arange(len(group)), group
-    time = np.concatenate([b.time for b in blocks])
-    order = np.lexsort((time, group))
-    fresh = np.ones(len(order), dtype=bool)
-    fresh[1:] = (np.diff(group[order]) != 0) | (np.diff(time[order]) != 0)
-    units = np.empty(len(order), dtype=np.int64)
-    units[order] = np.cumsum(fresh) - 1
-    unit_group = np.zeros(units.max() + 1, dtype=np.int64)
-    unit_group[units] = group
-    return units, unit_group
+    J = len(fitted_h)
+    h_stderr = np.full(J, np.nan) if kind == "weak" else np.sqrt(np.clip(h_var, 0, None))
+    if kind != "weak" and not np.any(np.isnan(fitted_h)):
+        return fitted_h, h_stderr
+    means_A, means_b = energy_means
+    mean_energy = means_A @ theta - means_b
+    if kind == "weak":
+        return mean_energy, h_stderr
+    return np.where(np.isnan(fitted_h), mean_energy, fitted_h), h_stderr
 
 
 def level_variance(c: Any, Abar: Any) -> Any:
@@ -209,15 +288,84 @@ def level_variance(c: Any, Abar: Any) -> Any:
             + np.einsum("jp,pq,jq->j", Abar, c.theta, Abar))
 
 
-def bootstrap_covariance(blocks: list[Block], names: list[str], J: int, units: Any,
-                          unit_group: Any, n_boot: int,
-                          seed: int | None) -> tuple[Any, Any, str]:
-    """Covariance of theta and the levels from refits on resampled blocks of units."""
-    import dataclasses
+def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Damping, plan: FitPlan,
+             options: FitOptions, sigma: Any) -> tuple[LinearFit, FitPlan, Rows]:
+    """The linear fit of records in memory: rows, balance or noise weights, solution and
+    covariance; the plan falls back to the energy rows when `auto` finds too few windows."""
+    m, records = loaded.model, loaded.records
+    names, J = unknowns.free_names, records.n_trajectories
+    all_energy = design.energy_block(m, records, damping)
+    design.check_finite(all_energy, loaded.locate, list(unknowns.names))
+    energy = unknowns.hold_fixed(all_energy)
+    spans = design.windows(records, plan.window) if plan.kind != "energy" else None
+    if spans is not None:
+        plan = plan.check_windows(spans.n_windows, names, J, options)
+        spans = spans if plan.kind != "energy" else None
+    blocks = [energy] if spans is None else [
+        *([design.window_means(energy, spans)] if plan.kind == "joint" else []),
+        unknowns.hold_fixed(design.weak_block(m, records, spans, damping))]
+    design.check_weak_rows(blocks[-1], records.labels)
+    window_group = None if spans is None else spans.group
+    if sigma is None:
+        blocks, block_variance = _balance_blocks(blocks, names, J, window_group)
+        rounds = 0
+    else:
+        blocks, block_variance, rounds = _noise_weighted(
+            blocks, m, records, spans, damping, sigma, unknowns, J)
+    correction = None
+    if options.bias_correct:
+        from hamid import adjust
 
-    from hamid import uncertainty
+        adjust.check_adjustable(m, options.velocity == "savgol", damping)
+        moments = [adjust.adjusted_moments(b, m, records, sigma, spans, names,
+                                           dict(unknowns.fixed)) for b in blocks]
+        blocks = [mo.block for mo in moments]
+        correction = (sum(mo.AA for mo in moments), sum(mo.Ab for mo in moments))
+    fit = least_squares(blocks, names, J, correction)
+    if options.cov == "bootstrap":
+        theta_cov, h_var, text = _bootstrap_covariance(blocks, names, J, plan.kind,
+                                                       options.bootstrap, options.seed)
+        df = fit.df_resid
+    else:
+        c = covariance(options.cov, fit, blocks, window_group)
+        theta_cov, text, df = c.theta, c.description, c.df
+        if damping.kinds:
+            theta_cov, text = _with_propagated_noise(theta_cov, text, fit, blocks, m, records,
+                                                     sigma, unknowns, spans, damping)
+        h_var = level_variance(c, fit.centred.level_means_A)
+    means_A, means_b, _ = solve.level_means(energy, J)
+    h, h_stderr = fitted_levels(plan.kind, fit.theta, fit.h, h_var, (means_A, means_b))
+    pieces = np.split(fit.residual, np.cumsum([b.n_rows for b in blocks])[:-1])
+    block_stats = {b.kind: {"n_rows": len(r), "rms": float(np.sqrt(np.mean(r**2))),
+                            "max_abs": float(np.max(np.abs(r)))}
+                   for b, r in zip(blocks, pieces, strict=True)}
+    each = ({b.kind: solve.conditioning([b], names, records.labels).condition_number
+             for b in blocks} if len(blocks) > 1 else None)
+    sizes = np.array([stop - start for start, stop in records.bounds()], dtype=np.int64)
+    linear = LinearFit(fit.theta, theta_cov, text, df, h, h_stderr, block_variance,
+                       block_stats, solve.conditioning(blocks, names, records.labels), each,
+                       (means_A, means_b), sizes, rounds)
+    return linear, plan, Rows(energy, all_energy, blocks, spans)
 
+
+def _bootstrap_covariance(blocks: list[Block], names: list[str], J: int, kind: str,
+                          n_boot: int, seed: int | None) -> tuple[Any, Any, str]:
+    """Covariance of theta and the levels from refits on resampled blocks of units:
+    energy rows alone, every row (moving blocks handle their correlation); with weak-form
+    rows, windows, each with its weak rows and its energy row."""
     p = len(names)
+    group = np.concatenate([b.group for b in blocks])
+    if kind == "energy":
+        units, unit_group = np.arange(len(group)), group
+    else:
+        time = np.concatenate([b.time for b in blocks])
+        order = np.lexsort((time, group))
+        fresh = np.ones(len(order), dtype=bool)
+        fresh[1:] = (np.diff(group[order]) != 0) | (np.diff(time[order]) != 0)
+        units = np.empty(len(order), dtype=np.int64)
+        units[order] = np.cumsum(fresh) - 1
+        unit_group = np.zeros(units.max() + 1, dtype=np.int64)
+        unit_group[units] = group
     offsets = np.cumsum([0] + [b.n_rows for b in blocks])
     # Rows of each unit, found by one sort (a scan per unit would be quadratic in rows).
     by_unit = np.argsort(units, kind="stable")
@@ -230,8 +378,8 @@ def bootstrap_covariance(blocks: list[Block], names: list[str], J: int, units: A
             mine = rows[(rows >= lo) & (rows < hi)] - lo
             sample.append(dataclasses.replace(b, A=b.A[mine], b=b.b[mine], group=b.group[mine],
                                               time=b.time[mine], weight=b.weight[mine]))
-        estimate = least_squares(sample, names, J)
-        return np.concatenate([estimate.theta, estimate.h])
+        fit = least_squares(sample, names, J)
+        return np.concatenate([fit.theta, fit.h])
 
     # Resample within the trajectories present (one too short for a window has no units).
     dense = np.unique(unit_group, return_inverse=True)[1]
@@ -239,10 +387,9 @@ def bootstrap_covariance(blocks: list[Block], names: list[str], J: int, units: A
     return cov[:p, :p], np.diag(cov)[p:], description
 
 
-def with_propagated_noise(theta_cov: Any, text: str, estimate: Solved,
-                           blocks: list[Block], model: Model, records: Records, sigma: Any,
-                           free: list[int], fixed_values: Any, spans: Any,
-                           damping: Any) -> tuple[Any, str]:
+def _with_propagated_noise(theta_cov: Any, text: str, fit: Solved, blocks: list[Block],
+                           model: Model, records: Records, sigma: Any, unknowns: Unknowns,
+                           spans: Windows | None, damping: Damping) -> tuple[Any, str]:
     """Damped fits: no parameter's variance below what the measurement noise alone causes.
 
     The energy balance's cumulative work carries each sample's noise into every later
@@ -250,14 +397,12 @@ def with_propagated_noise(theta_cov: Any, text: str, estimate: Solved,
     covariance (noise from --noise, else estimated from the data) sees it. Each
     parameter's variance is the larger of the two, its correlations those of the first.
     """
-    from hamid import design, measurement
+    from hamid import measurement
 
     if sigma is None:
         sigma = measurement.estimate_noise(records.X, records.bounds())
-    full = fixed_values.copy()
-    full[free] = estimate.theta
-    propagated = design.propagated_covariance(blocks, estimate.solution.G, model, records,
-                                              full, sigma, spans, damping)
+    propagated = design.propagated_covariance(blocks, fit.solution.G, model, records,
+                                              unknowns.full(fit.theta), sigma, spans, damping)
     old = np.sqrt(np.clip(np.diag(theta_cov), 0, None))
     new = np.sqrt(np.maximum(np.diag(theta_cov), np.diag(propagated)))
     ratio = np.divide(new, old, out=np.ones_like(new), where=old > 0)
@@ -265,37 +410,33 @@ def with_propagated_noise(theta_cov: Any, text: str, estimate: Solved,
             text + "; each variance at least the one propagated from the measurement noise")
 
 
-def noise_weighted(blocks: list[Block], model: Model, records: Records, spans: Any,
-                    damping: Any, sigma: Any, free: list[int], fixed_values: Any,
-                    names: list[str], J: int, units: Any,
-                    unit_group: Any) -> tuple[list[Block], dict[str, float] | None, int]:
+def _noise_weighted(blocks: list[Block], model: Model, records: Records,
+                    spans: Windows | None, damping: Damping, sigma: Any, unknowns: Unknowns,
+                    J: int) -> tuple[list[Block], dict[str, float] | None, int]:
     """Weight every row by the inverse of the variance the noise puts into it, iterated.
 
     The variance depends on the parameters, so fit, re-weight and refit until the
     parameters settle (relative change below 1e-10, at most `_MAX_ROUNDS`). In a joint
-    fit the two blocks are then balanced as without noise (`balance_blocks`): the rows
-    of overlapping windows are correlated, which the row variances do not see.
+    fit the two blocks are then balanced as without noise (`balance`): the rows of
+    overlapping windows are correlated, which the row variances do not see.
     """
-    import dataclasses
-
-    from hamid import design
-
+    names = unknowns.free_names
     unit_size = [dataclasses.replace(b, weight=b.weight / max(float(np.mean(b.b**2)), TINY))
                  for b in blocks]
     theta = least_squares(unit_size, names, J).theta
     rounds, settled = 0, False
     while not settled and rounds < _MAX_ROUNDS:
         rounds += 1
-        full = fixed_values.copy()
-        full[free] = theta
         weighted = []
         for block in blocks:
-            variance = design.row_variance(block, model, records, full, sigma, spans, damping)
+            variance = design.row_variance(block, model, records, unknowns.full(theta), sigma,
+                                           spans, damping)
             positive = variance[variance > 0]
             floor = 1e-12 * float(np.median(positive)) if positive.size else 1.0
             weighted.append(dataclasses.replace(block,
                                                 weight=1.0 / np.maximum(variance, floor)))
-        weighted, block_variance = balance_blocks(weighted, names, J, units, unit_group)
+        weighted, block_variance = _balance_blocks(
+            weighted, names, J, None if spans is None else spans.group)
         new = least_squares(weighted, names, J).theta
         settled = bool(np.all(np.abs(new - theta) <= 1e-10 * np.abs(new)))
         theta = new
@@ -304,4 +445,68 @@ def noise_weighted(blocks: list[Block], model: Model, records: Records, spans: A
             block_variance, rounds)
 
 
-_MAX_ROUNDS = 20
+class ResidualSums:
+    """Sums over the energy rows that the residual summary needs (docs/output.md,
+    residuals), fed with each trajectory's rows in time order, in one piece or many."""
+
+    def __init__(self, h: Any) -> None:
+        J = len(h)
+        self.h = h
+        self.n = np.zeros(J)
+        self.origin = np.full((J, 2), np.nan)   # first t and b: sums are taken about them
+        self.sums = np.zeros((J, 8))   # t, t^2, r, r^2, t r, b, b^2, r_k r_k+1
+        self.max_abs = 0.0
+        self.last = np.full(J, np.nan)
+        self.end = np.zeros(J)   # last t, from the first
+
+    def add(self, block: Block, residual: Any) -> None:
+        for j, start, stop in runs(block.group):
+            t, b, r = block.time[start:stop], block.b[start:stop], residual[start:stop]
+            if self.n[j] == 0:
+                self.origin[j] = t[0], b[0]
+            t, b = t - self.origin[j, 0], b - self.origin[j, 1]
+            lagged = self.last[j] * r[0] + r[1:] @ r[:-1] if self.n[j] else r[1:] @ r[:-1]
+            self.sums[j] += [t.sum(), t @ t, r.sum(), r @ r, t @ r, b.sum(), b @ b, lagged]
+            self.n[j] += len(r)
+            self.last[j] = r[-1]
+            self.end[j] = t[-1]
+            self.max_abs = max(self.max_abs, float(np.max(np.abs(r))))
+
+    def stats(self, labels: tuple[str | int, ...]) -> dict[str, Any]:
+        n = self.n
+        st, stt, sr, srr, str_, sb, sbb, lagged = self.sums.T
+        total_squares = float(srr.sum())
+        rms = float(np.sqrt(total_squares / n.sum()))
+        mean_level = float(np.mean(np.abs(self.h)))
+        total = float(np.sum(sbb - sb**2 / n))
+        drift = []
+        for j, label in enumerate(labels):
+            # The trend in closed form, on time u scaled to the record (change over it).
+            span = float(self.end[j])
+            spread_t = float(stt[j] - st[j] ** 2 / n[j])
+            spread_u = (np.sqrt(max(spread_t, 0.0)) / span) ** 2 if n[j] > 2 and span > 0 \
+                else 0.0
+            spread_r = float(srr[j] - sr[j] ** 2 / n[j])
+            product = float(str_[j] - st[j] * sr[j] / n[j]) / span if spread_u > 0 else 0.0
+            change = product / spread_u if spread_u > 0 else 0.0
+            explained = change**2 * spread_u / spread_r if spread_r > 0 else 0.0
+            drift.append({"trajectory": label,
+                          "relative_change": change / abs(self.h[j]) if self.h[j] else None,
+                          "trend_share": explained})
+        return {
+            "rms": rms,
+            "max_abs": self.max_abs,
+            "relative_rms": rms / mean_level if mean_level > 0 else None,
+            "r_squared": 1 - total_squares / total if total > 0 else None,
+            "lag1_autocorrelation": float(lagged.sum()) / total_squares if rms > 0 else None,
+            "drift": drift,
+        }
+
+
+def residual_sums(energy_rows: Iterable[Block], theta: npt.NDArray[np.float64],
+                  h: npt.NDArray[np.float64]) -> ResidualSums:
+    """The residual summary's sums over energy rows given in pieces, at theta and h."""
+    sums = ResidualSums(h)
+    for block in energy_rows:
+        sums.add(block, block.A @ theta - block.b - h[block.group])
+    return sums

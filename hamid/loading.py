@@ -1,15 +1,23 @@
-"""Reading the data into Records: sources, the model they settle, columns, order checks."""
+"""Reading the data into Records, whole or in chunks: the sources, the model they settle,
+the columns, and the checks that every trajectory's rows are contiguous and in time order.
+
+Both ways of reading share every rule here: a file read in chunks is read as it would be
+whole, with the same messages naming the same rows.
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from hamid import design, io, naming
 from hamid.errors import DataError, UsageError
 from hamid.model import (
     BUILTINS,
@@ -18,14 +26,17 @@ from hamid.model import (
     damping_names,
     load_model,
     model_from_expression,
+    poly_model_over,
 )
-from hamid.options import SAVGOL_ORDER
-from hamid.records import Records
+from hamid.options import FitOptions
+from hamid.records import Records, runs
+
+__all__ = ["Chunked", "Loaded", "load", "open_chunks", "trajectory_label"]
 
 
 @dataclass(frozen=True)
 class Loaded:
-    """Records ready to fit, the model, and what the report says about the data."""
+    """Records read whole, the model, and what the report says about the data."""
 
     model: Model
     records: Records
@@ -40,92 +51,299 @@ class Loaded:
         source, first = next((s, f) for s, f in reversed(self.row_sources) if f <= row)
         return source, row - first + 1
 
+    def scales(self) -> list[tuple[float | None, float]] | None:
+        """Each trajectory's period and time step, None without a time column."""
+        if self.records.t is None:
+            return None
+        return design.trajectory_scales(self.records, len(self.model.coordinates))
 
-def load(data: Any, model: str | os.PathLike[str] | Model | None, *,
-               columns: Mapping[str, str] | None, time: str | None,
-               trajectory: str | None, format: str | None, velocity: str = "measured",
-               window: int | None = None, order: int = SAVGOL_ORDER) -> Loaded:
-    """Read the sources, settle the model and arrange the rows by trajectory."""
-    from hamid import io, naming
 
+def load(data: Any, model: str | os.PathLike[str] | Model | None,
+         options: FitOptions) -> Loaded:
+    """Read the sources whole, settle the model and arrange the rows by trajectory."""
     if _is_data_frame(data):
         tables = [("<DataFrame>", data, data.attrs.get("hamid"))]
     else:
         paths = [data] if isinstance(data, str | os.PathLike) else list(data)
         if not paths:
             raise UsageError("no data given")
-        tables = [(os.fspath(p) if os.fspath(p) != "-" else "<stdin>",
-                   *io.read_columns(p, format=format)) for p in paths]
+        tables = [(os.fspath(p) if os.fspath(p) != "-" else io.STDIN,
+                   *io.read_columns(p, format=options.format)) for p in paths]
     first_name, first_table, metadata = tables[0]
-    notes = []
-    if isinstance(model, Model):
-        m = model
-    elif model is not None:
-        m = load_model(model)
-    elif metadata and isinstance(metadata.get("model"), Mapping):
-        m = model_from_metadata(metadata["model"], first_name)
-    else:
-        m = assumed_model([str(c) for c in first_table], first_name, columns,
-                           time, trajectory)
-        notes.append(f"no model given: assumed {m.name} over the coordinates "
-                     f"{', '.join(m.coordinates)} (pick one with --model)")
-
-    X_parts, t_parts, group_parts, labels, mapping = [], [], [], [], {}
-    has_time = True
+    m, notes = _settle_model(model, metadata, [str(c) for c in first_table], first_name,
+                             options)
+    derived = options.velocity == "savgol"
+    parts, labels, mapping = [], [], {}
     for source, frame, _ in tables:
         names = [str(c) for c in frame]
-        derived = velocity == "savgol"
         mapping = naming.resolve_columns(names, m.coordinates, () if derived else m.velocities,
-                                     mapping=columns, source=source)
-        time_col = optional_column(names, time, naming.default_time_column(names), "--time",
-                                    source)
-        traj_col = optional_column(names, trajectory, naming.default_trajectory_column(names),
-                                    "--trajectory", source)
-        n_rows = len(frame[names[0]])
-        X = np.column_stack([io.numeric_column(frame, mapping[v], source=source)
-                             if v in mapping else np.zeros(n_rows) for v in m.variables])
-        t = io.numeric_column(frame, time_col, source=source) if time_col else None
-        has_time = has_time and t is not None
-        if traj_col is None:
-            keys = np.zeros(n_rows, dtype=np.int64)
-            traj_labels = [source if len(tables) > 1 else 1]
+                                         mapping=options.columns, source=source)
+        reader = Reader(m, mapping, *_special_columns(names, options, source), source)
+        piece = next(reader.read([(frame, 0)]))
+        parts.append(dataclasses.replace(piece, group=piece.group + len(labels)))
+        if len(tables) == 1:
+            labels.extend(reader.labels)
+        elif reader.trajectory is None:
+            labels.append(source)
         else:
-            keys, traj_labels = trajectory_keys(io.column_values(frame[traj_col]), traj_col,
-                                                 source)
-            if len(tables) > 1:
-                traj_labels = [f"{source}:{label}" for label in traj_labels]
-        check_order(keys, t, source, traj_col, time_col)
-        X_parts.append(X)
-        t_parts.append(t)
-        group_parts.append(keys + len(labels))
-        labels.extend(traj_labels)
-    records = Records(np.vstack(X_parts),
-                      np.concatenate(t_parts) if has_time else None,
-                      np.concatenate(group_parts), tuple(labels))
+            labels.extend(f"{source}:{label}" for label in reader.labels)
+    has_time = all(part.t is not None for part in parts)
+    records = Records(np.vstack([part.X for part in parts]),
+                      np.concatenate([part.t for part in parts]) if has_time else None,
+                      np.concatenate([part.group for part in parts]), tuple(labels))
     derivation = None
-    if velocity == "savgol":
-        records, derivation = derive_velocities(records, m, window, order)
-    truth = truth_of(metadata, m)
-    data_info = {
-        "sources": [name for name, _, _ in tables],
-        "n_samples": int(len(records.group)),
-        "n_trajectories": records.n_trajectories,
-        "columns": dict(mapping),
-        "velocity_source": velocity,
-        **({"velocity_window": derivation[0], "velocity_order": order}
-           if derivation else {}),
-    }
-    if derivation:
+    if derived:
+        records, derivation = _derive_velocities(records, m, options.window, options.order)
         notes.append(f"velocities derived from the positions (Savitzky-Golay, window "
-                     f"{derivation[0]} samples, order {order}); their noise is correlated "
-                     "with the positions'")
-    firsts = np.cumsum([0] + [len(frame) for _, frame, _ in tables[:-1]])
-    return Loaded(m, records, truth, data_info, tuple(notes),
-                   derivation[1] if derivation else None,
-                   tuple((name, int(f)) for (name, _, _), f in zip(tables, firsts, strict=True)))
+                     f"{derivation[0]} samples, order {options.order}); their noise is "
+                     "correlated with the positions'")
+    data_info = _data_info([name for name, _, _ in tables], len(records.group), len(labels),
+                           mapping, options)
+    if derivation:
+        data_info.update(velocity_window=derivation[0], velocity_order=options.order)
+    firsts = np.cumsum([0] + [len(part.group) for part in parts[:-1]])
+    return Loaded(m, records, _truth(metadata, m), data_info, tuple(notes),
+                  derivation[1] if derivation else None,
+                  tuple((name, int(f)) for (name, _, _), f in zip(tables, firsts, strict=True)))
 
 
-def truth_of(metadata: Mapping[str, Any] | None, m: Model) -> dict[str, float]:
+class Reader:
+    """Rows of one table, whole or chunk by chunk, as Records: trajectories numbered in
+    order of first appearance; every trajectory's rows contiguous and its times
+    increasing, also across chunks. Errors name the table's 1-based data row."""
+
+    def __init__(self, model: Model, mapping: Mapping[str, str], time: str | None,
+                 trajectory: str | None, source: str) -> None:
+        self.model, self.mapping, self.source = model, mapping, source
+        self.time, self.trajectory = time, trajectory
+        # Without a trajectory column the table is one trajectory, labelled 1.
+        self._ids: dict[Any, int] = {} if trajectory else {1: 0}
+
+    @property
+    def columns(self) -> list[str]:
+        """The table's columns that are read."""
+        wanted = [self.mapping[v] for v in self.model.variables if v in self.mapping]
+        return list(dict.fromkeys([*wanted, *(c for c in (self.time, self.trajectory) if c)]))
+
+    @property
+    def labels(self) -> tuple[Any, ...]:
+        """The trajectory labels seen so far, in order of their numbers."""
+        return tuple(self._ids)
+
+    def read(self, chunks: Iterable[tuple[Mapping[str, Any], int]]) -> Iterator[Records]:
+        """The records of each chunk (column name -> values, and its first row counted
+        from 0), checked in order; one pass over the table."""
+        previous, last_t, closed = None, None, set()
+        for chunk, row in chunks:
+            n = len(chunk[self.columns[0]])
+            X = np.column_stack([
+                io.numeric_values(io.column_values(chunk[self.mapping[v]]), self.mapping[v],
+                                  self.source, first_row=row + 1)
+                if v in self.mapping else np.zeros(n) for v in self.model.variables])
+            t = (io.numeric_values(io.column_values(chunk[self.time]), self.time, self.source,
+                                   first_row=row + 1) if self.time else None)
+            group = (self._keys(io.column_values(chunk[self.trajectory]), row)
+                     if self.trajectory else np.zeros(n, np.int64))
+            starts = np.flatnonzero(np.diff(group, prepend=-1 if previous is None
+                                            else previous))
+            for start in starts:
+                if int(group[start]) in closed:
+                    raise DataError(f"{self.source}: column {self.trajectory!r}, row "
+                                    f"{row + start + 1}: a trajectory resumes after rows of "
+                                    "another; sort the file by trajectory then time")
+                if previous is not None:
+                    closed.add(previous)
+                previous = int(group[start])
+            if t is not None:
+                before = np.concatenate([[np.nan if last_t is None else last_t], t[:-1]])
+                same = np.ones(n, dtype=bool)
+                same[starts] = False
+                bad = np.flatnonzero(same & ~(t > before))
+                if bad.size:
+                    k = int(bad[0])
+                    raise DataError(f"{self.source}: column {self.time!r}, row {row + k + 1}: "
+                                    f"time does not increase ({before[k]:g} then {t[k]:g})")
+                last_t = float(t[-1])
+            yield Records(X, t, group, ())
+
+    def _keys(self, values: np.ndarray, row: int) -> np.ndarray:
+        """The trajectory number of each row of a chunk of the trajectory column."""
+        if values.dtype.kind in "iu":
+            missing = np.zeros(len(values), bool)
+        elif values.dtype.kind == "f":
+            missing = np.isnan(values)
+        else:
+            missing = np.fromiter((io.is_missing(v) for v in values), bool, len(values))
+        if missing.any():
+            raise DataError(f"{self.source}: column {self.trajectory!r}, row "
+                            f"{row + int(np.flatnonzero(missing)[0]) + 1}: missing "
+                            "trajectory label")
+        change = np.flatnonzero(values[1:] != values[:-1]) + 1
+        keys = np.empty(len(values), dtype=np.int64)
+        for start, stop in zip([0, *change], [*change, len(values)], strict=True):
+            keys[start:stop] = self._ids.setdefault(trajectory_label(values[start]),
+                                                    len(self._ids))
+        return keys
+
+
+@dataclass(frozen=True)
+class Chunked:
+    """One file read in chunks of rows, a pass at a time (`hamid.stream`)."""
+
+    model: Model
+    notes: tuple[str, ...]
+    truth: dict[str, float]
+    table: io.TableChunks
+    reader: Reader
+    chunk_rows: int
+    progress: Callable[[str], None] | None
+
+    @property
+    def labels(self) -> tuple[Any, ...]:
+        return self.reader.labels
+
+    def rows(self, purpose: str) -> Iterator[tuple[Records, int]]:
+        """Each chunk's records and the file row (0-based) of its first row, in a pass for
+        `purpose` (what `progress` is told)."""
+
+        def chunks() -> Iterator[tuple[Mapping[str, Any], int]]:
+            row = 0
+            for chunk in self.table.chunks(self.reader.columns, self.chunk_rows):
+                if self.progress is not None:
+                    self.progress(f"{self.table.name}: {purpose}, from row {row + 1:,}")
+                yield chunk, row
+                row += len(chunk[self.reader.columns[0]])
+
+        row = 0
+        for records in self.reader.read(chunks()):
+            yield records, row
+            row += len(records.group)
+
+    def scales(self) -> list[tuple[float | None, float]] | None:
+        """Each trajectory's period and time step, from the first samples of each that
+        `design.trajectory_scales` looks at, which are held until the trajectory ends."""
+        if self.reader.time is None:
+            return None
+        scales: list[tuple[float | None, float]] = []
+        held: list[Records] = []
+        kept = 0   # samples of the current trajectory held
+        N = len(self.model.coordinates)
+
+        def finish() -> None:
+            if held:
+                t = np.concatenate([r.t for r in held])
+                X = np.vstack([r.X[:, :N] for r in held])
+                scales.extend(design.trajectory_scales(
+                    Records(X, t, np.zeros(len(t), np.int64), (0,)), N))
+                held.clear()
+
+        for records, _ in self.rows("periods of the trajectories"):
+            for j, start, stop in runs(records.group):
+                if held and held[-1].group[0] != j:
+                    finish()
+                    kept = 0
+                stop = min(stop, start + design.SCALE_SAMPLES - kept)
+                if stop > start:
+                    held.append(records.slice(start, stop))
+                    kept += stop - start
+        finish()
+        return scales
+
+    def whole(self, n_samples: int) -> Records:
+        """All the records of the file, for the trajectory refinement."""
+        X = np.empty((n_samples, len(self.model.variables)))
+        t = np.empty(n_samples)
+        group = np.empty(n_samples, dtype=np.int64)
+        for records, row in self.rows("records for the trajectory fit"):
+            rows = slice(row, row + len(records.group))
+            X[rows], t[rows], group[rows] = records.X, records.t, records.group
+        return Records(X, t, group, self.labels)
+
+    def data_info(self, sizes: np.ndarray, options: FitOptions) -> dict[str, Any]:
+        """What the report says about the data, once a pass has counted the samples."""
+        return _data_info([self.table.name], int(sizes.sum()), len(self.labels),
+                          self.reader.mapping, options)
+
+
+def open_chunks(path: str, model: str | os.PathLike[str] | Model | None,
+                options: FitOptions, chunk_rows: int,
+                progress: Callable[[str], None] | None) -> Chunked:
+    """A file to read in chunks of `chunk_rows` rows: its model and columns, settled as
+    `load` settles them."""
+    table = io.TableChunks(path, format=options.format)
+    m, notes = _settle_model(model, table.metadata, table.columns, table.name, options)
+    mapping = naming.resolve_columns(table.columns, m.coordinates, m.velocities,
+                                     mapping=options.columns, source=table.name)
+    reader = Reader(m, mapping, *_special_columns(table.columns, options, table.name),
+                    table.name)
+    return Chunked(m, tuple(notes), _truth(table.metadata, m), table, reader, chunk_rows,
+                   progress)
+
+
+def _data_info(sources: list[str], n_samples: int, n_trajectories: int,
+               mapping: Mapping[str, str], options: FitOptions) -> dict[str, Any]:
+    """What the report says about the data (docs/output.md, `data`)."""
+    return {"sources": sources, "n_samples": n_samples,
+            "n_trajectories": n_trajectories, "columns": dict(mapping),
+            "velocity_source": options.velocity}
+
+
+def _settle_model(model: str | os.PathLike[str] | Model | None,
+                  metadata: Mapping[str, Any] | None, names: list[str], source: str,
+                  options: FitOptions) -> tuple[Model, list[str]]:
+    """The model given, else the one the file's metadata records, else poly:N:3 over every
+    column that has a velocity column (said in a note)."""
+    if isinstance(model, Model):
+        return model, []
+    if model is not None:
+        return load_model(model), []
+    if metadata and isinstance(metadata.get("model"), Mapping):
+        return _model_from_metadata(metadata["model"], source), []
+    exclude = {c for c in (options.time or naming.default_time_column(names),
+                           options.trajectory or naming.default_trajectory_column(names)) if c}
+    pairs = naming.find_coordinates(names, exclude=exclude)
+    if not pairs:
+        raise DataError(f"{source}: no model given and no coordinate with a velocity column "
+                        f"found (columns: {', '.join(names)}); give --model, or name "
+                        "velocities vx, x_dot, xdot or dx")
+    if options.columns:
+        raise UsageError("--columns needs --model (the assumed model takes the file's names)")
+    m = poly_model_over([q for q, _ in pairs], [v for _, v in pairs])
+    return m, [f"no model given: assumed {m.name} over the coordinates "
+               f"{', '.join(m.coordinates)} (pick one with --model)"]
+
+
+def _model_from_metadata(info: Mapping[str, Any], source: str) -> Model:
+    """The model a simulated file records (built-in by name, else from its energy)."""
+    name = info.get("name")
+    if isinstance(name, str) and (name in BUILTINS or name.startswith("poly:")):
+        candidate = builtin_model(name)
+        if candidate.energy == info.get("energy"):
+            return candidate
+    try:
+        return model_from_expression(str(name or "custom"), info["energy"],
+                                     info["coordinates"], info["velocities"],
+                                     info.get("parameters"), where=f"{source}: metadata model")
+    except (KeyError, TypeError) as exc:
+        raise DataError(f"{source}: the hamid metadata has no usable model ({exc}); "
+                        "give one with --model") from exc
+
+
+def _special_columns(names: list[str], options: FitOptions,
+                     source: str) -> tuple[str | None, str | None]:
+    """The time and trajectory columns: as asked for, else by their usual names."""
+    found = []
+    for asked, default, option in (
+            (options.time, naming.default_time_column(names), "--time"),
+            (options.trajectory, naming.default_trajectory_column(names), "--trajectory")):
+        if asked is not None and asked not in names:
+            raise DataError(f"{source}: no column {asked!r} for {option} "
+                            f"(columns: {', '.join(names)})")
+        found.append(default if asked is None else asked)
+    return found[0], found[1]
+
+
+def _truth(metadata: Mapping[str, Any] | None, m: Model) -> dict[str, float]:
     """The true parameters a simulated file records for this model, else none."""
     if not (metadata and isinstance(metadata.get("model"), Mapping)
             and metadata["model"].get("energy") == m.energy):
@@ -138,12 +356,10 @@ def truth_of(metadata: Mapping[str, Any] | None, m: Model) -> dict[str, float]:
     return {k: float(v) for k, v in values.items() if isinstance(v, int | float)}
 
 
-def derive_velocities(records: Records, model: Model, window: int | None,
+def _derive_velocities(records: Records, model: Model, window: int | None,
                        order: int) -> tuple[Records, tuple[int, float]]:
     """Records whose velocities come from Savitzky-Golay differentiation of the positions."""
-    import dataclasses
-
-    from hamid import design, measurement
+    from hamid import measurement
 
     if records.t is None:
         raise UsageError("--velocity savgol needs a time column")
@@ -160,21 +376,19 @@ def derive_velocities(records: Records, model: Model, window: int | None,
     return dataclasses.replace(records, X=X), (window, gain)
 
 
-def noise_levels(noise: str | Mapping[str, float] | None, model: Model, records: Records,
-                  loaded: Loaded) -> tuple[Any, dict[str, float] | None]:
+def noise_levels(loaded: Loaded,
+                 noise: str | Mapping[str, float] | None) -> tuple[Any, dict[str, float] | None]:
     """Noise std per model variable, from the user or estimated; None without --noise."""
-    import math
-
     from hamid import measurement
 
     if noise is None or noise == "none":
         return None, None
+    model, records = loaded.model, loaded.records
     N = len(model.coordinates)
-    columns = loaded.data_info["columns"]
     if noise == "auto":
         sigma = measurement.estimate_noise(records.X, records.bounds())
     elif isinstance(noise, Mapping):
-        by_column = {column: name for name, column in columns.items()}
+        by_column = {column: name for name, column in loaded.data_info["columns"].items()}
         sigma = np.zeros(len(model.variables))
         for key, value in noise.items():
             name = key if key in model.variables else by_column.get(key)
@@ -193,77 +407,6 @@ def noise_levels(noise: str | Mapping[str, float] | None, model: Model, records:
     return sigma, {name: float(s) for name, s in zip(model.variables, sigma, strict=True)}
 
 
-def model_from_metadata(info: Mapping[str, Any], source: str) -> Model:
-    """The model a simulated file records (built-in by name, else from its energy)."""
-    name = info.get("name")
-    if isinstance(name, str) and (name in BUILTINS or name.startswith("poly:")):
-        candidate = builtin_model(name)
-        if candidate.energy == info.get("energy"):
-            return candidate
-    try:
-        return model_from_expression(str(name or "custom"), info["energy"],
-                                     info["coordinates"], info["velocities"],
-                                     info.get("parameters"), where=f"{source}: metadata model")
-    except (KeyError, TypeError) as exc:
-        raise DataError(f"{source}: the hamid metadata has no usable model ({exc}); "
-                        "give one with --model") from exc
-
-
-def assumed_model(names: list[str], source: str, columns: Mapping[str, str] | None,
-                   time: str | None, trajectory: str | None) -> Model:
-    """poly:N:3 over every column that has a velocity column (SPEC section 3, fit)."""
-    from hamid import naming
-    from hamid.model import poly_model_over
-
-    exclude = {c for c in (time or naming.default_time_column(names),
-                           trajectory or naming.default_trajectory_column(names)) if c}
-    pairs = naming.find_coordinates(names, exclude=exclude)
-    if not pairs:
-        raise DataError(f"{source}: no model given and no coordinate with a velocity column "
-                        f"found (columns: {', '.join(names)}); give --model, or name "
-                        "velocities vx, x_dot, xdot or dx")
-    if columns:
-        raise UsageError("--columns needs --model (the assumed model takes the file's names)")
-    return poly_model_over([q for q, _ in pairs], [v for _, v in pairs])
-
-
-def optional_column(names: list[str], asked: str | None, default: str | None, option: str,
-                     source: str) -> str | None:
-    if asked is None:
-        return default
-    if asked not in names:
-        raise DataError(f"{source}: no column {asked!r} for {option} "
-                        f"(columns: {', '.join(names)})")
-    return asked
-
-
-def trajectory_keys(values: np.ndarray, column: str, source: str) -> tuple[Any, list[Any]]:
-    """Index 0..J-1 of each row's trajectory, in order of first appearance, and the labels."""
-    from hamid.io import is_missing
-
-    if values.dtype.kind in "iu":
-        missing = np.zeros(len(values), bool)
-    elif values.dtype.kind == "f":
-        missing = np.isnan(values)
-    else:
-        missing = np.fromiter((is_missing(v) for v in values), bool, len(values))
-    if missing.any():
-        row = int(np.flatnonzero(missing)[0]) + 1
-        raise DataError(f"{source}: column {column!r}, row {row}: missing trajectory label")
-    if values.dtype.kind in "iuf":
-        uniques, first, codes = np.unique(values, return_index=True, return_inverse=True)
-        order = np.argsort(first)
-        rank = np.empty_like(order)
-        rank[order] = np.arange(len(order))
-        codes, uniques = rank[codes.ravel()], uniques[order]
-    else:   # text or mixed objects, which need not sort
-        index: dict[Any, int] = {}
-        codes = np.fromiter((index.setdefault(v, len(index)) for v in values), np.int64,
-                            len(values))
-        uniques = list(index)
-    return codes.astype(np.int64), [trajectory_label(u) for u in uniques]
-
-
 def trajectory_label(value: Any) -> Any:
     """A trajectory column's value as the label reported: a Python scalar, whole numbers
     as int (a column with missing cells is read as floats)."""
@@ -275,26 +418,3 @@ def _is_data_frame(data: Any) -> bool:
     """Whether `data` is a pandas DataFrame, without importing pandas when it cannot be."""
     pandas = sys.modules.get("pandas")
     return pandas is not None and isinstance(data, pandas.DataFrame)
-
-
-def check_order(keys: Any, t: Any, source: str, traj_col: str | None,
-                 time_col: str | None) -> None:
-    """Each trajectory's rows must be contiguous and, with a time column, increasing."""
-    changes = np.flatnonzero(np.diff(keys)) + 1
-    if len(np.unique(keys[np.concatenate([[0], changes])])) != len(changes) + 1:
-        seen, row = set(), 0
-        for start in np.concatenate([[0], changes]):
-            if keys[start] in seen:
-                row = int(start) + 1
-                break
-            seen.add(keys[start])
-        raise DataError(f"{source}: column {traj_col!r}, row {row}: a trajectory resumes "
-                        "after rows of another; sort the file by trajectory then time")
-    if t is not None:
-        step = np.diff(t)
-        same = np.diff(keys) == 0
-        bad = np.flatnonzero(same & ~(step > 0))
-        if bad.size:
-            row = int(bad[0]) + 2
-            raise DataError(f"{source}: column {time_col!r}, row {row}: time does not increase "
-                            f"({t[row - 2]:g} then {t[row - 1]:g})")

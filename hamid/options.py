@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 from hamid.errors import UsageError
@@ -97,61 +98,118 @@ def _parse_items(
     return result
 
 
-COVARIANCE_KINDS = ("classical", "hc", "hac", "bootstrap")
-
-
-VELOCITY_SOURCES = ("measured", "savgol")
-
-
-SAVGOL_ORDER = 5
-
-
 METHODS = ("auto", "joint", "weak", "energy")
-
+COVARIANCE_KINDS = ("hac", "classical", "hc", "bootstrap")
+VELOCITY_SOURCES = ("measured", "savgol")
+SAVGOL_ORDER = 5
 
 # Files larger than this are read in chunks when the options allow it: the chunked fit is
 # the fit in memory, faster and in a third of the memory.
 STREAM_BYTES = 64 << 20
-
-
 CHUNK_ROWS = 1 << 18
-
-
 # The trajectory refinement of a chunked fit holds the records (times, states, trajectory
 # numbers) in memory, 8 bytes a value; larger records are left unrefined.
 REFINEMENT_BYTES = 1 << 30
 
 
-def reads_in_chunks(data: Any) -> bool:
-    """Whether a fit that can read `data` in chunks should, by its size."""
-    return os.path.getsize(data) > STREAM_BYTES
+@dataclass(frozen=True)
+class FitOptions:
+    """Everything `hamid.fit` is asked to do besides the data and the model, checked once.
+
+    The fields are `hamid.fit`'s keyword arguments (see there); `damping` is parsed into
+    its kinds and `fix` into floats. Building one raises a UsageError for any value or
+    combination that makes no sense, before any data are read.
+    """
+
+    columns: Mapping[str, str] | None = None
+    time: str | None = None
+    trajectory: str | None = None
+    velocity: str = "measured"
+    window: int | None = None
+    order: int = SAVGOL_ORDER
+    noise: str | Mapping[str, float] | None = None
+    bias_correct: bool = False
+    fix: Mapping[str, float] = field(default_factory=dict)
+    method: str = "auto"
+    weak_window: float | None = None
+    damping: tuple[str, ...] = ()
+    cov: str = "hac"
+    level: float = 0.95
+    bootstrap: int = 200
+    seed: int | None = None
+    format: str | None = None
+    chunk_rows: int | None = None
+    in_memory: bool = False
+
+    def __post_init__(self) -> None:
+        _check_choice(self.method, METHODS, "method")
+        _check_choice(self.cov, COVARIANCE_KINDS, "cov")
+        if not 0 < self.level < 1:
+            raise UsageError(f"level must be between 0 and 1, found {self.level!r}")
+        if self.bias_correct and not self.weighted:
+            raise UsageError("--bias-correct needs --noise (auto or COL=SIGMA,...)")
+        if self.bias_correct and self.cov == "bootstrap":
+            raise UsageError("--bias-correct cannot be combined with --cov bootstrap (the "
+                             "refits would not be corrected); use --cov hac")
+        if self.cov == "bootstrap" and self.bootstrap < 10:
+            raise UsageError(f"bootstrap needs at least 10 replicates, found {self.bootstrap}")
+        if self.weak_window is not None and not 0 < self.weak_window < float("inf"):
+            raise UsageError(f"--weak-window must be a positive number of seconds, "
+                             f"found {self.weak_window!r}")
+        if self.velocity != "savgol" and (self.window is not None
+                                          or self.order != SAVGOL_ORDER):
+            raise UsageError("--window and --order apply only to --velocity savgol")
+        _check_choice(self.velocity, VELOCITY_SOURCES, "velocity")
+        object.__setattr__(self, "damping", parse_damping(self.damping))
+        object.__setattr__(self, "fix", dict(self.fix or {}))
+        if self.chunk_rows is not None and self.chunk_rows < 1:
+            raise UsageError("--chunk-rows: must be a positive number of rows")
+
+    @property
+    def weighted(self) -> bool:
+        """Whether rows are weighted by the measurement noise (--noise)."""
+        return self.noise not in (None, "none")
+
+    def chunking(self, data: Any) -> int | None:
+        """The rows per chunk when `data` is read in chunks, or None to read it whole.
+
+        A file over `STREAM_BYTES` is read in chunks when the options allow it;
+        `chunk_rows` asks for chunks, which is an error when they are not possible.
+        """
+        obstacle = self._needs_memory(data)
+        if self.chunk_rows is not None and (obstacle or self.in_memory):
+            raise UsageError(f"--chunk-rows: "
+                             f"{obstacle or 'in_memory asks for the data in memory'}")
+        if self.chunk_rows is not None:
+            return self.chunk_rows
+        if not obstacle and not self.in_memory and os.path.getsize(data) > STREAM_BYTES:
+            return CHUNK_ROWS
+        return None
+
+    def _needs_memory(self, data: Any) -> str:
+        """Why the fit needs all the data in memory, or "" when it can read them in chunks."""
+        if not isinstance(data, str | os.PathLike) or os.fspath(data) == "-" \
+                or not os.path.isfile(data):
+            return "chunks need one file (not standard input, a list or a DataFrame)"
+        if self.velocity != "measured":
+            return "derived velocities (--velocity savgol) need the data in memory"
+        if self.weighted:
+            return "noise weighting (--noise) needs the data in memory"
+        if self.damping:
+            return "damping (--damping) needs the data in memory"
+        if self.cov == "bootstrap":
+            return "--cov bootstrap needs the data in memory"
+        return ""
 
 
-def needs_memory(data: Any, velocity: str, noise: Any, damping: str | Sequence[str],
-                  cov: str) -> str:
-    """Why the fit needs all the data in memory, or "" when it can read them in chunks."""
-    if not isinstance(data, str | os.PathLike) or os.fspath(data) == "-" \
-            or not os.path.isfile(data):
-        return "chunks need one file (not standard input, a list or a DataFrame)"
-    if velocity != "measured":
-        return "derived velocities (--velocity savgol) need the data in memory"
-    if noise not in (None, "none"):
-        return "noise weighting (--noise) needs the data in memory"
-    if parse_damping(damping):
-        return "damping (--damping) needs the data in memory"
-    if cov == "bootstrap":
-        return "--cov bootstrap needs the data in memory"
-    return ""
-
-
-def check_choice(value: str, choices: tuple[str, ...], option: str) -> None:
+def _check_choice(value: str, choices: tuple[str, ...], option: str) -> None:
     if value not in choices:
         raise UsageError(f"{option} must be one of {', '.join(choices)}, found {value!r}")
 
 
 def parse_damping(damping: str | Sequence[str]) -> tuple[str, ...]:
     """Damping kinds from "none", "viscous,coulomb" or a list; unknown kinds are errors."""
-    from hamid.model import DAMPING_KINDS
+    from hamid.model import DAMPING_KINDS  # numpy: not at import, which the CLI shares
 
     items = damping.split(",") if isinstance(damping, str) else list(damping)
     kinds = [item.strip() for item in items if item.strip()]
@@ -167,15 +225,3 @@ def parse_damping(damping: str | Sequence[str]) -> tuple[str, ...]:
     if len(set(kinds)) != len(kinds):
         raise UsageError(f"--damping: a kind is given twice in {','.join(kinds)!r}")
     return tuple(kinds)
-
-
-def check_fixed(fix: Mapping[str, float], parameters: tuple[str, ...]) -> dict[str, float]:
-    import math
-
-    for name, value in fix.items():
-        if name not in parameters:
-            raise UsageError(f"--fix: {name!r} is not a parameter of the model "
-                             f"({', '.join(parameters)})")
-        if not isinstance(value, int | float) or not math.isfinite(value):
-            raise UsageError(f"--fix: {name}={value!r} is not a finite number")
-    return {name: float(value) for name, value in fix.items()}

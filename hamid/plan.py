@@ -1,26 +1,82 @@
-"""Which rows the fit takes (energy, weak, joint), why, and whether it is refined."""
+"""Which rows the fit takes (energy, weak, joint), why, and whether it is refined.
+
+Decided once, from the options, the model and each trajectory's period and time step
+(docs/method.md, "Choosing the rows"), and revised only when the records turn out to hold
+too few weak-form windows.
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from hamid.errors import UsageError
+from hamid import design
+from hamid.errors import DataError, FitError, UsageError
 from hamid.model import Model
+from hamid.options import REFINEMENT_BYTES, FitOptions
+
+__all__ = ["FitPlan", "decide", "refinement_obstacle"]
+
+CHUNKED_NOT_REFINED = ("it holds the records in memory, and --chunk-rows asks for "
+                       "bounded memory")
 
 
-def choose_method(method: str, model: Model, scales: list[tuple[float | None, float]] | None,
-                   weak_window: float | None) -> tuple[str, str, float | None]:
-    """Which rows to fit, why, and the weak-form window (SPEC section 1, --method).
+@dataclass(frozen=True)
+class FitPlan:
+    """The rows to fit and why.
+
+    kind : "energy", "weak" or "joint".
+    reason : the report's words for the choice (and, once known, for the refinement).
+    window : the weak-form window in seconds (None for energy rows).
+    scales : each trajectory's period and time step (None without a time column, or when
+        the energy rows were asked for and no window needs sizing).
+    """
+
+    kind: str
+    reason: str
+    window: float | None
+    scales: list[tuple[float | None, float]] | None
+
+    def check_windows(self, n_windows: int, free_names: list[str], n_trajectories: int,
+                      options: FitOptions) -> FitPlan:
+        """This plan, or the energy rows' when `auto` finds too few windows to fit.
+
+        Windows are the independent units of the weak and joint errors, so more are needed
+        than unknowns (the levels count in joint).
+        """
+        needed = len(free_names) + (n_trajectories if self.kind == "joint" else 0) + 1
+        if self.kind == "energy" or n_windows >= needed:
+            return self
+        shortage = (f"the records hold {n_windows} weak-form windows of {self.window:.3g} s, "
+                    f"fewer than the {needed} that {needed - 1} unknowns need")
+        if options.method == "auto" and options.weak_window is None:
+            return FitPlan("energy", f"{shortage}; fitted the energy rows", None, self.scales)
+        if n_windows == 0:
+            raise DataError(f"the records are too short for one weak-form window of "
+                            f"{self.window:.4g} s; use --method energy or a shorter "
+                            "--weak-window")
+        raise FitError(f"cannot determine {', '.join(free_names)}: {shortage}; use "
+                       "--method energy or a shorter --weak-window")
+
+    def refined(self, info: dict[str, Any]) -> FitPlan:
+        """The plan with what the refinement did added to its reason."""
+        note = ("; refined by fitting the integrated trajectories" if info["applied"]
+                else f"; not refined by fitting trajectories: {info['reason']}")
+        return FitPlan(self.kind, self.reason + note, self.window, self.scales)
+
+
+def decide(options: FitOptions, model: Model,
+           scales: list[tuple[float | None, float]] | None) -> FitPlan:
+    """Which rows to fit, why, and the weak-form window.
 
     `scales` holds each trajectory's period and time step (`design.trajectory_scales`),
     None without a time column.
     """
-    from hamid import design
-
+    method, weak_window = options.method, options.weak_window
     if method == "energy":
-        return "energy", "asked for with --method energy", None
+        return FitPlan("energy", "asked for with --method energy", None, scales)
     obstacle = None
     window = weak_window
     if scales is None:
@@ -42,34 +98,32 @@ def choose_method(method: str, model: Model, scales: list[tuple[float | None, fl
     if obstacle is not None:
         if method != "auto":
             raise UsageError(f"--method {method} is not possible: {obstacle}")
-        return "energy", f"{obstacle}; fitted the energy rows", None
+        return FitPlan("energy", f"{obstacle}; fitted the energy rows", None, scales)
     how = "given" if weak_window is not None else "half the dominant period"
     if method == "auto":
-        return "joint", (f"time column sampled finely enough for weak-form windows of "
-                         f"{window:.3g} s ({how})"), window
-    return method, f"asked for with --method {method}; windows of {window:.3g} s ({how})", \
-        window
+        return FitPlan("joint", f"time column sampled finely enough for weak-form windows "
+                       f"of {window:.3g} s ({how})", window, scales)
+    return FitPlan(method, f"asked for with --method {method}; windows of {window:.3g} s "
+                   f"({how})", window, scales)
 
 
-CHUNKED_NOT_REFINED = ("it holds the records in memory, and --chunk-rows asks for "
-                       "bounded memory")
+def refinement_obstacle(options: FitOptions, records_bytes: int | None = None) -> str | None:
+    """Why an automatic joint fit is not refined by trajectories, or None when it is.
 
-
-def refinement_obstacle(cov: str, bias_correct: bool, damping: tuple[str, ...]) -> str | None:
-    """Why an automatic joint fit is not refined by trajectories, or None when it is."""
-    if "coulomb" in damping:
+    `records_bytes` is the size of the records that a fit read in chunks would hold in
+    memory for the refinement (None for a fit in memory).
+    """
+    if "coulomb" in options.damping:
         return ("Coulomb friction makes the motion jump at every stop, which the trajectory "
                 "fit's integration and differences do not follow")
-    if cov != "hac":
-        return (f"the trajectory fit has a covariance of its own, and --cov {cov} asks for "
-                "that of the linear fit")
-    if bias_correct:
+    if options.cov != "hac":
+        return (f"the trajectory fit has a covariance of its own, and --cov {options.cov} "
+                "asks for that of the linear fit")
+    if options.bias_correct:
         return "--bias-correct asks for the linear fit"
+    if records_bytes is not None and options.chunk_rows is not None:
+        return CHUNKED_NOT_REFINED
+    if records_bytes is not None and records_bytes > REFINEMENT_BYTES:
+        return (f"it holds the records in memory, {records_bytes / 2**30:.1f} GiB here, over "
+                f"the limit of {REFINEMENT_BYTES / 2**30:g} GiB")
     return None
-
-
-def refinement_note(info: dict[str, Any]) -> str:
-    """What the method's reason adds about the trajectory refinement."""
-    if info["applied"]:
-        return "; refined by fitting the integrated trajectories"
-    return f"; not refined by fitting trajectories: {info['reason']}"

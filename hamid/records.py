@@ -29,6 +29,11 @@ class Records:
     def n_trajectories(self) -> int:
         return len(self.labels)
 
+    def slice(self, start: int, stop: int | None) -> Records:
+        """Rows start:stop, without labels (a piece of a chunked pass)."""
+        return Records(self.X[start:stop], None if self.t is None else self.t[start:stop],
+                       self.group[start:stop], ())
+
     def bounds(self) -> list[tuple[int, int]]:
         """(start, stop) row range of each trajectory."""
         return [(start, stop) for _, start, stop in runs(self.group)]

@@ -260,6 +260,3 @@ def plain_data(value: Any) -> Any:
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     return value
-
-
-_finite = plain_data   # the old private name, still imported by summary.py

@@ -33,8 +33,8 @@ def linear_fits_in_memory(monkeypatch):
     """The fits in memory here stop where a chunked fit stops: before the trajectory
     refinement, which needs the data in memory (tested in test_trajectory.py)."""
     obstacle = plan.refinement_obstacle
-    monkeypatch.setattr(plan, "refinement_obstacle", lambda cov, bias, damping: obstacle(
-        cov, bias, damping) or plan.CHUNKED_NOT_REFINED)
+    monkeypatch.setattr(plan, "refinement_obstacle", lambda options, size=None: obstacle(
+        options, size) or plan.CHUNKED_NOT_REFINED)
 
 
 def test_chunked_auto_fits_say_they_are_not_refined(noisy_files):

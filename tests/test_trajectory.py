@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from conftest import DUFFING, ELASTIC_PENDULUM, PENG, TWO_MASS, with_noise
 
 import hamid
-from hamid import options, writing
+from hamid import options, plan, writing
 from hamid.cli import cli
 from hamid.design import Damping
 from hamid.model import model_from_spec
@@ -143,7 +143,7 @@ def test_a_file_read_in_chunks_is_refined_like_one_in_memory(clean_records, monk
                                strict=True):
         assert streamed == pytest.approx(whole, rel=1e-6)
     # records over the memory limit are left unrefined, and the report says why
-    monkeypatch.setattr(options, "REFINEMENT_BYTES", 1000)
+    monkeypatch.setattr(plan, "REFINEMENT_BYTES", 1000)
     unrefined = hamid.fit(path)
     assert unrefined.method["refinement"]["applied"] is False
     assert "holds the records in memory" in unrefined.method["refinement"]["reason"]
