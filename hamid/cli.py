@@ -18,6 +18,7 @@ import click
 
 from hamid import __version__
 from hamid.errors import HamidError, UsageError
+from hamid.options import COVARIANCE_KINDS, METHODS, VELOCITY_SOURCES
 
 _debug = False
 
@@ -177,7 +178,7 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--format-in", type=click.Choice(["csv", "tsv", "parquet"]),
               help="Input format, when the file name does not tell it.")
 @click.option("--velocity", default="measured", show_default=True,
-              type=click.Choice(["measured", "savgol"]),
+              type=click.Choice(VELOCITY_SOURCES),
               help="Velocities from the file, or derived from the positions (Savitzky-Golay).")
 @click.option("--window", type=click.IntRange(min=3), metavar="SAMPLES",
               help="Savitzky-Golay window (odd; default about a tenth of the period).")
@@ -189,7 +190,7 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--bias-correct", is_flag=True,
               help="Remove the bias that the noise puts into least squares (needs --noise).")
 @click.option("--method", default="auto", show_default=True,
-              type=click.Choice(["auto", "joint", "weak", "energy"]),
+              type=click.Choice(METHODS),
               help="Energy rows, weak-form equations of motion, or both (auto: joint when "
                    "the data allow it, refined by fitting the integrated trajectories).")
 @click.option("--weak-window", type=float, metavar="SECONDS",
@@ -199,7 +200,7 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
               help="Dissipative forces to fit, one coefficient per coordinate and kind.")
 @click.option("--fix", metavar="NAME=VALUE,...", help="Hold parameters at known values.")
 @click.option("--cov", default="hac", show_default=True,
-              type=click.Choice(["hac", "classical", "hc", "bootstrap"]),
+              type=click.Choice(COVARIANCE_KINDS),
               help="How standard errors are computed.")
 @click.option("--level", default=0.95, show_default=True, type=click.FloatRange(0, 1,
               min_open=True, max_open=True), help="Confidence level of the bounds.")

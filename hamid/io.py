@@ -722,6 +722,13 @@ def read_json(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise DataError(
             f"{name}: not valid JSON (line {exc.lineno}, column {exc.colno}): {exc.msg}"
         ) from exc
+    except RecursionError:
+        # json's parser recurses once per nesting level: 100,000 brackets exhaust the stack.
+        raise DataError(f"{name}: not readable JSON: nested too deeply") from None
+    except ValueError as exc:
+        # An integer of more digits than int() converts (sys.get_int_max_str_digits()).
+        raise DataError(f"{name}: not readable JSON: a number has more than "
+                        f"{sys.get_int_max_str_digits()} digits") from exc
     if not isinstance(document, dict):
         raise DataError(f"{name}: expected a JSON object, found {_json_kind(document)}")
     return document

@@ -37,7 +37,7 @@ PENG_PARAMETERS = ["w1sq", "w2sq", "a1", "a2", "a3", "a6"]
 META_PREFIX = "# hamid: "
 META_KEYS = ["model", "parameters", "initial", "trajectories", "noise", "seed", "integrator",
              "hamid_version"]
-# SPEC section 4: the top-level keys of a "hamid.fit/1" result and those of its parts.
+# docs/output.md: the top-level keys of a "hamid.fit/1" result and those of its parts.
 RESULT_KEYS = {
     "schema": None,
     "hamid_version": None,
@@ -55,7 +55,7 @@ RESULT_KEYS = {
 PARAMETER_KEYS = {"name", "role", "estimate", "stderr", "ci_low", "ci_high", "truth", "fixed"}
 LEVEL_KEYS = {"trajectory", "h", "stderr", "n_samples"}
 RESIDUAL_COLUMNS = ["trajectory", "t", "energy", "residual", "weight"]
-# Clean simulated data must give back the true parameters this closely (SPEC: about 1e-8).
+# Clean simulated data must give back the true parameters this closely (the README: about 1e-8).
 CLEAN = 1e-7
 # Tests of the plumbing (which column, which parameter) only need to know the fit is right.
 PLUMBING = 1e-5

@@ -1,4 +1,5 @@
-"""Models: built-ins against SPEC's table, the poly family, expression models, natural split."""
+"""Models: built-ins against the README's table, the poly family, expression models,
+natural split."""
 
 from __future__ import annotations
 
@@ -15,9 +16,9 @@ def _states(n_vars: int, n: int = 30, seed: int = 7) -> np.ndarray:
     return np.random.default_rng(seed).uniform(-1.5, 1.5, size=(n, n_vars))
 
 
-# --- built-in models against SPEC section 2 ---------------------------------------------
+# --- built-in models against the README's table ---------------------------------------------
 # Each entry: coordinates, velocities, parameters, E0 and the phi columns, all written by
-# hand from SPEC's table as functions of the named state columns.
+# hand from the README's table as functions of the named state columns.
 
 def _peng_columns(u1, u2, v1, v2):
     return ((v1**2 + v2**2) / 2,
@@ -32,7 +33,7 @@ def _henon_columns(x, y, vx, vy):
     return (vx**2 + vy**2) / 2, [x**2 / 2, y**2 / 2, x**2 * y, y**3]
 
 
-SPEC_TABLE = {
+BUILTIN_TABLE = {
     "peng-quadratic": (("u1", "u2"), ("v1", "v2"), ("w1sq", "w2sq", "a1", "a2", "a3", "a6"),
                        _peng_columns),
     "duffing": (("x",), ("v",), ("k", "k3"), _duffing_columns),
@@ -41,12 +42,12 @@ SPEC_TABLE = {
 
 
 def test_the_builtins_are_those_of_spec():
-    assert set(BUILTINS) == set(SPEC_TABLE)
+    assert set(BUILTINS) == set(BUILTIN_TABLE)
 
 
-@pytest.mark.parametrize("name", sorted(SPEC_TABLE))
+@pytest.mark.parametrize("name", sorted(BUILTIN_TABLE))
 def test_builtin_names_match_spec(name):
-    coordinates, velocities, parameters, _ = SPEC_TABLE[name]
+    coordinates, velocities, parameters, _ = BUILTIN_TABLE[name]
     model = builtin_model(name)
     assert model.name == name
     assert model.coordinates == coordinates
@@ -59,9 +60,9 @@ def test_builtin_names_match_spec(name):
                             "parameters": list(parameters)}
 
 
-@pytest.mark.parametrize("name", sorted(SPEC_TABLE))
+@pytest.mark.parametrize("name", sorted(BUILTIN_TABLE))
 def test_builtin_energy_basis_equals_spec_energy(name):
-    coordinates, velocities, parameters, columns = SPEC_TABLE[name]
+    coordinates, velocities, parameters, columns = BUILTIN_TABLE[name]
     S = _states(len(coordinates) * 2)
     E0_want, phi_want = columns(*S.T)
     E0, Phi = builtin_model(name).energy_basis(S)
@@ -271,7 +272,7 @@ NATURAL = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(SPEC_TABLE))
+@pytest.mark.parametrize("name", sorted(BUILTIN_TABLE))
 def test_builtins_are_natural(name):
     model = builtin_model(name)
     assert model.is_natural
@@ -330,7 +331,7 @@ def test_energy_that_is_not_natural(energy, part, term):
 def test_spec_builtin_form():
     model = model_from_spec({"builtin": "peng-quadratic"})
     assert model.name == "peng-quadratic"
-    assert model.parameters == SPEC_TABLE["peng-quadratic"][2]
+    assert model.parameters == BUILTIN_TABLE["peng-quadratic"][2]
 
 
 def test_spec_expression_form():

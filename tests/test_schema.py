@@ -164,17 +164,23 @@ def _tampered_text(name: str, golden: str, key: str) -> str:
                          ids=[case[0] for case in TAMPERED])
 def test_hamid_report_on_a_tampered_report(tmp_path, name, golden, key, words):
     path = tmp_path / "r.json"
-    path.write_text(_tampered_text(name, golden, key))
+    line = _report_error(path, _tampered_text(name, golden, key))
+    assert line.startswith(f"Error: {path}: not a hamid fit result (")
+    for word in words:
+        assert word in line
+    assert "internal error" not in line
+
+
+def _report_error(path: Path, text: str) -> str:
+    """The one line `hamid report` says of a file holding `text` (exit 1, no output)."""
+    path.write_text(text)
     done = subprocess.run([*HAMID, "report", str(path)], capture_output=True, text=True,
-                          cwd=tmp_path, timeout=60)
+                          cwd=path.parent, timeout=60)
     assert done.returncode == 1, done.stderr
     assert done.stdout == ""
     lines = done.stderr.splitlines()
     assert len(lines) == 1, done.stderr
-    assert lines[0].startswith(f"Error: {path}: not a hamid fit result (")
-    for word in words:
-        assert word in lines[0]
-    assert "internal error" not in done.stderr
+    return lines[0]
 
 
 @pytest.mark.parametrize(("name", "golden", "key", "words"), TAMPERED,
@@ -229,3 +235,13 @@ def test_messages(edit, message):
     with pytest.raises(DataError) as caught:
         FitResult.from_dict(report, source="r.json")
     assert str(caught.value) == f"r.json: not a hamid fit result ({message})"
+
+
+@pytest.mark.parametrize(("text", "words"), [
+    ('{"schema": ' + "[" * 100_000 + "]" * 100_000 + "}", "nested too deeply"),
+    ('{"schema": ' + "9" * 5001 + "}", "a number has more than"),
+], ids=["nested 100000 deep", "integer of 5001 digits"])
+def test_unreadable_json_is_one_line(tmp_path, text, words):
+    """Python's JSON reader gives up on these before any schema sees them."""
+    path = tmp_path / "r.json"
+    assert _report_error(path, text).startswith(f"Error: {path}: not readable JSON: {words}")
