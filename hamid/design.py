@@ -220,20 +220,29 @@ def trajectory_scales(records: Records, n_coordinates: int) -> list[tuple[float 
     for start, end in records.bounds():
         stop = min(end, start + SCALE_SAMPLES)
         t = records.t[start:stop]
-        step = float(np.median(np.diff(t))) if stop - start > 1 else np.inf
-        q = records.X[start:stop, :n_coordinates]
-        spread = q.std(axis=0)
-        q = (q[:, spread > 0] - q[:, spread > 0].mean(axis=0)) / spread[spread > 0]
-        period = None
-        if stop - start >= 8 and q.shape[1] > 0:
-            dt = (t[-1] - t[0]) / (len(t) - 1)
-            padded = _PAD * len(t)
-            power = np.sum(np.abs(np.fft.rfft(q, n=padded, axis=0)) ** 2, axis=1)
-            power[:_PAD] = 0.0
-            peak = int(np.argmax(power))
-            period = padded * dt / peak if peak > 0 else None
-        scales.append((period, step))
+        steps = np.diff(t)
+        # one step needs no median: short trajectories come by the hundred thousand
+        step = np.inf if not len(steps) else float(steps[0] if len(steps) == 1
+                                                   else np.median(steps))
+        scales.append((_period(t, records.X[start:stop, :n_coordinates]), step))
     return scales
+
+
+def _period(t: npt.NDArray[np.float64], q: npt.NDArray[np.float64]) -> float | None:
+    """The period of the strongest oscillation of one trajectory's coordinates, or None."""
+    if len(t) < 8:
+        return None
+    spread = q.std(axis=0)
+    q = (q[:, spread > 0] - q[:, spread > 0].mean(axis=0)) / spread[spread > 0]
+    period = None
+    if q.shape[1] > 0:
+        dt = (t[-1] - t[0]) / (len(t) - 1)
+        padded = _PAD * len(t)
+        power = np.sum(np.abs(np.fft.rfft(q, n=padded, axis=0)) ** 2, axis=1)
+        power[:_PAD] = 0.0
+        peak = int(np.argmax(power))
+        period = padded * dt / peak if peak > 0 else None
+    return period
 
 
 def window_ranges(t: npt.NDArray[np.float64], window: float, *, origin: float | None = None,

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from hamid import design, measurement, trajectory
+from hamid import design, measurement
 from hamid.design import Damping
 from hamid.estimate import LinearFit, ResidualSums
 from hamid.model import Model
@@ -32,6 +32,8 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Damping,
     The refined fit's levels are the mean energies at its parameters; their standard
     errors need a pass over the energy residuals there (`level_errors`) and are NaN here.
     """
+    from hamid import trajectory  # scipy.integrate: only when a fit is refined
+
     N = len(model.coordinates)
     noise = measurement.estimate_noise(records.X, records.bounds())
     if sigma is not None:

@@ -310,26 +310,43 @@ def conditioning(blocks: Sequence[Block], names: Sequence[str],
 
 def factor_conditioning(factor: Factor, names: Sequence[str],
                         labels: Sequence[str | int]) -> Conditioning:
-    """`conditioning` from the rows' triangular factors: the level columns of each
-    trajectory enter through its small factor, never densely for all samples."""
+    """`conditioning` from the rows' triangular factors, in time linear in the trajectories.
+
+    With every column scaled to unit norm, the level columns L are orthonormal (each lives
+    on its own trajectory's rows), so the design is [A, L] = [Q_c, L] K with
+    K = [[R_c, 0], [B, I]]: R_c the factor of A centred within each trajectory (and of
+    the rows without a level), B = L^T A, and [Q_c, L] orthonormal. Rotating the level
+    coordinates by the QR of B = Q_b R_b leaves [[R_c, 0], [R_b, I]] (at most 2p square)
+    and an identity: the singular values are that block's and ones, and its singular
+    vectors give the weakest direction, never a dense matrix of all J levels.
+    """
     J, p = len(labels), len(names)
-    pieces = []
-    for j, R in enumerate(factor.level):
-        if R is not None:
-            full = np.zeros((min(R.shape[0], p + 1), p + J))
-            full[:, :p] = R[:p + 1, 1:p + 1]
-            full[:, p + j] = R[:p + 1, 0]
-            pieces.append(full)
-    if factor.free is not None:
-        pieces.append(np.hstack([factor.free[:p, :p], np.zeros((min(len(factor.free), p), J))]))
-    stacked = np.vstack(pieces)
-    norms = np.linalg.norm(stacked, axis=0)
-    used = norms > 0
-    _, s, Vt = np.linalg.svd(stacked[:, used] / norms[used], full_matrices=False)
+    has_level = np.array([k < len(factor.level) and factor.level[k] is not None
+                          for k in range(J)], dtype=bool)
+    W = factor.total_weight[:J][has_level]
+    scale = np.sqrt(factor.raw_squares)
+    R_c = factor.centred()[:p, :p] / scale
+    B = factor.weighted_A[:J][has_level] / np.sqrt(W)[:, None] / scale
+    Q_b, R_b = np.linalg.qr(B)
+    k = R_b.shape[0]
+    K = np.zeros((p + k, p + k))
+    K[:R_c.shape[0], :p] = R_c
+    K[p:, :p] = R_b
+    K[p:, p:] = np.eye(k)
+    _, s_block, Vt = np.linalg.svd(K)
+    ones = len(W) - k
+    s = np.sort(np.concatenate([s_block, np.ones(ones)]))[::-1]
     condition = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
-    labelled = [*names, *(f"h[{label}]" for label in labels)]
-    labelled = [name for name, u in zip(labelled, used, strict=True) if u]
-    weakest = Vt[-1] * np.sign(Vt[-1][np.argmax(np.abs(Vt[-1]))])
+    if ones and s_block[-1] > 1:   # the weakest: levels alone, a combination B does not see
+        row = int(np.argmin(np.sum(Q_b**2, axis=1)))
+        level = -Q_b @ Q_b[row]
+        level[row] += 1.0
+        weakest = np.concatenate([np.zeros(p), level / np.linalg.norm(level)])
+    else:
+        weakest = np.concatenate([Vt[-1, :p], Q_b @ Vt[-1, p:]])
+    weakest *= np.sign(weakest[np.argmax(np.abs(weakest))])
+    labelled = [*names, *(f"h[{label}]" for label, used in zip(labels, has_level,
+                                                                strict=True) if used)]
     direction = {name: float(w) for name, w in zip(labelled, weakest, strict=True)
                  if name in names or abs(w) >= 0.05}
     status = next((label for label, limit in STATUS_LIMITS if condition < limit), "severe")
