@@ -184,13 +184,16 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     if fitted is not linear:
         fitted = dataclasses.replace(fitted, h_stderr=refine.level_errors(fitted, residuals))
     # result
-    labels = source.records.labels if chunks is None else source.labels
-    provenance = summary.Provenance(
-        source.data_info if chunks is None else source.data_info(linear.sizes, opts),
-        labels, source.truth, source.notes, noise_info)
     if chunks is not None:
+        provenance = summary.Provenance(source.data_info(linear.sizes, opts), source.labels,
+                                        source.truth, source.notes)
         return summary.fit_result(m, unknowns, fitted, residuals, fit_plan, opts, provenance,
                                   refinement)
+    labels = source.records.labels
+    provenance = summary.Provenance(
+        source.data_info, labels, source.truth, source.notes, noise_info,
+        estimate.noise_check(source, rows, linear if fitted is linear else None, unknowns,
+                             damping_forces, opts, sigma))
     return summary.fit_result(
         m, unknowns, fitted, residuals, fit_plan, opts, provenance, refinement,
         dissipation=summary.dissipation_summary(m, source.records, damping_forces,

@@ -510,3 +510,58 @@ def residual_sums(energy_rows: Iterable[Block], theta: npt.NDArray[np.float64],
     for block in energy_rows:
         sums.add(block, block.A @ theta - block.b - h[block.group])
     return sums
+
+
+@dataclass(frozen=True)
+class NoiseCheck:
+    """How the measurement noise compares with the motion, and what it does to a linear
+    fit that does not correct for it (docs/method.md, "Noise: weighting and bias
+    correction").
+
+    ratio : each variable's noise (estimated from 4th differences, or as given) over its
+        spread in the records.
+    bias : each parameter's least-squares estimate minus the adjusted (bias-corrected)
+        one, in its standard errors; None when the adjustment does not apply.
+    uncorrectable : the noise is too large for the adjustment to work at all.
+    """
+
+    ratio: dict[str, float]
+    bias: dict[str, float] | None = None
+    uncorrectable: bool = False
+
+
+# Below this noise (as a share of each column's spread) the bias is not looked for.
+_NOISE_LOOKED_AT = 5e-3
+
+
+def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unknowns,
+                damping: Damping, options: FitOptions, sigma: Any) -> NoiseCheck:
+    """The noise against the motion, and the errors-in-variables bias of the linear fit
+    `fit` of `rows` (None: a refined fit, which has none to look for): least squares
+    against adjusted least squares (`hamid.adjust`), which is unbiased for polynomial
+    energies and measured velocities."""
+    from hamid import adjust, measurement
+
+    m, records = loaded.model, loaded.records
+    if sigma is None:
+        sigma = measurement.estimate_noise(records.X, records.bounds())
+    spread = records.X.std(axis=0)
+    ratio = {name: float(s / d) if d > 0 else 0.0
+             for name, s, d in zip(m.variables, sigma, spread, strict=True)}
+    if (fit is None or options.bias_correct or not m.is_polynomial
+            or options.velocity == "savgol"
+            or damping.kinds or max(ratio.values()) < _NOISE_LOOKED_AT):
+        return NoiseCheck(ratio)
+    names = unknowns.free_names
+    moments = [adjust.adjusted_moments(b, m, records, sigma, rows.windows, names,
+                                       dict(unknowns.fixed)) for b in rows.blocks]
+    try:
+        adjusted = least_squares([mo.block for mo in moments], names,
+                                 records.n_trajectories,
+                                 (sum(mo.AA for mo in moments), sum(mo.Ab for mo in moments)))
+    except FitError:
+        return NoiseCheck(ratio, uncorrectable=True)
+    stderr = np.sqrt(np.clip(np.diag(fit.covariance), 0, None))
+    shift = np.divide(fit.theta - adjusted.theta, stderr,
+                      out=np.zeros_like(stderr), where=stderr > 0)
+    return NoiseCheck(ratio, dict(zip(names, shift.tolist(), strict=True)))

@@ -11,7 +11,7 @@ import numpy as np
 
 from hamid import __version__, design, uncertainty
 from hamid.design import Block, Damping
-from hamid.estimate import LinearFit, ResidualSums, Rows
+from hamid.estimate import LinearFit, NoiseCheck, ResidualSums, Rows
 from hamid.model import Model
 from hamid.options import FitOptions
 from hamid.plan import FitPlan
@@ -35,6 +35,7 @@ class Provenance:
     truth: dict[str, float]
     notes: tuple[str, ...]
     noise: dict[str, float] | None = None
+    noise_check: NoiseCheck | None = None
 
 
 def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: ResidualSums,
@@ -77,8 +78,9 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
     levels = tuple(EnergyLevel(label, float(level), _finite_or_none(error), int(size))
                    for label, level, error, size in zip(provenance.labels, fit.h, fit.h_stderr,
                                                         fit.sizes, strict=True))
-    warnings = [*provenance.notes, *_warnings(parameters, stats, cond, fit.df, options,
-                                              plan.kind)]
+    warnings = [*provenance.notes,
+                *_warnings(parameters, stats, cond, fit.df, options, plan.kind, refinement),
+                *_noise_warnings(provenance.noise_check)]
     return FitResult(
         hamid_version=__version__,
         model=model.info(),
@@ -148,7 +150,8 @@ def dissipation_summary(model: Model, records: Records, damping: Damping,
 
 
 def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: Any,
-              df: int, options: FitOptions, kind: str) -> list[str]:
+              df: int, options: FitOptions, kind: str,
+              refinement: dict[str, Any] | None) -> list[str]:
     """Plain-words warnings about the fit."""
     level, cov, damping = options.level, options.cov, options.damping
     notes = []
@@ -181,4 +184,62 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
     elif cov in ("classical", "hc") and autocorrelation is not None and autocorrelation > 0.5:
         notes.append(f"residuals are strongly autocorrelated (lag-1 {autocorrelation:.2f}); "
                      f"--cov {cov} understates the errors, use --cov hac")
+    return notes + _misfit(stats, refinement)
+
+
+# Self-checks of the energy residuals, once they are above rounding (exact data leave
+# residuals of 1e-11 of the energy, smooth and so autocorrelated): a model that explains
+# less than this share of the energy's variation, or residuals more autocorrelated than
+# this from one sample to the next, probably does not fit.
+_ROUNDING, _LOW_R_SQUARED, _HIGH_AUTOCORRELATION = 1e-6, 0.5, 0.9
+
+
+def _misfit(stats: dict[str, Any], refinement: dict[str, Any] | None) -> list[str]:
+    """Warnings that the model probably does not fit the recording."""
+    notes = []
+    if refinement is not None and refinement.get("reason", "").startswith(
+            "the integrated model does not fit"):
+        notes.append(f"the trajectory refinement failed ({refinement['reason']}); the "
+                     "linear fit is reported: the model may be wrong or incomplete")
+    relative, r_squared = stats["relative_rms"], stats["r_squared"]
+    autocorrelation = stats["lag1_autocorrelation"]
+    if relative is None or relative < _ROUNDING:
+        return notes
+    if r_squared is not None and r_squared < _LOW_R_SQUARED:
+        notes.append(f"the model explains little of the energy's variation (R² "
+                     f"{r_squared:.2f} of the energy rows): a wrong model, inconsistent units "
+                     "or time scale, or noise as large as the motion")
+    if autocorrelation is not None and autocorrelation > _HIGH_AUTOCORRELATION:
+        notes.append(f"the energy residuals are strongly autocorrelated (lag-1 "
+                     f"{autocorrelation:.2f}): the model misses part of the motion (a term, "
+                     "damping or forcing), or the units are inconsistent")
+    return notes
+
+
+# Noise this large a share of a column's spread is about as large as the motion; a bias
+# of this many standard errors is one the intervals do not cover.
+_NOISY, _BIASED = 0.5, 1.0
+
+
+def _noise_warnings(check: NoiseCheck | None) -> list[str]:
+    """Warnings that the measurement noise makes the linear fit untrustworthy."""
+    if check is None:
+        return []
+    notes = []
+    noisiest = max(check.ratio, key=check.ratio.__getitem__)
+    if check.ratio[noisiest] > _NOISY:
+        notes.append(f"the measurement noise is about as large as the motion (the noise "
+                     f"estimated in {noisiest} is {check.ratio[noisiest]:.2f} of its spread): "
+                     "no fit of these data can be trusted; record with less noise")
+    elif check.uncorrectable:
+        notes.append("the measurement noise biases these least-squares estimates, and is too "
+                     "large for --bias-correct to remove")
+    if check.bias:
+        biased = {k: v for k, v in check.bias.items() if abs(v) > _BIASED}
+        if biased:
+            listed = ", ".join(f"{k} by {v:+.1f}" for k, v in
+                               sorted(biased.items(), key=lambda kv: -abs(kv[1])))
+            notes.append(f"the measurement noise biases these least-squares estimates by more "
+                         f"than their standard errors ({listed} standard errors); rerun with "
+                         "--noise auto --bias-correct")
     return notes

@@ -116,3 +116,15 @@ def finite_difference_fit(frame: pd.DataFrame, model: Any) -> np.ndarray:
         A_rows.append(columns[:, 1:])
         b_rows.append(-columns[:, 0])
     return np.linalg.lstsq(np.vstack(A_rows), np.concatenate(b_rows), rcond=None)[0]
+
+
+@pytest.fixture(scope="session")
+def hamid_cli() -> list[str]:
+    """The command that runs hamid's CLI in a subprocess: the installed script, else the
+    module through this interpreter."""
+    import shutil
+    import sys
+
+    found = shutil.which("hamid")
+    return [found] if found is not None else [sys.executable, "-c",
+                                              "from hamid.cli import main; main()"]
