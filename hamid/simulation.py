@@ -23,19 +23,12 @@ import numpy.typing as npt
 from hamid.config import check_keys, number, table
 from hamid.errors import ModelError
 from hamid.expr import Func
-from hamid.model import Model, model_from_spec
+from hamid.model import DAMPING_KINDS, Model, damping_names, model_from_spec
 
-__all__ = ["DAMPING_KINDS", "INTEGRATORS", "System", "parse_system", "run"]
+__all__ = ["INTEGRATORS", "System", "parse_system", "run"]
 
 INTEGRATORS = {"dop853": "DOP853", "rk45": "RK45", "rk23": "RK23", "radau": "Radau",
                "bdf": "BDF", "lsoda": "LSODA"}
-# Dissipative force of each kind on coordinate i (docs/method.md, "Damping: the energy
-# balance"), and the power it drains.
-DAMPING_KINDS: dict[str, tuple[str, Callable[[np.ndarray], np.ndarray]]] = {
-    "viscous": ("c", lambda v: v),
-    "coulomb": ("mu", np.sign),
-    "quadratic": ("d", lambda v: np.abs(v) * v),
-}
 DEFAULT_MAX_SAMPLES = 20_000_000
 _TOP_KEYS = ("model", "parameters", "initial", "simulate", "noise", "damping")
 _SIMULATE_KEYS = ("t_end", "dt", "method", "rtol", "atol", "seed", "max_samples")
@@ -59,12 +52,6 @@ class System:
     relative_noise: float
     damping: dict[str, float]
     max_samples: int
-
-
-def damping_names(coordinates: Sequence[str]) -> dict[str, tuple[str, int]]:
-    """Every damping coefficient name a model allows -> (kind, coordinate index)."""
-    return {f"{prefix}_{q}": (kind, i) for kind, (prefix, _) in DAMPING_KINDS.items()
-            for i, q in enumerate(coordinates)}
 
 
 def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:
