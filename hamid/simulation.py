@@ -2,7 +2,7 @@
 
 The equations of motion are derived from L = T - V of the model (with the true
 parameters substituted) and the dissipative forces of docs/method.md ("Damping: the energy
-balance"):
+balance") by `hamid.dynamics`:
 
     M(q) a = dL/dq - (d/dq (dL/dv)) v + F,      M = d2L/dv2,
 
@@ -13,7 +13,7 @@ vectorised system.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,9 +21,10 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid.config import check_keys, number, table
+from hamid.dynamics import Dynamics, Motion
 from hamid.errors import ModelError
 from hamid.expr import Func
-from hamid.model import DAMPING_KINDS, Model, damping_names, model_from_spec
+from hamid.model import Model, damping_names, model_from_spec
 
 __all__ = ["INTEGRATORS", "System", "parse_system", "run"]
 
@@ -136,103 +137,6 @@ def sample_times(t_end: float, dt: float) -> npt.NDArray[np.float64]:
     return np.arange(int(sample_count(t_end, dt))) * dt
 
 
-class _Dynamics:
-    """Right-hand side for all trajectories at once.
-
-    The state vector holds one variable of every trajectory after another:
-    ``y.reshape(n_rows, n_traj)`` has rows q_1..q_N, v_1..v_N and, when there is
-    damping, the energy it has drained. What Lagrange's equations need is evaluated in one
-    compiled call (`Func.stack`). A constant mass matrix is inverted once and folded into
-    the forces, so that call returns the accelerations themselves.
-    """
-
-    def __init__(self, model: Model, theta: Sequence[float], damping: Mapping[str, float]):
-        lag = model.lagrangian
-        L = Func.combine([lag.L0, *lag.L], [1.0, *theta])
-        q, v = model.coordinates, model.velocities
-        self.n = n = len(q)
-        dLdv = [L.diff(vi) for vi in v]
-        mass = [[f.diff(vj) for vj in v] for f in dLdv]
-        forces = [L.diff(qi) for qi in q]
-        # the mass matrix is symmetric: its upper triangle, row by row
-        self._upper = [(i, j) for i in range(n) for j in range(i, n)]
-        self._mass = Func.stack([mass[i][j] for i, j in self._upper])
-        self.constant_mass = all(mass[i][j].is_constant_in(q) for i, j in self._upper)
-        self.inverse: np.ndarray | None = None
-        self.mixed: list[tuple[int, int]] = []
-        if self.constant_mass:
-            M = self.mass_matrix(np.zeros((2 * n, 1)))[0]
-            # one that is not positive definite is rejected by _check_mass before any step
-            if np.all(np.linalg.eigvalsh(M) > 0):
-                self.inverse = np.linalg.inv(M)
-        if self.inverse is not None:
-            # d/dq (dL/dv) = (dM/dq) v vanishes, and M^-1 dL/dq are the accelerations
-            funcs = [Func.combine(forces, [float(w) for w in row]) for row in self.inverse]
-        else:
-            mixed = [(i, k, f.diff(qk)) for i, f in enumerate(dLdv) for k, qk in enumerate(q)]
-            mixed = [(i, k, f) for i, k, f in mixed if not f.is_zero()]
-            self.mixed = [(i, k) for i, k, _ in mixed]
-            funcs = forces + [f for _, _, f in mixed] + [mass[i][j] for i, j in self._upper]
-        self._evaluate = Func.stack(funcs)
-        names = damping_names(q)
-        self.damping = [(DAMPING_KINDS[kind][1], i, value)
-                        for key, value in damping.items() if value
-                        for kind, i in [names[key]]]
-        # a conservative run carries no drained-energy row: a fifth less to interpolate
-        # and store at every sample of a 2-DOF run
-        self.n_rows = 2 * n + bool(self.damping)
-
-    def mass_matrix(self, Xt: np.ndarray) -> np.ndarray:
-        """M at states with the variables on the first axis, shape (2N, ...) -> (..., N, N)."""
-        return self._assemble(self._mass(Xt))
-
-    def _assemble(self, upper: np.ndarray) -> np.ndarray:
-        M = np.empty((*upper.shape[1:], self.n, self.n))
-        for (i, j), entry in zip(self._upper, upper, strict=True):
-            M[..., i, j] = M[..., j, i] = entry
-        return M
-
-    def dissipation(self, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Dissipative forces (N, n_traj) and the power they drain (n_traj,)."""
-        forces = np.zeros_like(V)
-        for law, i, coefficient in self.damping:
-            forces[i] -= coefficient * law(V[i])
-        return forces, -np.einsum("ij,ij->j", forces, V)
-
-    def __call__(self, t: float, y: np.ndarray) -> np.ndarray:
-        n = self.n
-        Y = y.reshape(self.n_rows, -1)
-        V = Y[n:2 * n]
-        values = self._evaluate(Y[:2 * n])
-        out = np.empty_like(Y)
-        out[:n] = V
-        forces = None
-        if self.damping:
-            forces, power = self.dissipation(V)
-            out[2 * n] = power
-        if self.inverse is not None:
-            out[n:2 * n] = values
-            if forces is not None:
-                out[n:2 * n] += self.inverse @ forces
-            return out.ravel()
-        rhs = values[:n]
-        for m, (i, k) in enumerate(self.mixed):
-            rhs[i] -= values[n + m] * V[k]
-        if forces is not None:
-            rhs += forces
-        upper = values[n + len(self.mixed):]
-        if n == 1:
-            out[1] = rhs[0] / upper[0]
-        elif n == 2:  # Cramer's rule: a batched LU costs far more at this size
-            a, b, d = upper
-            det = a * d - b * b
-            out[2] = (d * rhs[0] - b * rhs[1]) / det
-            out[3] = (a * rhs[1] - b * rhs[0]) / det
-        else:
-            out[n:2 * n] = np.linalg.solve(self._assemble(upper), rhs.T[..., None])[..., 0].T
-        return out.ravel()
-
-
 def run(system: System, *, seed: int | None = None,
         progress: Callable[[float], None] | None = None) -> tuple[dict[str, np.ndarray],
                                                                    dict[str, Any]]:
@@ -257,10 +161,14 @@ def run(system: System, *, seed: int | None = None,
                          f"max_samples = {system.max_samples:,}; raise it with --max-samples "
                          "or [simulate] max_samples if this is intended")
     times = sample_times(system.t_end, system.dt)
-    dynamics = _Dynamics(model, theta, system.damping)
-    start = np.zeros((n_traj, dynamics.n_rows))
+    # only the damping terms present; a conservative run carries no drained-energy row: a
+    # fifth less to interpolate and store at every sample of a 2-DOF run
+    damping = {name: value for name, value in system.damping.items() if value}
+    motion = Dynamics(model, list(damping)).at([1.0, *theta, *damping.values()],
+                                               drained=bool(damping))
+    start = np.zeros((n_traj, motion.rows))
     start[:, :2 * n] = [[s[v] for v in model.variables] for s in system.initial]
-    _check_mass(dynamics, start[:, :2 * n].T, "initial state of trajectory")
+    _check_mass(motion, start[:, :2 * n].T, "initial state of trajectory")
 
     def escape(t: float, y: np.ndarray) -> float:
         if progress is not None:
@@ -269,12 +177,12 @@ def run(system: System, *, seed: int | None = None,
 
     escape.terminal = True  # type: ignore[attr-defined]
     with np.errstate(all="ignore"):
-        solution = solve_ivp(dynamics, (0.0, float(times[-1])), start.T.ravel(),
+        solution = solve_ivp(motion, (0.0, float(times[-1])), start.T.ravel(),
                              method=INTEGRATORS[system.method], t_eval=times,
                              rtol=system.rtol, atol=system.atol, events=escape)
-    # states[i, j, k]: row i of the state (_Dynamics) of trajectory j at times[k]. solve_ivp
+    # states[i, j, k]: row i of the state (Motion) of trajectory j at times[k]. solve_ivp
     # stores its samples time by time; one copy puts them in the order of the output rows.
-    states = np.ascontiguousarray(solution.y.reshape(dynamics.n_rows, n_traj,
+    states = np.ascontiguousarray(solution.y.reshape(motion.rows, n_traj,
                                                      len(solution.t)))
     if solution.status != 0 or len(solution.t) < len(times) or not np.all(np.isfinite(states)):
         # the joint run failed before the sample after the last one it kept
@@ -287,7 +195,7 @@ def run(system: System, *, seed: int | None = None,
 
             bound.terminal = True  # type: ignore[attr-defined]
             with np.errstate(all="ignore"):
-                return solve_ivp(dynamics, (0.0, t_stop), start[j],
+                return solve_ivp(motion, (0.0, t_stop), start[j],
                                  method=INTEGRATORS[system.method], rtol=system.rtol,
                                  atol=system.atol, events=bound)
 
@@ -295,13 +203,13 @@ def run(system: System, *, seed: int | None = None,
     if progress is not None:
         progress(1.0)
     X = states[:2 * n]
-    if not dynamics.constant_mass:
+    if not motion.constant_mass:
         # the label's sample number is the row of the output
-        _check_mass(dynamics, X.reshape(2 * n, -1), "simulated state of the run, sample")
+        _check_mass(motion, X.reshape(2 * n, -1), "simulated state of the run, sample")
 
     total = Func.combine([model.E0, *model.phi], [1.0, *theta])
     energy = Func.stack([total])(X)[0]
-    drained = states[2 * n] if dynamics.damping else np.zeros((n_traj, 1))
+    drained = states[2 * n] if motion.drained else np.zeros((n_traj, 1))
     balance = energy + drained
     scale = np.maximum(np.abs(energy[:, 0]), np.finfo(float).tiny)
     drift = np.max(np.abs(balance - balance[:, :1]), axis=1) / scale
@@ -341,12 +249,12 @@ def run(system: System, *, seed: int | None = None,
     return columns, provenance
 
 
-def _check_mass(dynamics: _Dynamics, Xt: np.ndarray, label: str) -> None:
+def _check_mass(motion: Motion, Xt: np.ndarray, label: str) -> None:
     """The mass matrix must be positive definite, or the motion is not defined.
 
     `Xt` holds the states with the variables on the first axis, shape (2N, n_states).
     """
-    eigenvalues = np.linalg.eigvalsh(dynamics.mass_matrix(Xt))
+    eigenvalues = np.linalg.eigvalsh(motion.mass_matrix(Xt))
     bad = np.flatnonzero(~(eigenvalues.min(axis=-1) > 0))
     if bad.size:
         raise ModelError(f"the kinetic energy is not positive definite at the {label} "

@@ -1,0 +1,274 @@
+"""Lagrange's equations of a model, for the simulator and the trajectory refinement.
+
+A natural energy E = T + V (T quadratic in the velocities) gives L = T - V, split like the
+energy into L = L0 + sum_k theta_k L_k (`Model.lagrangian`). With the dissipative forces
+F_i = -coefficient * law(v_i) of `hamid.model.DAMPING_KINDS`, the motion follows
+
+    M(q) a = dL/dq - (d/dq dL/dv) v + F,      M = d2L/dv2
+
+(docs/method.md, "The trajectory refinement" and "Damping: the energy balance"), derived
+here from the energy and never written per model. Because T is quadratic in v, M depends
+on q only and d/dq (dL/dv) v = (dM/dq v) v, which vanishes when M is constant.
+
+`Dynamics` holds a model and its damping terms; `Dynamics.at` fixes the weights
+w = (1, theta, damping coefficients) and returns a `Motion`: the accelerations of many
+states at once, and solve_ivp's right-hand side. The weights are either
+
+- one vector shared by every state (the simulator): the parts are combined into one
+  Lagrangian before deriving, so every call evaluates only that one; or
+- one column per state (the refinement, whose copies of a segment each carry perturbed
+  parameters for a finite-difference Jacobian): the parts are derived once per model and
+  their values weighed state by state.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from hamid.expr import Func
+from hamid.model import DAMPING_KINDS, Model, damping_names
+
+__all__ = ["Dynamics", "Motion"]
+
+Array = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class _Terms:
+    """The pieces of Lagrange's equations for each part L_p of L = sum_p w_p L_p.
+
+    Per part: the forces dL_p/dq_i, then the entries (i, k) of d(dL_p/dv_i)/dq_k in
+    `mixed` (those not zero in every part), and the upper triangle of the mass matrix
+    d2L_p/dv2 in `upper` order.
+    """
+
+    n: int
+    mixed: tuple[tuple[int, int], ...]
+    upper: tuple[tuple[int, int], ...]
+    forces: tuple[tuple[Func, ...], ...]
+    mass: tuple[tuple[Func, ...], ...]
+    constant_mass: bool
+
+    @classmethod
+    def derive(cls, parts: Sequence[Func], coordinates: Sequence[str],
+               velocities: Sequence[str]) -> _Terms:
+        N = len(coordinates)
+        dv = [[part.diff(v) for v in velocities] for part in parts]
+        mixed = tuple((i, k) for i in range(N) for k in range(N)
+                      if not all(d[i].diff(coordinates[k]).is_zero() for d in dv))
+        # the mass matrix is symmetric: its upper triangle, row by row
+        upper = tuple((i, j) for i in range(N) for j in range(i, N))
+        mass = tuple(tuple(d[i].diff(velocities[j]) for i, j in upper) for d in dv)
+        forces = tuple(tuple([part.diff(q) for q in coordinates]
+                             + [d[i].diff(coordinates[k]) for i, k in mixed])
+                       for part, d in zip(parts, dv, strict=True))
+        constant = all(f.is_constant_in(coordinates) for row in mass for f in row)
+        return cls(N, mixed, upper, forces, mass, constant)
+
+    @cached_property
+    def force_stack(self) -> Callable[[Array], Array]:
+        return Func.stack([f for row in self.forces for f in row])
+
+    @cached_property
+    def mass_stack(self) -> Callable[[Array], Array]:
+        return Func.stack([f for row in self.mass for f in row])
+
+    @cached_property
+    def full_stack(self) -> Callable[[Array], Array]:
+        """Forces, mixed and mass entries in one call, for a mass that changes with q."""
+        return Func.stack([f for forces, mass in zip(self.forces, self.mass, strict=True)
+                           for f in (*forces, *mass)])
+
+
+class Dynamics:
+    """The equations of motion of a model with some damping terms.
+
+    Parameters
+    ----------
+    model : Model
+        A model with a natural energy (`Model.lagrangian`).
+    damping : sequence of str
+        Damping coefficient names (``c_x``, ``mu_y``, ``d_x``: `hamid.model.damping_names`);
+        their coefficients follow theta in the weights, in this order.
+    """
+
+    def __init__(self, model: Model, damping: Sequence[str] = ()):
+        lagrangian = model.lagrangian
+        self.coordinates, self.velocities = lagrangian.coordinates, lagrangian.velocities
+        self.n = len(self.coordinates)
+        self._parts = (lagrangian.L0, *lagrangian.L)
+        names = damping_names(self.coordinates)
+        unknown = [name for name in damping if name not in names]
+        if unknown:
+            raise ValueError(f"not damping coefficients of this model: {', '.join(unknown)}")
+        self.damping = tuple(damping)
+        self._laws = [(DAMPING_KINDS[kind][1], i) for kind, i in (names[d] for d in damping)]
+
+    @property
+    def n_weights(self) -> int:
+        """Length of a weight vector: 1, the parameters, the damping coefficients."""
+        return len(self._parts) + len(self._laws)
+
+    @cached_property
+    def _per_part(self) -> _Terms:
+        return _Terms.derive(self._parts, self.coordinates, self.velocities)
+
+    def at(self, weights: npt.ArrayLike, *, drained: bool = False) -> Motion:
+        """The equations at weights (1, theta, damping coefficients).
+
+        `weights` has shape (n_weights,), shared by every state, or (n_weights, n_states),
+        one column per state (the states passed to the `Motion` must then number n_states).
+        With `drained`, the states carry one more row: the energy the damping has drained
+        since the start, whose rate is the power -F.v.
+        """
+        w = np.asarray(weights, dtype=np.float64)
+        P = len(self._parts)
+        if w.ndim not in (1, 2) or len(w) != self.n_weights:
+            raise ValueError(f"weights of shape {w.shape}: expected ({self.n_weights},) or "
+                             f"({self.n_weights}, n_states)")
+        laws = [(law, i, c) for (law, i), c in zip(self._laws, w[P:], strict=True)]
+        if w.ndim == 1:
+            lagrangian = Func.combine(self._parts, [float(x) for x in w[:P]])
+            terms = _Terms.derive([lagrangian], self.coordinates, self.velocities)
+            return Motion(terms, None, [(law, i, float(c)) for law, i, c in laws], drained)
+        return Motion(self._per_part, w[:P], laws, drained)
+
+
+class Motion:
+    """Lagrange's equations at fixed weights, for many states at once.
+
+    A state array Y holds the variables on its first axis: rows q_1..q_N, v_1..v_N (and,
+    with `drained`, the energy drained by the damping); its columns are the states
+    (trajectories, or copies of segments). Made by `Dynamics.at`.
+
+    What keeps the calls cheap (each runs once per integrator stage):
+    - everything the equations need comes from one compiled call (`Func.stack`);
+    - a constant mass matrix is inverted once: with shared weights its inverse is folded
+      into the forces, so that call returns the accelerations themselves; with weights
+      per state it is applied by a product and a sum over (N, N, n), much faster than
+      einsum over n;
+    - with weights per state, values are broadcast only when they are constant
+      (np.broadcast_to costs about 10 us a call);
+    - a changing mass matrix is solved by division (N = 1), Cramer's rule (N = 2, where a
+      batched LU costs far more) or LU.
+    """
+
+    def __init__(self, terms: _Terms, weights: Array | None,
+                 damping: list[tuple[Callable[[Array], Array], int, Any]], drained: bool):
+        self.n = N = terms.n
+        self.rows = 2 * N + bool(drained)
+        self.drained = drained
+        self.constant_mass = terms.constant_mass
+        self._terms, self._weights, self._damping = terms, weights, damping
+        self._stack = terms.full_stack
+        self._folded = False
+        self._inverse: Array | None = None   # (N, N) folded, or (N, N, n) per state
+        self._mass: Array | None = None      # constant mass entries of one coordinate, (1, n)
+        if not terms.constant_mass:
+            return
+        n_states = 1 if weights is None else weights.shape[1]
+        M = self.mass_matrix(np.zeros((2 * N, n_states)))
+        # one that is not positive definite is no kinetic energy: the simulator rejects it
+        # before any step, and the general path's solve fails for the refinement
+        if not np.all(np.linalg.eigvalsh(M) > 0):
+            return
+        if weights is None:
+            # (dM/dq) v vanishes, and M^-1 dL/dq are the accelerations
+            self._inverse = np.linalg.inv(M[0])
+            self._stack = Func.stack([Func.combine(terms.forces[0][:N], [float(x) for x in row])
+                                      for row in self._inverse])
+            self._folded = True
+        elif N > 1:
+            self._inverse = np.linalg.inv(M).transpose(1, 2, 0).copy()
+            self._stack = terms.force_stack
+        else:
+            self._mass = M[:, 0, 0][None]
+            self._stack = terms.force_stack
+
+    def _weighted(self, stack: Callable[[Array], Array], Y: Array) -> Array:
+        """The stack's values at Y, the parts weighed state by state when they have weights."""
+        values = stack(Y)
+        if self._weights is None:
+            return values
+        parts, n = self._weights.shape
+        if values.shape[1:] != (n,):   # constant entries (broadcast is slow)
+            values = np.broadcast_to(values, (len(values), n))
+        return np.einsum("pfn,pn->fn", values.reshape(parts, -1, n), self._weights)
+
+    def mass_matrix(self, Y: Array) -> Array:
+        """M at states Y, shape (2N, ...) -> (..., N, N)."""
+        return _assemble(self._weighted(self._terms.mass_stack, Y), self._terms.upper, self.n)
+
+    def dissipative_forces(self, V: Array) -> Array | None:
+        """The damping forces F (N, n) at the velocities V (N, n); None without damping."""
+        if not self._damping:
+            return None
+        forces = np.zeros_like(V)
+        for law, i, coefficient in self._damping:
+            forces[i] -= coefficient * law(V[i])
+        return forces
+
+    def accelerations(self, Y: Array) -> Array:
+        """a (N, n) at states Y (2N, n)."""
+        N = self.n
+        out = np.empty((N, Y.shape[1]))
+        self._accelerations(Y[:2 * N], self.dissipative_forces(Y[N:2 * N]), out)
+        return out
+
+    def _accelerations(self, Y: Array, forces: Array | None, out: Array) -> None:
+        N, mixed = self.n, self._terms.mixed
+        values = self._weighted(self._stack, Y)
+        if self._folded:
+            out[:] = values
+            if forces is not None:
+                assert self._inverse is not None
+                out += self._inverse @ forces
+            return
+        rhs = values[:N]
+        V = Y[N:]
+        for m, (i, k) in enumerate(mixed):
+            rhs[i] -= values[N + m] * V[k]
+        if forces is not None:
+            rhs += forces
+        if self._inverse is not None:
+            out[:] = (self._inverse * rhs).sum(axis=1)
+            return
+        upper = self._mass if self._mass is not None else values[N + len(mixed):]
+        if N == 1:
+            out[0] = rhs[0] / upper[0]
+        elif N == 2:  # Cramer's rule: a batched LU costs far more at this size
+            a, b, d = upper
+            det = a * d - b * b
+            out[0] = (d * rhs[0] - b * rhs[1]) / det
+            out[1] = (a * rhs[1] - b * rhs[0]) / det
+        else:
+            out[:] = np.linalg.solve(_assemble(upper, self._terms.upper, N),
+                                     rhs.T[..., None])[..., 0].T
+
+    def __call__(self, t: float, y: Array) -> Array:
+        """solve_ivp's right-hand side (q, v[, drained])' = (v, a[, -F.v]), y flattened
+        from an array of `rows` rows, one column per state."""
+        N = self.n
+        Y = y.reshape(self.rows, -1)
+        V = Y[N:2 * N]
+        forces = self.dissipative_forces(V)
+        out = np.empty_like(Y)
+        out[:N] = V
+        self._accelerations(Y[:2 * N], forces, out[N:2 * N])
+        if self.drained:
+            out[2 * N] = 0.0 if forces is None else -np.einsum("ij,ij->j", forces, V)
+        return out.ravel()
+
+
+def _assemble(upper: Array, order: Sequence[tuple[int, int]], N: int) -> Array:
+    """Symmetric matrices (..., N, N) from their upper-triangle entries (len(order), ...)."""
+    M = np.empty((*upper.shape[1:], N, N))
+    for (i, j), entry in zip(order, upper, strict=True):
+        M[..., i, j] = M[..., j, i] = entry
+    return M
