@@ -10,7 +10,8 @@ each with its own initial state, and the parameters and those states minimise
 
 by Gauss-Newton (Levenberg-Marquardt when a step fails), started from the joint fit. The
 motion follows Lagrange's equations of L = L0 + sum_k theta_k L_k with the damping forces,
-M(q; theta) a = dL/dq - (d/dq dL/dv) v + F, every piece linear in (1, theta). Segments
+M(q; theta) a = dL/dq - (d/dq dL/dv) v + F, every piece linear in (1, theta)
+(`hamid.dynamics`, with weights per state). Segments
 keep the integration short enough that a wrong start cannot wander off into another
 minimum, and the per-segment states are eliminated from the normal equations (Schur
 complement), so the work grows linearly with the record.
@@ -20,15 +21,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import cached_property
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 from scipy.integrate import solve_ivp
 
-from hamid import expr
 from hamid.design import Damping
+from hamid.dynamics import Dynamics, Motion
 from hamid.model import Model
 from hamid.records import Records
 
@@ -73,79 +73,6 @@ class Refinement:
         """What the covariance is, for the report."""
         return ("Gauss-Newton covariance of the trajectory fit, scaled by its misfit per "
                 f"degree of freedom ({self.chi2_per_dof:.3g})")
-
-
-@dataclass(frozen=True, eq=False)
-class _Dynamics:
-    """Accelerations of many states at once, each with its own parameter vector.
-
-    Every part of L (L0, then one per parameter) gives its forces dL/dq, the non-zero
-    entries of d(dL/dv)/dq and the upper triangle of its mass matrix d(dL/dv)/dv; the
-    parameter vectors weigh the parts. A mass matrix that does not change with the state
-    (e.g. kinetic energy sum m v^2/2) is inverted once per parameter vector (`at`).
-    """
-
-    model: Model
-    damping: Damping
-
-    @cached_property
-    def _terms(self) -> tuple[list[tuple[int, int]], list[tuple[int, int]], bool, Any, Any]:
-        """Mixed (i, k) entries, upper (i, j) mass entries, whether the mass is constant,
-        the stack of forces and mixed entries, and the stack of the mass entries."""
-        lag = self.model.lagrangian
-        q, v = lag.coordinates, lag.velocities
-        N = len(q)
-        parts = (lag.L0, *lag.L)
-        dv = [[part.diff(vi) for vi in v] for part in parts]
-        mixed = [(i, k) for i in range(N) for k in range(N)
-                 if not all(d[i].diff(q[k]).is_zero() for d in dv)]
-        upper = [(i, j) for i in range(N) for j in range(i, N)]
-        mass = [d[i].diff(v[j]) for d in dv for i, j in upper]
-        constant = all(f.is_constant_in((*q, *v)) for f in mass)
-        forces = [f for part, d in zip(parts, dv, strict=True)
-                  for f in [part.diff(qi) for qi in q] + [d[i].diff(q[k]) for i, k in mixed]]
-        return mixed, upper, constant, expr.Func.stack(forces), expr.Func.stack(mass)
-
-    def at(self, W: npt.NDArray[np.float64]) -> Any:
-        """The accelerations (N, n) of states Y (2N, n) as a function of Y, for the
-        parameter vectors W = (1, theta, damping coefficients) of the n states."""
-        mixed, upper, constant, forces, mass = self._terms
-        N, n = len(self.model.coordinates), W.shape[1]
-        parts = 1 + len(self.model.parameters)
-
-        def weighted(stack: Any, per_part: int,
-                     Y: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-            values = stack(Y)
-            if values.shape != (parts * per_part, n):   # constant entries (broadcast is slow)
-                values = np.broadcast_to(values, (parts * per_part, n))
-            return np.einsum("pfn,pn->fn", values.reshape(parts, per_part, n), W[:parts])
-
-        def matrix(entries: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-            M = np.empty((n, N, N))
-            for (i, j), entry in zip(upper, entries, strict=True):
-                M[:, i, j] = M[:, j, i] = entry
-            return M
-
-        inverse = None   # (N, N, n): a product and a sum are faster than einsum over n
-        if constant and N > 1:
-            inverse = np.linalg.inv(matrix(weighted(mass, len(upper), np.zeros((2 * N, n))))
-                                    ).transpose(1, 2, 0).copy()
-
-        def accelerations(Y: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-            combined = weighted(forces, N + len(mixed), Y)
-            V = Y[N:]
-            force = combined[:N].copy()
-            for m, (i, k) in enumerate(mixed):
-                force[i] -= combined[N + m] * V[k]
-            for k, (_, i, law) in enumerate(self.damping.terms):
-                force[i] -= W[parts + k] * law(V[i])
-            if inverse is not None:
-                return (inverse * force).sum(axis=1)
-            entries = weighted(mass, len(upper), Y)
-            if N == 1:
-                return force / entries[0]
-            return np.linalg.solve(matrix(entries), force.T[..., None])[..., 0].T
-        return accelerations
 
 
 def _segments(records: Records, t: npt.NDArray[np.float64],
@@ -208,7 +135,7 @@ def _fit_segments(model: Model, records: Records, damping: Damping,
     if not pieces:
         raise _SegmentFitFailed(f"no trajectory holds {MIN_SEGMENT_SAMPLES} samples")
     X = records.X
-    dynamics = _Dynamics(model, damping)
+    dynamics = Dynamics(model, damping.names)
     n_states, p = X.shape[1], len(free)
     tau = [t[a:b] - t[a] for a, b in pieces]
     # t[i] - t[a] carries the rounding of both times: segments sampled alike then differ in
@@ -293,7 +220,7 @@ class _Normal:
         return d_theta, d_x, schur
 
 
-def _normal_equations(dynamics: _Dynamics, tau: list[Any], measured: list[Any],
+def _normal_equations(dynamics: Dynamics, tau: list[Any], measured: list[Any],
                       theta: Any, X0: Any, free: list[int], x_step: Any, theta_step: Any,
                       weight: Any, rtol: float, resolution: float,
                       batch_done: Callable[[int], None]) -> _Normal:
@@ -326,7 +253,7 @@ def _normal_equations(dynamics: _Dynamics, tau: list[Any], measured: list[Any],
         span = max(tau[s][-1] for s in batch)
         grid, where = _common_times([tau[s] for s in batch], resolution)
         budget = _EVALUATIONS_PER_STEP * (MAX_STEPS_PER_SAMPLE * len(grid) + MIN_STEP_BUDGET)
-        solution = solve_ivp(_rhs(dynamics, W, budget), (0.0, span),
+        solution = solve_ivp(_rhs(dynamics.at(W), budget), (0.0, span),
                              starts.reshape(-1, n_states).T.ravel(), method="DOP853",
                              t_eval=grid, rtol=rtol,
                              atol=np.repeat(1e-2 * rtol / STEP * x_step, copies * B))
@@ -373,18 +300,14 @@ def _common_times(times: list[npt.NDArray[np.float64]],
 _EVALUATIONS_PER_STEP = 12  # DOP853's stages
 
 
-def _rhs(dynamics: _Dynamics, W: npt.NDArray[np.float64], budget: int) -> Any:
+def _rhs(motion: Motion, budget: int) -> Any:
     """solve_ivp's right-hand side (q, v)' = (v, a) for many states, flattened by variable;
     it stops the integration after `budget` evaluations."""
-    n_states = 2 * len(dynamics.model.coordinates)
-    half = n_states // 2
     evaluations = iter(range(budget))
-    accelerations = dynamics.at(W)
 
-    def rhs(_: float, y: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    def rhs(t: float, y: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         if next(evaluations, None) is None:
             raise _SegmentFitFailed("the integration needs too many steps: the model's motion "
                                     "is stiff or blows up")
-        Y = y.reshape(n_states, -1)
-        return np.concatenate([Y[half:], accelerations(Y)]).ravel()
+        return motion(t, y)
     return rhs

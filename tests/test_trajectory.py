@@ -13,9 +13,7 @@ from conftest import DUFFING, ELASTIC_PENDULUM, PENG, TWO_MASS, with_noise
 import hamid
 from hamid import options, plan, writing
 from hamid.cli import cli
-from hamid.design import Damping
-from hamid.model import model_from_spec
-from hamid.trajectory import _common_times, _Dynamics
+from hamid.trajectory import _common_times
 
 CLEAN = {"peng-quadratic": PENG, "duffing": DUFFING, "two-mass": TWO_MASS,
          "elastic-pendulum": ELASTIC_PENDULUM}
@@ -28,52 +26,6 @@ def test_clean_records_are_recovered_exactly(clean_records, name):
     assert result.method["refinement"]["applied"] is True
     assert "refined by fitting the integrated trajectories" in result.method["kind_reason"]
     assert result.estimates == pytest.approx(CLEAN[name]["parameters"], rel=1e-8)
-
-
-def test_accelerations_match_the_hand_written_equations_of_motion():
-    """Duffing with viscous and quadratic damping: x'' = -k x - k3 x^3 - c v - d |v| v."""
-    model = model_from_spec(DUFFING["model"])
-    dynamics = _Dynamics(model, Damping(("viscous", "quadratic"), model.coordinates))
-    rng = np.random.default_rng(0)
-    Y = rng.normal(size=(2, 7))
-    W = np.vstack([np.ones(7), rng.uniform(0.5, 2, size=(4, 7))])   # 1, k, k3, c_x, d_x
-    x, v = Y
-    k, k3, c, d = W[1:]
-    expected = -k * x - k3 * x**3 - c * v - d * np.abs(v) * v
-    np.testing.assert_allclose(dynamics.at(W)(Y)[0], expected, rtol=1e-13)
-
-
-def test_accelerations_solve_the_mass_matrix():
-    """Two masses, the second of mass m: m x2'' = -k2 (x2 - x1) - k3 (x2 - x1)^3."""
-    model = model_from_spec(TWO_MASS["model"])
-    dynamics = _Dynamics(model, Damping((), model.coordinates))
-    rng = np.random.default_rng(1)
-    Y = rng.normal(size=(4, 5))
-    W = np.vstack([np.ones(5), rng.uniform(0.5, 2, size=(4, 5))])   # 1, m, k1, k2, k3
-    x1, x2 = Y[:2]
-    m, k1, k2, k3 = W[1:]
-    stretch = x2 - x1
-    spring = k2 * stretch + k3 * stretch**3
-    expected = np.vstack([-k1 * x1 + spring, -spring / m])
-    np.testing.assert_allclose(dynamics.at(W)(Y), expected, rtol=1e-12)
-
-
-def test_accelerations_of_a_mass_matrix_that_changes_with_the_state():
-    """Polar coordinates, moment of inertia (1 + m) r^2: r'' = (1 + m) r p'^2 - k r and
-    p'' = -2 r' p' / r (the mass matrix diag(1, (1 + m) r^2) changes with r and m, and
-    d(dL/dv)/dq does not vanish)."""
-    from hamid.model import model_from_expression
-
-    model = model_from_expression("polar", "(vr**2 + r**2*vp**2)/2 + m*r**2*vp**2/2 + k*r**2/2",
-                                  ("r", "p"), ("vr", "vp"), ("m", "k"))
-    dynamics = _Dynamics(model, Damping((), model.coordinates))
-    rng = np.random.default_rng(2)
-    Y = np.vstack([rng.uniform(0.5, 2, 6), rng.normal(size=(3, 6))])
-    W = np.vstack([np.ones(6), rng.uniform(0.5, 2, size=(2, 6))])   # 1, m, k
-    r, _, vr, vp = Y
-    m, k = W[1:]
-    expected = np.vstack([(1 + m) * r * vp**2 - k * r, -2 * vr * vp / r])
-    np.testing.assert_allclose(dynamics.at(W)(Y), expected, rtol=1e-12)
 
 
 def test_segments_sampled_alike_share_their_integration_times():
