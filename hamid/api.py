@@ -39,10 +39,10 @@ def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | 
     if isinstance(system, Mapping):
         document, where = system, "system"
     else:
-        from hamid import io
+        from hamid import documents
 
         where = os.fspath(system)
-        document = io.read_toml(where)
+        document = documents.read_toml(where)
     parsed = parse_system(document, where=where)
     if max_samples is not None:
         parsed = dataclasses.replace(parsed, max_samples=max_samples)
@@ -186,7 +186,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     # result
     if chunks is not None:
         provenance = summary.Provenance(source.data_info(linear.sizes, opts), source.labels,
-                                        source.truth, source.notes)
+                                        source.truth, source.notes + source.reader.notes)
         return summary.fit_result(m, unknowns, fitted, residuals, fit_plan, opts, provenance,
                                   refinement)
     labels = source.records.labels

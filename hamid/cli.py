@@ -267,11 +267,11 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
 @click.option("-o", "--output", default="-", metavar="OUT", help="Write the report here.")
 def report(result_file: str, fmt: str | None, output: str) -> None:
     """Render a saved fit result (JSON) as a table, JSON or markdown."""
-    from hamid import io, writing
+    from hamid import documents, io, writing
     from hamid.result import FitResult
 
     source = io.STDIN if io.is_stdio(result_file) else result_file
-    result = FitResult.from_dict(io.read_json(result_file), source=source)
+    result = FitResult.from_dict(documents.read_json(result_file), source=source)
     writing.check_destination(output)
     fmt = fmt or _format_from_name(output, {".json": "json", ".md": "markdown"}, "table")
     _emit(result.to_dict(), fmt, output)

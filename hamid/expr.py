@@ -88,6 +88,11 @@ def parse(text: str, names: Sequence[str] | None, *, where: str = "energy") -> a
     if len(text) > MAX_LENGTH:
         raise ModelError(f"{where}: the expression is {len(text)} characters long "
                          f"(at most {MAX_LENGTH})")
+    # Python folds names to NFKC, so a full-width 'ｋ' would silently be the parameter 'k'.
+    foreign = next((c for c in text if not c.isascii()), None)
+    if foreign is not None:
+        raise ModelError(f"{where}: {foreign!r} (U+{ord(foreign):04X}) is not ASCII; "
+                         "names, numbers and operators are written in ASCII")
     try:
         with warnings.catch_warnings():
             # Python would print a warning about text such as '1if x' on standard error;

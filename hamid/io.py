@@ -30,12 +30,13 @@ __all__ = [
     "as_numpy",
     "column_values",
     "is_missing",
+    "is_parquet",
     "numeric_column",
+    "not_utf8",
     "numeric_values",
+    "read_bytes",
     "read_columns",
-    "read_json",
     "read_table",
-    "read_toml",
 ]
 
 Format = Literal["csv", "tsv", "parquet"]
@@ -122,14 +123,38 @@ def _read_arrow(
 ) -> tuple[pa.Table, dict[str, Any] | None, str]:
     """Helper reading a table file: its Arrow table, hamid metadata and name for messages."""
     fmt = check_format(format) if format is not None else format_from_suffix(source)
-    data, name = _read_bytes(source)
+    data, name = read_bytes(source)
     if not data or data.isspace():
         raise DataError(f"{name}: file is empty")
     if fmt is None:
         fmt = "parquet" if data.startswith(_PARQUET_MAGIC) else None
     if fmt == "parquet":
+        _check_parquet_magic(data, name)
         return (*_read_parquet(data, name), name)
     return (*_read_text(data, name, fmt), name)
+
+
+def json_kind(value: object) -> str:
+    """The JSON type of a decoded value, in words."""
+    kinds = {list: "an array", str: "a string", bool: "a boolean", type(None): "null"}
+    return kinds.get(type(value), "a number")
+
+
+def is_parquet(source: str | os.PathLike[str]) -> bool:
+    """Whether a file (not standard input) begins as Parquet does."""
+    if is_stdio(source) or not os.path.isfile(source):
+        return False
+    with open(source, "rb") as stream:
+        return stream.read(len(_PARQUET_MAGIC)) == _PARQUET_MAGIC
+
+
+def _check_parquet_magic(data: bytes, name: str) -> None:
+    """A Parquet file begins with its magic bytes; pyarrow only looks at the footer's, and
+    read a file damaged at its start (or not Parquet at all, but for its last bytes)."""
+    if not data.startswith(_PARQUET_MAGIC):
+        raise DataError(f"{name}: is not a valid Parquet file (it does not begin with "
+                        f"Parquet's magic bytes {_PARQUET_MAGIC.decode()!r}; if it is text, "
+                        "give --format-in csv)")
 
 
 def _read_parquet(data: bytes, name: str) -> tuple[pa.Table, dict[str, Any] | None]:
@@ -239,10 +264,10 @@ def _read_text(
         table = _parse_csv(body, delimiter, name)
         names = table.column_names
     except UnicodeDecodeError as exc:
-        raise _not_utf8(data, name) from exc
+        raise not_utf8(data, name) from exc
     if any(pa.types.is_binary(field.type) for field in table.schema):
         # pyarrow reads cells that are not UTF-8 as bytes instead of failing.
-        raise _not_utf8(data, name)
+        raise not_utf8(data, name)
     stripped = [column.strip() for column in names]
     check_unique(stripped, name)
     if table.num_rows == 0:
@@ -356,12 +381,12 @@ def _parse_metadata(raw: bytes, name: str, line_number: int | None = None) -> di
     if not isinstance(metadata, dict):
         raise DataError(
             f"{name}: {where}the hamid metadata is not a JSON object "
-            f"(found {_json_kind(metadata)})"
+            f"(found {json_kind(metadata)})"
         )
     return metadata
 
 
-def _not_utf8(data: bytes, name: str, what: str = "",
+def not_utf8(data: bytes, name: str, what: str = "",
               error: type[DataError | ModelError] = DataError) -> DataError | ModelError:
     """Helper function building the error for text that is not UTF-8; `what` prefixes the
     line (e.g. "not valid TOML: ")."""
@@ -407,6 +432,8 @@ class TableChunks:
             raise DataError(f"{self.name}: file is empty")
         self.format: Format = fmt or ("parquet" if head == _PARQUET_MAGIC else "csv")
         if self.format == "parquet":
+            _check_parquet_magic(head, self.name)
+        if self.format == "parquet":
             self._open_parquet()
         else:
             self._open_text(fmt)
@@ -437,7 +464,7 @@ class TableChunks:
         try:
             header = head[self.offset:].rstrip(b"\r\n").decode("utf-8")
         except UnicodeDecodeError as exc:
-            raise _not_utf8(head, self.name) from exc
+            raise not_utf8(head, self.name) from exc
         raw = [cell.strip('"') for cell in header.split(self.delimiter)]
         self.columns = [cell.strip() for cell in raw]
         self._raw = dict(zip(self.columns, raw, strict=True))
@@ -473,6 +500,8 @@ class TableChunks:
         import pyarrow as pa
         import pyarrow.csv as pacsv
         import pyarrow.parquet as pq
+
+        rows = min(rows, _MAX_BLOCK // 64)   # pyarrow's batch and block sizes are int32
 
         if self.format == "parquet":
             # one row group at a time: a reader over all of them buffers ever more of the
@@ -661,90 +690,10 @@ def _cell(text: str) -> str:
 
 
 # ---------------------------------------------------------------------------------------------
-# System files and saved results
-
-
-def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read a TOML file such as a system file.
-
-    Parameters
-    ----------
-    path : str or path-like
-        File to read; ``"-"`` reads standard input.
-
-    Returns
-    -------
-    document : dict
-
-    Raises
-    ------
-    ModelError
-        The file is not valid TOML.
-    DataError
-        The file cannot be read.
-    """
-    import tomllib
-
-    data, name = _read_bytes(path)
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise _not_utf8(data, name, "not valid TOML: ", ModelError) from exc
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ModelError(f"{name}: not valid TOML: {exc}") from exc
-
-
-def read_json(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read a JSON object such as a saved fit result.
-
-    Parameters
-    ----------
-    path : str or path-like
-        File to read; ``"-"`` reads standard input.
-
-    Returns
-    -------
-    document : dict
-
-    Raises
-    ------
-    DataError
-        The file cannot be read, is not JSON, or does not hold a JSON object.
-    """
-    data, name = _read_bytes(path)
-    try:
-        document = json.loads(data.decode("utf-8-sig"))
-    except UnicodeDecodeError as exc:
-        raise _not_utf8(data, name, "not valid JSON: ") from exc
-    except json.JSONDecodeError as exc:
-        raise DataError(
-            f"{name}: not valid JSON (line {exc.lineno}, column {exc.colno}): {exc.msg}"
-        ) from exc
-    except RecursionError:
-        # json's parser recurses once per nesting level: 100,000 brackets exhaust the stack.
-        raise DataError(f"{name}: not readable JSON: nested too deeply") from None
-    except ValueError as exc:
-        # An integer of more digits than int() converts (sys.get_int_max_str_digits()).
-        raise DataError(f"{name}: not readable JSON: a number has more than "
-                        f"{sys.get_int_max_str_digits()} digits") from exc
-    if not isinstance(document, dict):
-        raise DataError(f"{name}: expected a JSON object, found {_json_kind(document)}")
-    return document
-
-
-def _json_kind(value: object) -> str:
-    """Helper function naming the JSON type of a decoded value."""
-    kinds = {list: "an array", str: "a string", bool: "a boolean", type(None): "null"}
-    return kinds.get(type(value), "a number")
-
-
-# ---------------------------------------------------------------------------------------------
 # Files and formats
 
 
-def _read_bytes(source: str | os.PathLike[str]) -> tuple[bytes, str]:
+def read_bytes(source: str | os.PathLike[str]) -> tuple[bytes, str]:
     """Helper function reading a whole file, or standard input for ``"-"``."""
     if is_stdio(source):
         try:

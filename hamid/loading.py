@@ -33,6 +33,10 @@ from hamid.records import Records, runs
 
 __all__ = ["Chunked", "Loaded", "load", "open_chunks", "trajectory_label"]
 
+# Times beyond this overflow in the sums of squares the residual summary takes.
+_LARGEST_TIME = 1e150
+_DATA_FRAME = "<DataFrame>"   # the name of a DataFrame given as data, in messages
+
 
 @dataclass(frozen=True)
 class Loaded:
@@ -62,7 +66,7 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
          options: FitOptions) -> Loaded:
     """Read the sources whole, settle the model and arrange the rows by trajectory."""
     if _is_data_frame(data):
-        tables = [("<DataFrame>", data, data.attrs.get("hamid"))]
+        tables = [(_DATA_FRAME, data, data.attrs.get("hamid"))]
     else:
         paths = [data] if isinstance(data, str | os.PathLike) else list(data)
         if not paths:
@@ -78,8 +82,10 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
         names = [str(c) for c in frame]
         mapping = naming.resolve_columns(names, m.coordinates, () if derived else m.velocities,
                                          mapping=options.columns, source=source)
-        reader = Reader(m, mapping, *_special_columns(names, options, source), source)
+        reader = Reader(m, mapping, *_special_columns(names, options, source), source,
+                        typed=source == _DATA_FRAME or io.is_parquet(source))
         piece = next(reader.read([(frame, 0)]))
+        notes.extend(reader.notes)
         parts.append(dataclasses.replace(piece, group=piece.group + len(labels)))
         if len(tables) == 1:
             labels.extend(reader.labels)
@@ -113,11 +119,26 @@ class Reader:
     increasing, also across chunks. Errors name the table's 1-based data row."""
 
     def __init__(self, model: Model, mapping: Mapping[str, str], time: str | None,
-                 trajectory: str | None, source: str) -> None:
+                 trajectory: str | None, source: str, typed: bool) -> None:
         self.model, self.mapping, self.source = model, mapping, source
         self.time, self.trajectory = time, trajectory
         # Without a trajectory column the table is one trajectory, labelled 1.
         self._ids: dict[Any, int] = {} if trajectory else {1: 0}
+        # A table that stores its columns' types (Parquet, a DataFrame) and keeps numbers
+        # as text is read all the same, and the report says so.
+        self.typed, self.text_columns = typed, set()
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """What the report says of how the table was read."""
+        return tuple(f"{self.source}: column {column!r} stores its numbers as text; read "
+                     "them as numbers" for column in sorted(self.text_columns))
+
+    def _numbers(self, chunk: Mapping[str, Any], column: str, row: int) -> np.ndarray:
+        values = io.column_values(chunk[column])
+        if self.typed and values.dtype.kind not in "iuf":
+            self.text_columns.add(column)
+        return io.numeric_values(values, column, self.source, first_row=row + 1)
 
     @property
     def columns(self) -> list[str]:
@@ -136,12 +157,15 @@ class Reader:
         previous, last_t, closed = None, None, set()
         for chunk, row in chunks:
             n = len(chunk[self.columns[0]])
-            X = np.column_stack([
-                io.numeric_values(io.column_values(chunk[self.mapping[v]]), self.mapping[v],
-                                  self.source, first_row=row + 1)
-                if v in self.mapping else np.zeros(n) for v in self.model.variables])
-            t = (io.numeric_values(io.column_values(chunk[self.time]), self.time, self.source,
-                                   first_row=row + 1) if self.time else None)
+            X = np.column_stack([self._numbers(chunk, self.mapping[v], row)
+                                 if v in self.mapping else np.zeros(n)
+                                 for v in self.model.variables])
+            t = self._numbers(chunk, self.time, row) if self.time else None
+            if t is not None and np.any(np.abs(t) > _LARGEST_TIME):
+                k = int(np.argmax(np.abs(t) > _LARGEST_TIME))
+                raise DataError(f"{self.source}: column {self.time!r}, row {row + k + 1}: time "
+                                f"{t[k]:g} is too large to compute with (at most "
+                                f"{_LARGEST_TIME:g}); is it the time column?")
             group = (self._keys(io.column_values(chunk[self.trajectory]), row)
                      if self.trajectory else np.zeros(n, np.int64))
             starts = np.flatnonzero(np.diff(group, prepend=-1 if previous is None
@@ -275,7 +299,7 @@ def open_chunks(path: str, model: str | os.PathLike[str] | Model | None,
     mapping = naming.resolve_columns(table.columns, m.coordinates, m.velocities,
                                      mapping=options.columns, source=table.name)
     reader = Reader(m, mapping, *_special_columns(table.columns, options, table.name),
-                    table.name)
+                    table.name, typed=table.format == "parquet")
     return Chunked(m, tuple(notes), _truth(table.metadata, m), table, reader, chunk_rows,
                    progress)
 
@@ -397,7 +421,13 @@ def noise_levels(loaded: Loaded,
                                  f"({', '.join(model.variables)})")
             if not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
                 raise UsageError(f"--noise: {key}={value!r} is not a non-negative number")
-            sigma[model.variables.index(name)] = float(value)
+            k = model.variables.index(name)
+            spread = float(records.X[:, k].std())
+            if value > 2 * spread:   # the column's spread holds its noise and its motion
+                raise UsageError(f"--noise: {key}={value:g} is more than twice the spread of "
+                                 f"the column itself (standard deviation {spread:.3g}); give "
+                                 "the noise in the column's units")
+            sigma[k] = float(value)
     else:
         raise UsageError(f"--noise must be none, auto or COL=SIGMA,..., found {noise!r}")
     if loaded.velocity_gain is not None:

@@ -226,8 +226,9 @@ def _check_names(coordinates: Sequence[str], velocities: Sequence[str],
                          "velocities; give one velocity per coordinate")
     names = [*coordinates, *velocities, *(parameters or ())]
     for name in names:
-        if (not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name)
-                or name in expr.FUNCTIONS or name in expr.CONSTANTS):
+        if (not isinstance(name, str) or not name.isidentifier() or not name.isascii()
+                or keyword.iskeyword(name) or name in expr.FUNCTIONS
+                or name in expr.CONSTANTS):
             raise ModelError(f"{where}: {name!r} cannot be used as a name")
     for name, count in _counts(names).items():
         if count > 1:
@@ -372,12 +373,14 @@ def load_model(name_or_path: str | os.PathLike[str]) -> Model:
     ('k', 'k3')
     """
     text = os.fspath(name_or_path)
+    if os.path.isdir(text):
+        raise ModelError(f"{text}: is a folder, not a file")
     if not text.endswith(".toml"):
         return builtin_model(text)
-    from hamid import io
+    from hamid import documents
     from hamid.config import check_keys
 
-    document = io.read_toml(text)
+    document = documents.read_toml(text)
     check_keys(document, _MODEL_FILE_KEYS, where=text)
     if "model" not in document:
         raise ModelError(f"{text}: no [model] table")

@@ -18,8 +18,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from hamid import documents, naming, options, writing
 from hamid import io as hio
-from hamid import naming, options, writing
 from hamid.errors import DataError, ModelError, UsageError
 
 FORMATS = {"csv": "run.csv", "tsv": "run.tsv", "parquet": "run.parquet"}
@@ -801,7 +801,7 @@ def test_written_file_replaces_and_gets_usual_permissions(in_tmp):
 
 def test_read_toml(in_tmp):
     (in_tmp / "system.toml").write_text('[model]\nbuiltin = "duffing"\n[[initial]]\nx = 0.5\n')
-    assert hio.read_toml("system.toml") == {
+    assert documents.read_toml("system.toml") == {
         "model": {"builtin": "duffing"},
         "initial": [{"x": 0.5}],
     }
@@ -809,7 +809,7 @@ def test_read_toml(in_tmp):
 
 def test_read_toml_from_stdin(monkeypatch):
     _fake_stdin(monkeypatch, b"[simulate]\ndt = 0.01\n")
-    assert hio.read_toml("-") == {"simulate": {"dt": 0.01}}
+    assert documents.read_toml("-") == {"simulate": {"dt": 0.01}}
 
 
 @pytest.mark.parametrize(
@@ -824,7 +824,7 @@ def test_read_toml_from_stdin(monkeypatch):
 def test_malformed_toml(in_tmp, content, message):
     (in_tmp / "system.toml").write_bytes(content)
     with pytest.raises(ModelError, match=message):
-        hio.read_toml("system.toml")
+        documents.read_toml("system.toml")
 
 
 @pytest.mark.parametrize(("make", "message"), [(None, "no such file"), ("dir", "is a folder")])
@@ -832,12 +832,12 @@ def test_toml_file_problems_are_data_errors(in_tmp, make, message):
     if make == "dir":
         (in_tmp / "system.toml").mkdir()
     with pytest.raises(DataError, match=f"^system.toml: {message}"):
-        hio.read_toml("system.toml")
+        documents.read_toml("system.toml")
 
 
 def test_read_json(in_tmp):
     (in_tmp / "result.json").write_text('{"schema": "hamid.fit/1", "x": [1, 2.5]}')
-    assert hio.read_json("result.json") == {"schema": "hamid.fit/1", "x": [1, 2.5]}
+    assert documents.read_json("result.json") == {"schema": "hamid.fit/1", "x": [1, 2.5]}
 
 
 @pytest.mark.parametrize(
@@ -854,12 +854,12 @@ def test_read_json(in_tmp):
 def test_malformed_json(in_tmp, content, message):
     (in_tmp / "result.json").write_text(content)
     with pytest.raises(DataError, match=f"^result.json: {message}"):
-        hio.read_json("result.json")
+        documents.read_json("result.json")
 
 
 def test_missing_json(in_tmp):
     with pytest.raises(DataError, match="^result.json: no such file$"):
-        hio.read_json("result.json")
+        documents.read_json("result.json")
 
 
 # ---------------------------------------------------------------------------------------------

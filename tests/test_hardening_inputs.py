@@ -1,0 +1,112 @@
+"""Hardening, round two: inputs that gave internal errors, silent fits or misleading
+messages now give the right result or one line naming what is wrong."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+ROOT = Path(__file__).parent.parent
+DUFFING = ROOT / "sample_data" / "duffing.csv"
+
+
+def _run(hamid_cli, *args, cwd) -> subprocess.CompletedProcess:
+    return subprocess.run([*hamid_cli, *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, timeout=120)
+
+
+def _one_line_error(done: subprocess.CompletedProcess, code: int, *words: str) -> None:
+    assert done.returncode == code, done.stderr
+    assert done.stdout == ""
+    lines = done.stderr.splitlines()
+    assert len(lines) == 1, done.stderr
+    for word in words:
+        assert word in lines[0]
+    assert "internal error" not in lines[0]
+
+
+def _duffing_frame() -> pd.DataFrame:
+    return pd.read_csv(DUFFING, comment="#")
+
+
+def test_times_too_large_to_compute_with(hamid_cli, tmp_path):
+    """Times near 1e308 overflowed into NaN: 'cannot convert float NaN to integer'."""
+    n = 400
+    frame = pd.DataFrame({"t": np.linspace(0, 1e308, n), "x": np.cos(0.1 * np.arange(n)),
+                          "v": -np.sin(0.1 * np.arange(n))})
+    frame.to_csv(tmp_path / "big.csv", index=False)
+    _one_line_error(_run(hamid_cli, "fit", "big.csv", "--model", "duffing", cwd=tmp_path), 1,
+                    "big.csv: column 't', row 2", "too large to compute with")
+
+
+def test_a_file_that_does_not_begin_as_parquet_is_refused(hamid_cli, tmp_path):
+    """A Parquet file damaged at its start was read from its footer, silently."""
+    data = bytearray((ROOT / "sample_data" / "peng_quadratic.parquet").read_bytes())
+    data[:4] = b"XXXX"
+    (tmp_path / "damaged.parquet").write_bytes(bytes(data))
+    for extra in ([], ["--chunk-rows", "500"]):
+        _one_line_error(_run(hamid_cli, "fit", "damaged.parquet", *extra, cwd=tmp_path), 1,
+                        "damaged.parquet: is not a valid Parquet file", "magic bytes")
+
+
+@pytest.mark.parametrize("chunks", [[], ["--chunk-rows", "500"]])
+def test_numbers_stored_as_text_in_parquet_are_read_with_a_note(hamid_cli, tmp_path, chunks):
+    frame = _duffing_frame()
+    frame.to_parquet(tmp_path / "typed.parquet")
+    frame.assign(x=frame["x"].map(repr)).to_parquet(tmp_path / "text.parquet")
+    fits = {}
+    for name in ("typed.parquet", "text.parquet"):
+        done = _run(hamid_cli, "fit", name, "--model", "duffing", "--method", "energy",
+                    *chunks, "--format", "json", cwd=tmp_path)
+        assert done.returncode == 0, done.stderr
+        fits[name] = json.loads(done.stdout)
+    note = "text.parquet: column 'x' stores its numbers as text; read them as numbers"
+    assert note in fits["text.parquet"]["warnings"]
+    assert not any("as text" in w for w in fits["typed.parquet"]["warnings"])
+    estimates = {name: [p["estimate"] for p in fit["parameters"]] for name, fit in fits.items()}
+    assert estimates["text.parquet"] == pytest.approx(estimates["typed.parquet"], rel=1e-12)
+
+
+def test_a_noise_larger_than_the_column_names_the_cause(hamid_cli):
+    """--noise x=1e308 said the terms 'do not vary along any trajectory'."""
+    _one_line_error(_run(hamid_cli, "fit", DUFFING, "--noise", "x=1e308", cwd=ROOT), 2,
+                    "--noise: x=1e+308", "more than twice the spread")
+
+
+def test_chunk_rows_beyond_what_pyarrow_takes(hamid_cli):
+    """--chunk-rows 1000000000000 gave an int32 OverflowError."""
+    done = _run(hamid_cli, "fit", DUFFING, "--chunk-rows", "1000000000000", "--format",
+                "json", cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    plain = _run(hamid_cli, "fit", DUFFING, "--chunk-rows", "500", "--format", "json",
+                 cwd=ROOT)
+    found, expected = (json.loads(d.stdout)["parameters"] for d in (done, plain))
+    assert [p["estimate"] for p in found] == pytest.approx(
+        [p["estimate"] for p in expected], rel=1e-10)
+
+
+@pytest.mark.parametrize("command", [["fit", DUFFING, "--model"], ["models"]])
+def test_a_folder_as_model_says_it_is_a_folder(hamid_cli, tmp_path, command):
+    _one_line_error(_run(hamid_cli, *command, tmp_path, cwd=ROOT), 1,
+                    f"{tmp_path}: is a folder, not a file")
+
+
+@pytest.mark.parametrize(("field", "text"), [
+    ("energy", "v**2/2 + \uff4b*x**2/2 + k*x**4"),           # full-width k beside k
+    ("parameters", '["\uff4b"]'),
+])
+def test_names_that_are_not_ascii_are_refused(hamid_cli, tmp_path, field, text):
+    """Python folds the full-width 'ｋ' into 'k': they silently became one parameter."""
+    energy = text if field == "energy" else "v**2/2 + \uff4b*x**2/2"
+    parameters = text if field == "parameters" else '["\uff4b", "k"]'
+    (tmp_path / "m.toml").write_text(
+        f'[model]\nname = "m"\ncoordinates = ["x"]\nvelocities = ["v"]\n'
+        f'energy = "{energy}"\nparameters = {parameters}\n', encoding="utf-8")
+    done = _run(hamid_cli, "fit", DUFFING, "--model", "m.toml", cwd=tmp_path)
+    _one_line_error(done, 1, "m.toml")
+    assert "ASCII" in done.stderr or "cannot be used as a name" in done.stderr
