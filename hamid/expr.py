@@ -719,6 +719,22 @@ def to_sympy(tree: ast.expr) -> sympy.Expr:
     return build(tree)
 
 
+def kinks(tree: ast.expr, variables: Sequence[str]) -> list[Symbolic]:
+    """Where an energy is not smooth: the arguments of abs and sign, and the bases of
+    fractional powers, each a function whose zero is a kink (or a singular force)."""
+    import sympy
+
+    found = []
+    for node in sympy.preorder_traversal(to_sympy(tree)):
+        if isinstance(node, sympy.Abs | sympy.sign):
+            found.append(node.args[0])
+        elif (isinstance(node, sympy.Pow) and node.exp.is_number
+              and not node.exp.is_integer):
+            found.append(node.base)
+    return [Symbolic(tuple(variables), f) for f in dict.fromkeys(found)
+            if f.free_symbols & {sympy.Symbol(v, real=True) for v in variables}]
+
+
 def symbols_in_order(tree: ast.expr) -> list[str]:
     """Names used in the expression, in order of first appearance (functions excluded)."""
     seen: dict[str, None] = {}

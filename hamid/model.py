@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import keyword
+import math
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -199,6 +200,14 @@ class Model:
         return Lagrangian(lagrangians[0], tuple(lagrangians[1:]), self.coordinates,
                           self.velocities)
 
+    @cached_property
+    def kinks(self) -> tuple[expr.Func, ...]:
+        """Functions of the state whose zeros the energy is not smooth at (abs, sign,
+        fractional powers); none for a polynomial."""
+        if self.is_polynomial:
+            return ()
+        return tuple(expr.kinks(expr.parse(self.energy, None), self.variables))
+
     @property
     def is_natural(self) -> bool:
         """Whether E = T + V with T quadratic in the velocities (Lagrange's equations apply)."""
@@ -279,13 +288,20 @@ def builtin_model(name: str) -> Model:
 def poly_spec(n_coordinates: int, degree: int,
               coordinates: Sequence[str] | None = None,
               velocities: Sequence[str] | None = None) -> dict[str, Any]:
-    """The energy of ``poly:N:D``: unit kinetic energy, one parameter per monomial."""
+    """The energy of ``poly:N:D``: unit kinetic energy, one parameter per monomial.
+
+    The monomials are counted before any is built: a name such as poly:200000:2 would
+    otherwise take minutes and gigabytes before being refused.
+    """
+    count = math.comb(n_coordinates + degree, degree) - 1 - n_coordinates
+    if count > _POLY_LIMIT:
+        shown = f"{count:,}" if count < 10**15 else f"about 10^{len(str(count)) - 1}"
+        raise ModelError(f"poly:{n_coordinates}:{degree} has {shown} terms (at most "
+                         f"{_POLY_LIMIT}); use a lower degree, fewer coordinates or a model "
+                         "file")
     coordinates = list(coordinates or [f"q{i + 1}" for i in range(n_coordinates)])
     velocities = list(velocities or [f"v{i + 1}" for i in range(n_coordinates)])
     monomials = [e for d in range(2, degree + 1) for e in _exponents(n_coordinates, d)]
-    if len(monomials) > _POLY_LIMIT:
-        raise ModelError(f"poly:{n_coordinates}:{degree} has {len(monomials)} terms "
-                         f"(at most {_POLY_LIMIT}); use a lower degree or a model file")
     parameters = ["c_" + "_".join(map(str, e)) for e in monomials]
     kinetic = " + ".join(f"{v}**2/2" for v in velocities)
     potential = " + ".join(

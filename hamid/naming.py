@@ -24,15 +24,15 @@ TIME_COLUMNS = ("t", "time")
 TRAJECTORY_COLUMN = "trajectory"
 
 
-def find_velocity(coordinate: str, columns: Sequence[str]) -> str | None:
+def find_velocity(coordinate: str, columns: Collection[str]) -> str | None:
     """Return the column holding a coordinate's velocity, by `VELOCITY_PATTERNS`.
 
     Parameters
     ----------
     coordinate : str
         Name of the coordinate's column.
-    columns : sequence of str
-        Column names to look in.
+    columns : collection of str
+        Column names to look in (a set is used as it is).
 
     Returns
     -------
@@ -46,7 +46,7 @@ def find_velocity(coordinate: str, columns: Sequence[str]) -> str | None:
     """
     if not coordinate:
         return None
-    present = set(columns)
+    present = columns if isinstance(columns, set | frozenset) else set(columns)
     for pattern in VELOCITY_PATTERNS:
         candidate = pattern.format(coordinate)
         if candidate in present:
@@ -80,7 +80,8 @@ def find_coordinates(columns: Sequence[str], *, exclude: Collection[str]) -> lis
     [('x', 'dx')]
     """
     candidates = [column for column in columns if column and column not in exclude]
-    velocity_of = {column: find_velocity(column, candidates) for column in candidates}
+    present = set(candidates)   # once: a table may have tens of thousands of columns
+    velocity_of = {column: find_velocity(column, present) for column in candidates}
     # Velocities of velocities (dx of x, then ddx of dx) are accelerations, not coordinates.
     velocities = {velocity for velocity in velocity_of.values() if velocity is not None}
     pairs: list[tuple[str, str]] = []

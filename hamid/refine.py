@@ -32,6 +32,12 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Damping,
     The refined fit's levels are the mean energies at its parameters; their standard
     errors need a pass over the energy residuals there (`level_errors`) and are NaN here.
     """
+    kink = _crossed_kink(model, records)
+    if kink is not None:
+        return None, {"applied": False, "reason": (
+            f"the energy is not smooth where {kink} = 0 (abs, sign or a fractional power), "
+            "and the motion reaches it; integrating its force there takes tiny steps "
+            "without end")}
     from hamid import trajectory  # scipy.integrate: only when a fit is refined
 
     N = len(model.coordinates)
@@ -71,3 +77,15 @@ def level_errors(fit: LinearFit, residuals: ResidualSums) -> npt.NDArray[np.floa
     n, squares = residuals.n, residuals.sums[:, 3]
     mean_noise = squares / np.maximum(n * (n - 1), 1)
     return np.sqrt(np.einsum("jk,kl,jl->j", means_A, fit.covariance, means_A) + mean_noise)
+
+
+def _crossed_kink(model: Model, records: Records) -> str | None:
+    """The first place where the energy is not smooth that the records reach (change sign
+    across, or come within a thousandth of their largest distance from), or None."""
+    for kink in model.kinks:
+        values = kink(records.X)
+        values = values[np.isfinite(values)]
+        if values.size and (np.min(values) <= 0 <= np.max(values)
+                            or np.min(np.abs(values)) < 1e-3 * np.max(np.abs(values))):
+            return str(kink.expression).replace("Abs(", "abs(")
+    return None

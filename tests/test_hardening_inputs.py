@@ -110,3 +110,52 @@ def test_names_that_are_not_ascii_are_refused(hamid_cli, tmp_path, field, text):
     done = _run(hamid_cli, "fit", DUFFING, "--model", "m.toml", cwd=tmp_path)
     _one_line_error(done, 1, "m.toml")
     assert "ASCII" in done.stderr or "cannot be used as a name" in done.stderr
+
+
+@pytest.mark.parametrize(("name", "count"), [
+    ("poly:1:999999999", "999,999,998 terms"), ("poly:1000:3", "167,667,500 terms"),
+    ("poly:200000:2", "20,000,100,000 terms"), ("poly:99999999999:2", "about 10^21 terms"),
+    ("poly:20:2", "210 terms")])
+def test_a_polynomial_too_large_is_refused_before_it_is_built(hamid_cli, name, count):
+    """These ran for minutes, or were killed, before."""
+    _one_line_error(_run(hamid_cli, "models", name, cwd=ROOT), 1, name, count, "at most 200")
+
+
+def test_ten_thousand_coordinates_without_a_model(hamid_cli, tmp_path):
+    """10,000 coordinate/velocity pairs and no model ran past 120 s building poly:N:3."""
+    columns = {}
+    for i in range(10_000):
+        columns[f"x{i}"], columns[f"vx{i}"] = np.zeros(3), np.ones(3)
+    pd.DataFrame(columns).to_csv(tmp_path / "wide.csv", index=False)
+    _one_line_error(_run(hamid_cli, "fit", "wide.csv", cwd=tmp_path), 1,
+                    "poly:10000:3 has 166,766,675,000 terms")
+
+
+def test_a_refinement_through_a_kink_stands_aside(tmp_path):
+    """abs(x)**0.5 took 463 s in the refinement (a singular force at x = 0); the linear
+    fit is reported with the reason."""
+    import hamid
+    from hamid.model import model_from_expression
+
+    model = model_from_expression("kink", "v**2/2 + k*x**2/2 + k3*abs(x)**0.5", ["x"], ["v"])
+    result = hamid.fit(DUFFING, model)
+    refinement = result.method["refinement"]
+    assert refinement["applied"] is False
+    assert "not smooth where abs(x) = 0" in refinement["reason"]
+
+
+@pytest.mark.parametrize(("energy", "kinks"), [
+    ("v**2/2 + k*abs(x)", ["x"]),
+    ("v**2/2 + k*x**0.5 + c*sqrt(x**2 + y**2)", ["x", "x**2 + y**2"]),
+    ("v**2/2 + k*sin(x)*cos(y)", []),
+    ("v**2/2 + k*exp(x)*x**3", []),
+])
+def test_kinks_of_an_energy(energy, kinks):
+    import sympy
+
+    from hamid.model import model_from_expression
+
+    model = model_from_expression("m", energy, ["x", "y"], ["v", "w"])
+    found = {str(k.expression) for k in model.kinks}
+    symbols = {n: sympy.Symbol(n, real=True) for n in ("x", "y")}
+    assert found == {str(sympy.sympify(k, locals=symbols)) for k in kinks}
