@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, partial
 from typing import Any
 
 import numpy as np
@@ -166,30 +166,36 @@ class Motion:
         self.drained = drained
         self.constant_mass = terms.constant_mass
         self._terms, self._weights, self._damping = terms, weights, damping
-        self._stack = terms.full_stack
         self._folded = False
         self._inverse: Array | None = None   # (N, N) folded, or (N, N, n) per state
         self._mass: Array | None = None      # constant mass entries of one coordinate, (1, n)
-        if not terms.constant_mass:
-            return
-        n_states = 1 if weights is None else weights.shape[1]
-        M = self.mass_matrix(np.zeros((2 * N, n_states)))
-        # one that is not positive definite is no kinetic energy: the simulator rejects it
-        # before any step, and the general path's solve fails for the refinement
-        if not np.all(np.linalg.eigvalsh(M) > 0):
-            return
-        if weights is None:
-            # (dM/dq) v vanishes, and M^-1 dL/dq are the accelerations
-            self._inverse = np.linalg.inv(M[0])
-            self._stack = Func.stack([Func.combine(terms.forces[0][:N], [float(x) for x in row])
-                                      for row in self._inverse])
-            self._folded = True
-        elif N > 1:
-            self._inverse = np.linalg.inv(M).transpose(1, 2, 0).copy()
-            self._stack = terms.force_stack
-        else:
-            self._mass = M[:, 0, 0][None]
-            self._stack = terms.force_stack
+        stack = self._invert_constant_mass() if terms.constant_mass else None
+        if stack is None:
+            stack = terms.full_stack
+        # with shared weights the stack's values are the equations' own: called directly
+        self._values = stack if weights is None else partial(self._weighted, stack)
+
+    def _invert_constant_mass(self) -> Callable[[Array], Array] | None:
+        """Invert a constant mass matrix once; the stack that goes with the inverse."""
+        N, terms, weights = self.n, self._terms, self._weights
+        M = self.mass_matrix(np.zeros((2 * N, 1 if weights is None else weights.shape[1])))
+        if weights is not None and N == 1:
+            self._mass = M[:, 0, 0][None]   # a division is as cheap as a product
+            return terms.force_stack
+        try:
+            inverse = np.linalg.inv(M)
+        except np.linalg.LinAlgError:
+            # a singular one is no kinetic energy: left to the general path, where the
+            # simulator's check names it before any step and the refinement's solve fails
+            return None
+        if weights is not None:
+            self._inverse = inverse.transpose(1, 2, 0).copy()
+            return terms.force_stack
+        # (dM/dq) v vanishes, and M^-1 dL/dq are the accelerations
+        self._inverse = inverse[0]
+        self._folded = True
+        return Func.stack([Func.combine(terms.forces[0][:N], [float(x) for x in row])
+                           for row in self._inverse])
 
     def _weighted(self, stack: Callable[[Array], Array], Y: Array) -> Array:
         """The stack's values at Y, the parts weighed state by state when they have weights."""
@@ -205,10 +211,8 @@ class Motion:
         """M at states Y, shape (2N, ...) -> (..., N, N)."""
         return _assemble(self._weighted(self._terms.mass_stack, Y), self._terms.upper, self.n)
 
-    def dissipative_forces(self, V: Array) -> Array | None:
-        """The damping forces F (N, n) at the velocities V (N, n); None without damping."""
-        if not self._damping:
-            return None
+    def dissipative_forces(self, V: Array) -> Array:
+        """The damping forces F (N, n) at the velocities V (N, n)."""
         forces = np.zeros_like(V)
         for law, i, coefficient in self._damping:
             forces[i] -= coefficient * law(V[i])
@@ -218,18 +222,20 @@ class Motion:
         """a (N, n) at states Y (2N, n)."""
         N = self.n
         out = np.empty((N, Y.shape[1]))
-        self._accelerations(Y[:2 * N], self.dissipative_forces(Y[N:2 * N]), out)
+        forces = self.dissipative_forces(Y[N:2 * N]) if self._damping else None
+        self._accelerations(Y[:2 * N], forces, out)
         return out
 
     def _accelerations(self, Y: Array, forces: Array | None, out: Array) -> None:
-        N, mixed = self.n, self._terms.mixed
-        values = self._weighted(self._stack, Y)
+        values = self._values(Y)
         if self._folded:
-            out[:] = values
-            if forces is not None:
+            if forces is None:
+                out[:] = values
+            else:
                 assert self._inverse is not None
-                out += self._inverse @ forces
+                np.add(values, self._inverse @ forces, out=out)
             return
+        N, mixed = self.n, self._terms.mixed
         rhs = values[:N]
         V = Y[N:]
         for m, (i, k) in enumerate(mixed):
@@ -257,10 +263,13 @@ class Motion:
         N = self.n
         Y = y.reshape(self.rows, -1)
         V = Y[N:2 * N]
-        forces = self.dissipative_forces(V)
+        forces = self.dissipative_forces(V) if self._damping else None
         out = np.empty_like(Y)
         out[:N] = V
-        self._accelerations(Y[:2 * N], forces, out[N:2 * N])
+        if self._folded and forces is None:   # the values are the accelerations: no call more
+            out[N:2 * N] = self._values(Y[:2 * N])
+        else:
+            self._accelerations(Y[:2 * N], forces, out[N:2 * N])
         if self.drained:
             out[2 * N] = 0.0 if forces is None else -np.einsum("ij,ij->j", forces, V)
         return out.ravel()
