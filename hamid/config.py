@@ -34,7 +34,11 @@ def number(value: Any, *, where: str, positive: bool = False,
     """A finite number from TOML (int or float), checked for sign."""
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ModelError(f"{where}: expected a number, found {value!r}")
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:   # TOML integers have no bound; a double ends near 1.8e308
+        raise ModelError(f"{where}: expected a finite number, found an integer of "
+                         f"{len(str(abs(value)))} digits") from None
     if not math.isfinite(value):
         raise ModelError(f"{where}: expected a finite number, found {value!r}")
     if positive and value <= 0:

@@ -13,6 +13,7 @@ vectorised system.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -99,6 +100,10 @@ def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:
         raise ModelError(f"{where}: [simulate] method {method!r} is not one of "
                          f"{', '.join(INTEGRATORS)}")
     rtol = number(settings.get("rtol", 1e-11), where=f"{where}: [simulate] rtol", positive=True)
+    if rtol < _SMALLEST_RTOL:
+        raise ModelError(f"{where}: [simulate] rtol = {rtol:g} is below what the integrators "
+                         f"reach (at least {_SMALLEST_RTOL:.2g}, 100 times the rounding of a "
+                         "double)")
     atol = number(settings.get("atol", 1e-12), where=f"{where}: [simulate] atol", positive=True)
     seed = settings.get("seed")
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0):
@@ -160,6 +165,7 @@ def run(system: System, *, seed: int | None = None,
         raise ModelError(f"the run would write {size} samples, more than "
                          f"max_samples = {system.max_samples:,}; raise it with --max-samples "
                          "or [simulate] max_samples if this is intended")
+    _check_memory(total * (2 * n + 2), n, total)
     times = sample_times(system.t_end, system.dt)
     # only the damping terms present; a conservative run carries no drained-energy row: a
     # fifth less to interpolate and store at every sample of a 2-DOF run
@@ -176,6 +182,7 @@ def run(system: System, *, seed: int | None = None,
         return _ESCAPE_BOUND - np.max(np.abs(y[:2 * n * n_traj]), initial=0.0)
 
     escape.terminal = True  # type: ignore[attr-defined]
+    _check_work(motion, start.T.ravel(), float(times[-1]), system)
     with np.errstate(all="ignore"):
         solution = solve_ivp(motion, (0.0, float(times[-1])), start.T.ravel(),
                              method=INTEGRATORS[system.method], t_eval=times,
@@ -247,6 +254,88 @@ def run(system: System, *, seed: int | None = None,
         "dt": system.dt,
     }
     return columns, provenance
+
+
+# scipy's integrators raise a smaller rtol to this, with a warning.
+_SMALLEST_RTOL = 100 * np.finfo(float).eps
+# The trial that estimates the work of a run, in right-hand-side evaluations; a run may
+# take a million of them, or a thousand per sample of a trajectory (a fine dt takes less
+# than one; a thousand is far beyond the steps a smooth motion needs between samples).
+_TRIAL_EVALUATIONS, _FREE_EVALUATIONS, _EVALUATIONS_PER_SAMPLE = 2_000, 1_000_000, 1_000
+_IMPLICIT = ("Radau", "BDF", "LSODA")
+
+
+class _TrialOver(Exception):
+    """The trial integration used its evaluations; `t` is the time it reached."""
+
+    def __init__(self, t: float) -> None:
+        self.t = t
+
+
+def _check_work(motion: Motion, y0: np.ndarray, span: float, system: System) -> None:
+    """Refuse a run whose integration would take far too long, before it starts: a trial
+    over its first `_TRIAL_EVALUATIONS` evaluations gives the rate at which it advances.
+
+    A span of 1e12 s of a system that swings in seconds, or damping so strong that the
+    explicit steps shrink to nothing (a stiff system), ran for minutes without a word.
+    """
+    method = INTEGRATORS[system.method]
+    reached = _trial_reach(motion, y0, span, method, system)
+    needed = _TRIAL_EVALUATIONS * span / reached if reached > 0 else math.inf
+    most = max(_FREE_EVALUATIONS,
+               _EVALUATIONS_PER_SAMPLE * sample_count(system.t_end, system.dt))
+    if needed <= most:
+        return
+    # stiff: an implicit method gets much further on the same work
+    stiff = (method not in _IMPLICIT
+             and _trial_reach(motion, y0, span, "Radau", system) > 100 * reached)
+    raise ModelError(
+        f"the integration would take about {needed:.2g} evaluations of the equations of "
+        f"motion over t_end = {system.t_end:g} s (at most {most:.2g} for its samples): "
+        + ("the system is stiff (damping or stiffness far beyond the scale of the motion); "
+           'use [simulate] method = "radau", or check the values' if stiff
+           else "shorten t_end, or check the parameters and damping (values far beyond the "
+                "scale of the motion make the steps tiny)"))
+
+
+def _trial_reach(motion: Motion, y0: np.ndarray, span: float, method: str,
+                 system: System) -> float:
+    """How far an integration gets on `_TRIAL_EVALUATIONS` evaluations (all of `span`
+    when it gets to the end)."""
+    from scipy.integrate import solve_ivp
+
+    count = 0
+
+    def counted(t: float, y: np.ndarray) -> np.ndarray:
+        nonlocal count
+        count += 1
+        if count > _TRIAL_EVALUATIONS:
+            raise _TrialOver(t)
+        return motion(t, y)
+
+    try:
+        with np.errstate(all="ignore"):
+            solve_ivp(counted, (0.0, span), y0, method=method, rtol=system.rtol,
+                      atol=system.atol)
+    except _TrialOver as over:
+        return over.t
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+        return 0.0   # a Jacobian that overflows: this method gets nowhere
+    return span
+
+
+def _check_memory(values: float, n: int, samples: float) -> None:
+    """Refuse a run whose samples would not fit in this machine's memory."""
+    try:
+        available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError):   # not every system tells
+        return
+    needed = 8 * values
+    if needed > available:
+        raise ModelError(f"the run would hold {needed / 2**20:,.1f} MiB of samples ("
+                         f"{samples:,.0f} samples of {2 * n} states), more than the "
+                         f"{available / 2**20:,.1f} MiB of memory free; simulate fewer or "
+                         "shorter trajectories, or with a larger dt")
 
 
 def _check_mass(motion: Motion, Xt: np.ndarray, label: str) -> None:

@@ -159,3 +159,72 @@ def test_kinks_of_an_energy(energy, kinks):
     found = {str(k.expression) for k in model.kinks}
     symbols = {n: sympy.Symbol(n, real=True) for n in ("x", "y")}
     assert found == {str(sympy.sympify(k, locals=symbols)) for k in kinks}
+
+
+def _system(**changes) -> str:
+    """A Duffing system file, with some lines replaced or added."""
+    lines = {"k": "1.0", "k3": "0.5", "x": "1.0", "v": "0.0", "t_end": "10", "dt": "0.01"}
+    lines.update({k: v for k, v in changes.items() if k in lines})
+    extra = {k: v for k, v in changes.items() if k not in lines}
+    text = (f'[model]\nbuiltin = "duffing"\n[parameters]\nk = {lines["k"]}\n'
+            f'k3 = {lines["k3"]}\n[[initial]]\nx = {lines["x"]}\nv = {lines["v"]}\n'
+            f'[simulate]\nt_end = {lines["t_end"]}\ndt = {lines["dt"]}\n')
+    for key, value in extra.items():
+        table, name = key.split("__")
+        text += f"[{table}]\n{name} = {value}\n" if table != "simulate" else ""
+        if table == "simulate":
+            text = text.replace("[simulate]\n", f"[simulate]\n{name} = {value}\n")
+    return text
+
+
+HUGE = "1" + "0" * 400
+
+
+@pytest.mark.parametrize("where", ["k", "x", "t_end", "dt", "noise__x", "damping__c_x"])
+def test_integers_beyond_a_double_in_a_system_file(hamid_cli, tmp_path, where):
+    """k = 10**400 written out gave an OverflowError."""
+    (tmp_path / "sys.toml").write_text(_system(**{where: HUGE}))
+    _one_line_error(_run(hamid_cli, "simulate", "--config", "sys.toml", "-o", "out.csv",
+                         cwd=tmp_path), 1, "sys.toml", "an integer of 401 digits")
+    assert not (tmp_path / "out.csv").exists()
+
+
+@pytest.mark.parametrize(("changes", "words"), [
+    ({"simulate__rtol": "1e-300"}, ["rtol = 1e-300", "at least 2.2e-14"]),
+    ({"t_end": "1e12", "dt": "1e6"}, ["evaluations of the equations of motion",
+                                      "shorten t_end"]),
+    ({"damping__c_x": "1e300"}, ["evaluations of the equations of motion"]),
+    ({"damping__c_x": "1e6"}, ["the system is stiff", 'method = "radau"']),
+    ({"k": "-1.0", "k3": "-0.5", "t_end": "60"}, ["trajectory 1 escapes"]),
+], ids=["rtol 1e-300", "span of 1e12 s", "damping 1e300", "stiff damping",
+        "unbounded negative stiffness"])
+def test_impossible_runs_are_refused_before_they_start(hamid_cli, tmp_path, changes, words):
+    (tmp_path / "sys.toml").write_text(_system(**changes))
+    _one_line_error(_run(hamid_cli, "simulate", "--config", "sys.toml", "-o", "out.csv",
+                         cwd=tmp_path), 1, *words)
+    assert not (tmp_path / "out.csv").exists()
+
+
+@pytest.mark.parametrize("changes", [
+    {"damping__c_x": "1e6", "simulate__method": '"radau"'},   # the stiff run, as advised
+    {"k": "-1.0", "k3": "0.5", "t_end": "60"},                 # a double well: bounded
+], ids=["stiff with radau", "double well"])
+def test_possible_runs_still_run(hamid_cli, tmp_path, changes):
+    (tmp_path / "sys.toml").write_text(_system(**changes))
+    done = _run(hamid_cli, "simulate", "--config", "sys.toml", "-o", "out.csv", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert len((tmp_path / "out.csv").read_text().splitlines()) > 1000
+
+
+def test_a_run_larger_than_memory_is_refused(monkeypatch):
+    import hamid
+    from hamid import simulation
+    from hamid.errors import ModelError
+
+    pages = {"SC_AVPHYS_PAGES": 10, "SC_PAGE_SIZE": 4096}   # 40 kB free
+    monkeypatch.setattr(simulation.os, "sysconf", pages.__getitem__)
+    system = {"model": {"builtin": "duffing"}, "parameters": {"k": 1.0, "k3": 0.5},
+              "initial": [{"x": 1.0, "v": 0.0}], "simulate": {"t_end": 100.0, "dt": 0.01}}
+    with pytest.raises(ModelError, match=r"would hold 0\.3 MiB of samples \(10,001 samples "
+                                         r"of 2 states\), more than the 0\.0 MiB"):
+        hamid.simulate(system)
