@@ -9,16 +9,18 @@ checked by `FitResult.from_dict` before it gets here.
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import json
+import re
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 from hamid.errors import UsageError
 from hamid.result import SCHEMA
 
-__all__ = ["FORMATS", "SCHEMA", "render"]
+__all__ = ["FORMATS", "SCHEMA", "printable", "render"]
 
 ReportFormat = Literal["table", "json", "markdown", "csv"]
 
@@ -36,6 +38,55 @@ _CSV_HEADER = (
     "relative_error",
     "fixed",
 )
+
+
+# --- text from data, shown safely ----------------------------------------------------------
+
+# What a terminal obeys instead of showing: C0 controls (ESC starts the sequences that set the
+# window title, move the cursor or hide text), DEL, C1 controls (U+009B is a one-character
+# CSI), line and paragraph separators, and the bidirectional marks and overrides that reorder
+# what is shown ("Trojan source").
+_CONTROLS = "\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u2028\u2029\u202a-\u202e\u2066-\u2069"
+_NAMED_ESCAPES = {"\n": "\\n", "\r": "\\r", "\t": "\\t"}
+
+
+def printable(text: str, *, keep: str = "") -> str:
+    """`text` with every control character a terminal would obey shown as an escape instead.
+
+    Names, labels and messages that come from data files are escaped before they are shown:
+    ESC becomes the four characters ``\\x1b``, U+009B ``\\x9b``, U+202E ``\\u202e``, a newline
+    ``\\n``. Other text, accents and symbols included, is left alone.
+
+    Parameters
+    ----------
+    text : str
+        Text to show.
+    keep : str, optional
+        Control characters to leave as they are, such as the newlines and tabs of a table.
+
+    Examples
+    --------
+    >>> printable("x\\x1b]0;owned\\x07")
+    'x\\\\x1b]0;owned\\\\x07'
+    """
+    return _controls(keep).sub(_escape_control, text)
+
+
+@functools.lru_cache(maxsize=8)
+def _controls(keep: str) -> re.Pattern[str]:
+    """Helper: the pattern of the control characters to escape, less those kept."""
+    if not keep:
+        return re.compile(f"[{_CONTROLS}]")
+    return re.compile(f"(?![{re.escape(keep)}])[{_CONTROLS}]")
+
+
+def _escape_control(match: re.Match[str]) -> str:
+    """Helper: the visible escape of one control character."""
+    char = match.group()
+    named = _NAMED_ESCAPES.get(char)
+    if named is not None:
+        return named
+    return f"\\x{ord(char):02x}" if ord(char) < 0x100 else f"\\u{ord(char):04x}"
 
 
 # --- formatting of single values ----------------------------------------------------------
@@ -295,15 +346,41 @@ def _view(result: Mapping[str, Any]) -> _View:
     ) if section is not None)
     if warnings:
         sections += (_Section("", lines=warnings, style="yellow"),)
-    return _View(title, (_data_line(result["data"]),), sections)
+    return _printable_view(_View(title, (_data_line(result["data"]),), sections))
+
+
+def _printable_view(view: _View) -> _View:
+    """Helper: the view with the control characters of every text escaped.
+
+    Names, labels, file names and warnings come from data files and saved reports; a
+    terminal showing the table, or the markdown file, must not obey what they hold.
+    """
+
+    def table(spec: _Table) -> _Table:
+        groups = tuple((printable(label), tuple(tuple(map(printable, row)) for row in rows))
+                       for label, rows in spec.groups)
+        return replace(spec, header=tuple(map(printable, spec.header)), groups=groups)
+
+    def section(part: _Section) -> _Section:
+        return replace(part, heading=printable(part.heading),
+                       lines=tuple(map(printable, part.lines)),
+                       tables=tuple(map(table, part.tables)))
+
+    return _View(printable(view.title), tuple(map(printable, view.intro)),
+                 tuple(map(section, view.sections)))
 
 
 # --- renderers ---------------------------------------------------------------------------
 
 
 def _render_json(result: Mapping[str, Any], *, color: bool, width: int | None) -> str:
-    """Helper: the result as indented JSON, keys in the dict's order."""
-    return json.dumps(result, indent=2, allow_nan=False) + "\n"
+    """Helper: the result as indented JSON, keys in the dict's order.
+
+    ASCII only: every other character is written as a \\u escape, so control characters in
+    names and warnings (C1 ones included, which ensure_ascii=False would write raw) reach
+    no terminal, and a reader gets the text back exactly.
+    """
+    return json.dumps(result, indent=2, allow_nan=False, ensure_ascii=True) + "\n"
 
 
 def _csv_cell(value: object) -> str:
@@ -316,7 +393,11 @@ def _csv_cell(value: object) -> str:
 
 
 def _render_csv(result: Mapping[str, Any], *, color: bool, width: int | None) -> str:
-    """Helper: one CSV row per parameter."""
+    """Helper: one CSV row per parameter.
+
+    CSV is data: names are written exactly as they are (quoted where CSV needs it). The
+    command line escapes control characters only when the CSV goes to a terminal.
+    """
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(_CSV_HEADER)
