@@ -171,6 +171,8 @@ def _read_parquet(data: bytes, name: str) -> tuple[pa.Table, dict[str, Any] | No
         # later, in pandas.
         table.validate(full=True)
         raw = (table.schema.metadata or {}).get(METADATA_KEY)
+    except MemoryError:   # pyarrow's ArrowMemoryError is also an ArrowException
+        raise
     except (pa.ArrowException, OSError, UnicodeDecodeError) as exc:
         raise DataError(f"{name}: is not a valid Parquet file ({first_line(exc)})") from exc
     metadata = None
@@ -299,6 +301,8 @@ def _parse_csv(body: pa.Buffer, delimiter: str, name: str) -> pa.Table:
     parse = pacsv.ParseOptions(delimiter=delimiter)
     try:
         return pacsv.read_csv(pa.BufferReader(body), parse_options=parse, convert_options=convert)
+    except MemoryError:   # pyarrow's ArrowMemoryError is also an ArrowException
+        raise
     except pa.ArrowException:
         # pyarrow infers a column's type from the first block (1 MB) and fails when a later
         # block has a cell that does not fit. Read again as one block, so that such a column
@@ -548,6 +552,8 @@ def _arrow_reading(name: str) -> Iterator[None]:
         yield
     except UnicodeDecodeError as exc:
         raise DataError(f"{name}: is not UTF-8 text") from exc
+    except MemoryError:   # pyarrow's ArrowMemoryError is also an ArrowException
+        raise
     except (pa.ArrowException, OSError) as exc:
         raise DataError(f"{name}: cannot read ({first_line(exc)})") from exc
 

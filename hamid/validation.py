@@ -207,7 +207,9 @@ def _describe(value: object) -> str:
 
 
 def _depth_problem(data: object) -> str | None:
-    """Helper: a value nested deeper than MAX_DEPTH, named by its first keys, or None.
+    """Helper: a value nested deeper than MAX_DEPTH, named by its first keys, or a number
+    that JSON cannot hold (NaN, infinity: Python's json reads them) anywhere, also under
+    keys the schema leaves open; None when there is neither.
 
     Walked with a stack of our own, so that the check itself never recurses.
     """
@@ -217,6 +219,8 @@ def _depth_problem(data: object) -> str | None:
         if depth > MAX_DEPTH:
             shown = _path(where[:3]) + ("..." if len(where) > 3 else "")
             return f"key '{shown}' is nested more than {MAX_DEPTH} levels deep"
+        if isinstance(value, float) and not math.isfinite(value):
+            return f"key '{_path(where)}' is {value!r}, expected a number"
         stack.extend((child, [*where, step], depth + 1) for step, child in _children(value))
     return None
 
