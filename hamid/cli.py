@@ -1,9 +1,10 @@
 """The `hamid` command: a thin layer over the Python API.
 
 The only module that knows exit codes: 0 success, 1 a data, model or numerical error
-(one message naming the file, column, row or term), 2 a usage error. Data go to standard
-output; messages, warnings and progress to standard error. Heavy modules are imported
-inside the commands so that `hamid --help` starts fast.
+(one message naming the file, column, row or term), 2 a usage error, 128 + N after signal N
+(130 for Ctrl-C). Data go to standard output; messages, warnings and progress to standard
+error, with the control characters of any text from data shown escaped. Heavy modules are
+imported inside the commands so that `hamid --help` starts fast.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from __future__ import annotations
 import os
 import sys
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
 import click
@@ -21,17 +22,44 @@ from hamid.errors import HamidError, UsageError
 from hamid.options import COVARIANCE_KINDS, METHODS, VELOCITY_SOURCES
 
 _debug = False
+# The data files of the running `fit`, named when it runs out of memory.
+_sources: tuple[str, ...] = ()
 
 
-class _HamidGroup(click.Group):
-    """Turns library errors into click's exit codes, and bugs into one line."""
+class _Terminated(BaseException):
+    """SIGTERM, SIGHUP or SIGQUIT, raised where the program is, as Ctrl-C raises
+    KeyboardInterrupt, so that the same clean-up runs: temporaries removed, outputs intact."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+class _StreamsChecked:
+    """Parsing that may write the help or the version: a failed write is one line, exit 1."""
 
     def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
-        # `hamid --help` / `--version` write while parsing, before invoke; click would exit 1.
+        # `--help` / `--version` write while parsing, before invoke; click would exit 1.
         try:
-            return super().parse_args(ctx, args)
+            return super().parse_args(ctx, args)  # type: ignore[misc]
         except BrokenPipeError:
             _quiet_broken_pipe()
+        except OSError as exc:  # a full disk: `hamid --help > /dev/full`
+            _stdout_failed(exc.strerror or str(exc))
+        except click.exceptions.Exit as exc:
+            if exc.exit_code == 0 and sys.stdout is None:  # `>&-`: click wrote nothing
+                _stdout_failed("standard output is closed")
+            raise
+
+
+class _HamidCommand(_StreamsChecked, click.Command):
+    """A subcommand whose help may fail to be written."""
+
+
+class _HamidGroup(_StreamsChecked, click.Group):
+    """Turns library errors into click's exit codes, and bugs into one line."""
+
+    command_class = _HamidCommand
 
     def invoke(self, ctx: click.Context) -> Any:
         with warnings.catch_warnings():
@@ -46,29 +74,108 @@ class _HamidGroup(click.Group):
             return super().invoke(ctx)
         except UsageError as exc:
             # Raised inside a subcommand, whose context is gone by now: no usage line.
-            raise click.UsageError(str(exc)) from exc
+            raise click.UsageError(_printable(str(exc))) from exc
         except HamidError as exc:
-            raise click.ClickException(str(exc)) from exc
+            if isinstance(exc.__cause__, MemoryError):  # e.g. pyarrow's failed malloc
+                raise _out_of_memory(exc.__cause__, ctx.invoked_subcommand) from exc
+            raise click.ClickException(_printable(str(exc))) from exc
         except (click.ClickException, click.exceptions.Exit, click.Abort):
             raise
         except BrokenPipeError:
             _quiet_broken_pipe()
         except KeyboardInterrupt:
-            click.echo("interrupted; no output was written", err=True)
-            sys.exit(130)
+            _stop("interrupted", 130)
+        except _Terminated as exc:
+            _terminated(exc)
+        except MemoryError as exc:
+            raise _out_of_memory(exc, ctx.invoked_subcommand) from exc
         except Exception as exc:
             if _debug:
                 raise
-            raise click.ClickException(
+            raise click.ClickException(_printable(
                 f"internal error ({type(exc).__name__}: {exc}); this is a bug in hamid. "
-                "Rerun with --debug for the traceback") from exc
+                "Rerun with --debug for the traceback")) from exc
+
+
+def _printable(text: str) -> str:
+    """A message with the control characters of any text from data shown escaped."""
+    from hamid.report import printable
+
+    return printable(text)
+
+
+def _printable_lines(text: str) -> str:
+    """Text of several lines, with the control characters of each line escaped."""
+    from hamid.report import printable
+
+    return printable(text, keep="\n")
+
+
+def _stop(what: str, status: int) -> NoReturn:
+    """Ctrl-C or a signal: remove what was being written, say so in one line, exit."""
+    from hamid import writing
+
+    writing.remove_temporaries()
+    click.echo(f"{what}; no output was written", err=True)
+    sys.exit(status)
+
+
+def _terminated(exc: _Terminated) -> NoReturn:
+    import signal
+
+    _stop(f"terminated by {signal.Signals(exc.signum).name}", 128 + exc.signum)
+
+
+# What the innermost hamid module of a traceback was doing, for a MemoryError.
+_ACTIVITIES = {"io": "reading the data", "loading": "reading the data",
+               "stream": "reading the data in chunks", "writing": "writing the output",
+               "report": "rendering the report", "simulation": "simulating",
+               "validation": "checking the report", "result": "checking the report"}
+_MEMORY_HINTS = {
+    "fit": "read the data in bounded memory with --chunk-rows ROWS (without --residuals), "
+           "or fit fewer samples",
+    "simulate": "make the run smaller (a shorter t_end, a larger dt, fewer initial states)",
+}
+
+
+def _out_of_memory(exc: BaseException, command: str | None) -> click.ClickException:
+    """The one line for a MemoryError: what was being done, on how much data, what to try."""
+    activity = {"fit": "fitting", "simulate": "simulating"}.get(command or "", "working")
+    traceback = exc.__traceback__
+    while traceback is not None:
+        module = traceback.tb_frame.f_globals.get("__name__", "")
+        if module.startswith("hamid."):
+            activity = _ACTIVITIES.get(module.removeprefix("hamid."), activity)
+        traceback = traceback.tb_next
+    size = sum(os.path.getsize(s) for s in _sources if os.path.isfile(s))
+    if command == "fit" and _sources:
+        shown = ", ".join(_sources[:3]) + (f" and {len(_sources) - 3} more"
+                                           if len(_sources) > 3 else "")
+        activity += f" {shown}" + (f" ({size / 1e6:,.0f} MB)" if size >= 1e6 else "")
+    hint = _MEMORY_HINTS.get(command or "", "try a smaller input")
+    return click.ClickException(_printable(f"out of memory while {activity}; {hint}"))
 
 
 def _quiet_broken_pipe() -> NoReturn:
     """The reader of our output went away (e.g. `| head`): stop quietly, as cat does."""
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, sys.stdout.fileno())
+    _silence_stdout()
     sys.exit(0)
+
+
+def _stdout_failed(reason: str) -> NoReturn:
+    """Writing standard output failed outside a command (the help, the version)."""
+    _silence_stdout()
+    click.echo(f"Error: <stdout>: cannot write: {reason}", err=True)
+    sys.exit(1)
+
+
+def _silence_stdout() -> None:
+    """Point descriptor 1 at /dev/null, so that the flush at exit neither fails nor warns."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+    finally:
+        os.close(devnull)
 
 
 @click.group(cls=_HamidGroup, context_settings={"help_option_names": ["-h", "--help"]})
@@ -78,6 +185,21 @@ def cli(debug: bool) -> None:
     """Identify nonlinear vibrating systems by fitting their energy."""
     global _debug
     _debug = debug
+
+
+def _check_output(option: str, output: str, inputs: Sequence[str], *,
+                  binary: bool = False) -> None:
+    """Before any work: refuse an output that would replace an input, and one that cannot
+    be written (a missing or read-only folder, a read-only file, a closed standard output,
+    Parquet bound for a terminal)."""
+    from hamid import writing
+
+    for source in inputs:
+        if writing.overwrites(output, source):
+            shown = "standard input" if source == "-" else f"the input file {source!r}"
+            raise UsageError(f"{option} {output!r} is {shown}; writing it would destroy the "
+                             "input: choose another output")
+    writing.check_destination(output, binary=binary)
 
 
 def _stderr_console() -> Any:
@@ -103,8 +225,8 @@ def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_met
     from hamid import writing
     from hamid.api import simulate as run_simulation
 
-    writing.table_format(output, fmt)
-    writing.check_destination(output)
+    table_format = writing.table_format(output, fmt)
+    _check_output("-o", output, [config], binary=table_format == "parquet")
     console = _stderr_console()
     with _progress(console, "simulating") as progress:
         frame = run_simulation(config, seed=seed, max_samples=max_samples, progress=progress)
@@ -146,11 +268,14 @@ class _status:
         self.label, self.line = label, None
 
     def __enter__(self) -> Any:
-        if not sys.stderr.isatty():
+        if sys.stderr is None or not sys.stderr.isatty():
             return None
+        from rich.markup import escape
+
         self.line = _stderr_console().status(self.label)
         self.line.start()
-        return lambda text: self.line.update(f"{self.label}: {text}")
+        # the text names files, whose names may hold control characters or rich markup
+        return lambda text: self.line.update(escape(f"{self.label}: {_printable(text)}"))
 
     def __exit__(self, *exc: object) -> None:
         if self.line is not None:
@@ -232,13 +357,15 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         raise click.UsageError("--seed applies only to --cov bootstrap")
     if residuals is not None and chunk_rows is not None:
         raise click.UsageError("--residuals needs the data in memory; leave out --chunk-rows")
+    global _sources
+    _sources = data
+    inputs = [*data, *([model] if model is not None and os.path.isfile(model) else [])]
     if residuals is not None:
-        writing.table_format(residuals)
-        if output != "-" and os.path.realpath(output) == os.path.realpath(residuals):
-            raise click.UsageError(f"-o and --residuals name the same file {output!r}")
-    for destination in (output, residuals):
-        if destination is not None:
-            writing.check_destination(destination)
+        residuals_format = writing.table_format(residuals)
+        if output != "-" and writing.overwrites(residuals, output):
+            raise UsageError(f"-o and --residuals name the same file {output!r}")
+        _check_output("--residuals", residuals, inputs, binary=residuals_format == "parquet")
+    _check_output("-o", output, inputs)
     fmt = fmt or _format_from_name(output, {".json": "json", ".csv": "csv"}, "table")
     with _status("fitting") as status:
         result = run_fit(list(data), model,
@@ -267,12 +394,12 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
 @click.option("-o", "--output", default="-", metavar="OUT", help="Write the report here.")
 def report(result_file: str, fmt: str | None, output: str) -> None:
     """Render a saved fit result (JSON) as a table, JSON or markdown."""
-    from hamid import documents, io, writing
+    from hamid import documents, io
     from hamid.result import FitResult
 
+    _check_output("-o", output, [result_file])
     source = io.STDIN if io.is_stdio(result_file) else result_file
     result = FitResult.from_dict(documents.read_json(result_file), source=source)
-    writing.check_destination(output)
     fmt = fmt or _format_from_name(output, {".json": "json", ".md": "markdown"}, "table")
     _emit(result.to_dict(), fmt, output)
 
@@ -291,35 +418,40 @@ def _emit(result: dict[str, Any], fmt: str, output: str, *,
     from hamid import writing
     from hamid.report import render
 
-    to_terminal = output == "-" and sys.stdout.isatty()
+    to_terminal = writing.is_terminal(output)
     color = to_terminal and "NO_COLOR" not in os.environ
     text = render(result, fmt, color=color)
+    if fmt == "csv" and to_terminal:
+        # CSV is data, written exactly; on a terminal its names are shown escaped
+        text = _printable_lines(text)
+    # Written last, after the files: a stream (standard output, a FIFO) cannot be taken back.
     with writing.all_or_nothing():
         if also is not None:
             also()
-        if output != "-":
-            writing.write_text(text, output)
-    if output == "-":
         writing.write_text(text, output)
     if not (fmt == "table" and output == "-"):
         for warning in result["warnings"]:
-            click.echo(f"warning: {warning}", err=True)
+            click.echo(_printable(f"warning: {warning}"), err=True)
 
 
 @cli.command()
 @click.argument("name", required=False)
 def models(name: str | None) -> None:
     """List the built-in models, or show one in full (NAME may also be a model file)."""
+    from hamid import writing
     from hamid.api import load_model
     from hamid.model import BUILTINS, POLY_HELP
 
+    writing.check_destination("-")
     if name is None:
+        lines = []
         for key, spec in BUILTINS.items():
-            click.echo(f"{key:16s} {len(spec['coordinates'])} DOF  "
-                       f"parameters: {' '.join(spec['parameters'])}")
-            click.echo(f"{'':16s} E = {spec['energy']}")
-        click.echo(f"{POLY_HELP:16s} N DOF  kinetic energy plus one parameter c_<exponents> per "
-                   "monomial of degree 2..D (e.g. poly:2:3)")
+            lines.append(f"{key:16s} {len(spec['coordinates'])} DOF  "
+                         f"parameters: {' '.join(spec['parameters'])}")
+            lines.append(f"{'':16s} E = {spec['energy']}")
+        lines.append(f"{POLY_HELP:16s} N DOF  kinetic energy plus one parameter c_<exponents> "
+                     "per monomial of degree 2..D (e.g. poly:2:3)")
+        writing.write_text("\n".join(lines) + "\n", "-")
         return
     m = load_model(name)
     lines = [f"name:        {m.name}",
@@ -329,9 +461,94 @@ def models(name: str | None) -> None:
              f"parameters:  {' '.join(m.parameters)}",
              f"energy:      E = {m.energy}",
              f"natural:     {'yes (E = T + V)' if m.is_natural else 'no'}"]
-    click.echo("\n".join(lines))
+    # a model file's name and description are text from a file: shown escaped
+    writing.write_text("\n".join(_printable(line) for line in lines) + "\n", "-")
 
 
 def main() -> None:
     """Console-script entry point."""
-    cli(prog_name="hamid")
+    _prepare_process()
+    try:
+        try:
+            cli(prog_name="hamid")
+        except SystemExit as exc:
+            _finish(exc.code)
+    except _Terminated as exc:  # a signal outside a command, or while finishing
+        _terminated(exc)
+
+
+def _prepare_process() -> None:
+    """Before any work: standard streams that can be used, signals that clean up."""
+    import signal
+
+    # `<&-`, `>&-`, `2>&-`: the next file opened would take the closed descriptor, and a
+    # message or a native library's output meant for the terminal would land in it.
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            devnull = os.open(os.devnull, os.O_RDWR)
+            if devnull != fd:
+                os.dup2(devnull, fd)
+                os.close(devnull)
+    if sys.stdin is None:
+        sys.stdin = _ClosedInput()  # type: ignore[assignment]
+    if sys.stderr is None:  # messages go nowhere, and the exit status says what happened
+        sys.stderr = open(2, "w", closefd=False)  # noqa: SIM115 (/dev/null, kept open)
+    # A file-size limit (ulimit -f) makes a write fail with EFBIG, reported, rather than
+    # kill the process, leaving its temporary file.
+    if hasattr(signal, "SIGXFSZ"):
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    for name in ("SIGTERM", "SIGHUP", "SIGQUIT"):
+        signum = getattr(signal, name, None)
+        # an ignored signal stays ignored (nohup, a background job's SIGQUIT)
+        if signum is not None and signal.getsignal(signum) == signal.SIG_DFL:
+            signal.signal(signum, _on_signal)
+
+
+def _on_signal(signum: int, frame: object) -> None:
+    """Turn a termination signal into an exception, once: a second must not cut the clean-up
+    short."""
+    import signal
+
+    for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT"):
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), signal.SIG_IGN)
+    raise _Terminated(signum)
+
+
+class _ClosedInput:
+    """Standard input when the shell closed it (`<&-`): reading fails as on a closed
+    descriptor, and the reader reports it in one line."""
+
+    closed = False
+
+    @property
+    def buffer(self) -> _ClosedInput:
+        return self
+
+    def read(self, *args: object) -> bytes:
+        import errno
+
+        raise OSError(errno.EBADF, "standard input is closed")
+
+    def isatty(self) -> bool:
+        return False
+
+
+def _finish(status: object) -> NoReturn:
+    """Flush standard output before exiting: output the buffer still held (a full disk)
+    fails here as one line, not as Python's warning at exit."""
+    try:
+        if sys.stdout is not None:
+            sys.stdout.flush()
+    except OSError as exc:
+        _silence_stdout()
+        if status in (0, None):
+            click.echo(f"Error: <stdout>: cannot write: {exc.strerror or exc}", err=True)
+            status = 1
+    sys.exit(status)
+
+
+if __name__ == "__main__":
+    main()
