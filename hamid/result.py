@@ -13,7 +13,6 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Literal, NotRequired, TypedDict
 
 __all__ = [
-    "SCHEMA",
     "BlockResiduals",
     "ConditioningInfo",
     "DataInfo",
@@ -27,6 +26,8 @@ __all__ = [
     "ParameterEstimate",
     "RefinementInfo",
     "ResidualSummary",
+    "SCHEMA",
+    "percent",
     "plain_data",
 ]
 
@@ -260,3 +261,14 @@ def plain_data(value: Any) -> Any:
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     return value
+
+
+def percent(level: float) -> str:
+    """A confidence level as a percentage, e.g. 95%, never rounded to 100%.
+
+    Decimal arithmetic on the level's shortest repr: 100 * 0.9 is 90.00000000000001 in
+    binary, and 6 digits would turn 0.9999999999999999 into "100%".
+    """
+    from decimal import Decimal
+
+    return f"{(Decimal(repr(float(level))) * 100).normalize():f}%"

@@ -16,7 +16,7 @@ from hamid.model import Model
 from hamid.options import FitOptions
 from hamid.plan import FitPlan
 from hamid.records import Records
-from hamid.result import EnergyLevel, FitResult, ParameterEstimate, plain_data
+from hamid.result import EnergyLevel, FitResult, ParameterEstimate, percent, plain_data
 from hamid.unknowns import Unknowns
 
 __all__ = ["Provenance", "dissipation_summary", "fit_result", "samples"]
@@ -176,7 +176,7 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
     for p in parameters:
         if p.stderr is not None and abs(p.estimate) < critical * p.stderr:
             notes.append(f"{p.name} is not significantly different from zero "
-                         f"(its {level:.0%} interval contains 0)")
+                         f"(its {percent(level)} interval contains 0)")
     autocorrelation = stats["lag1_autocorrelation"]
     if cov in ("classical", "hc") and kind != "energy":
         notes.append(f"--cov {cov} treats overlapping weak-form windows as independent and "

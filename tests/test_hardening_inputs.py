@@ -228,3 +228,13 @@ def test_a_run_larger_than_memory_is_refused(monkeypatch):
     with pytest.raises(ModelError, match=r"would hold 0\.3 MiB of samples \(10,001 samples "
                                          r"of 2 states\), more than the 0\.0 MiB"):
         hamid.simulate(system)
+
+
+def test_a_level_just_below_one_is_not_shown_as_100_percent():
+    """--level 0.9999999999999999 printed '100% interval'."""
+    import hamid
+
+    result = hamid.fit(ROOT / "sample_data" / "henon_heiles.csv", method="energy",
+                       level=0.9999999999999999)
+    shown = [w for w in result.warnings if "interval contains 0" in w]
+    assert shown and all("99.99999999999999% interval" in w for w in shown)
