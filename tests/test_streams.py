@@ -400,6 +400,23 @@ def test_trajectory_labels_from_data_are_escaped_in_the_fit_report(tmp_path):
     assert f"B{SHOWN}" in done.stdout.decode()
 
 
+def test_column_names_from_data_are_escaped_in_the_report_and_messages(tmp_path):
+    lines = [line for line in Path(DUFFING_CSV).read_text().splitlines()
+             if not line.startswith("#")]
+    assert lines[0] == "trajectory,t,x,v", lines[0]
+    data = tmp_path / "data.csv"
+    data.write_text("\n".join([f"trajectory,t,pos{EVIL},v", *lines[1:]]) + "\n")
+    done = run(["fit", data, "--model", "duffing", "--method", "energy", "--columns",
+                f"x=pos{EVIL}"])
+    assert done.returncode == 0, done.stderr
+    _no_raw_controls(done.stdout)
+    assert f"x=pos{SHOWN}" in done.stdout.decode()
+    # the same column, not mapped: the message lists the columns
+    done = run(["fit", data, "--model", "duffing"])
+    one_line(done, 1, f"pos{SHOWN}")
+    _no_raw_controls(done.stderr)
+
+
 def test_csv_is_data_kept_exactly_through_a_pipe(tmp_path):
     data = _evil_data(tmp_path)
     done = run(["fit", data, "--model", "duffing", "--method", "energy", "--residuals", "-",
