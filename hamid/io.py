@@ -702,6 +702,8 @@ def _cell(text: str) -> str:
 def read_bytes(source: str | os.PathLike[str]) -> tuple[bytes, str]:
     """Helper function reading a whole file, or standard input for ``"-"``."""
     if is_stdio(source):
+        if sys.stdin is None:   # a process started without one (pythonw, a closed fd 0)
+            raise DataError(f"{STDIN}: cannot read: standard input is closed")
         try:
             return sys.stdin.buffer.read(), STDIN
         except OSError as exc:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 from hamid.errors import UsageError
-from hamid.result import SCHEMA
+from hamid.result import SCHEMA, percent
 
 __all__ = ["FORMATS", "SCHEMA", "printable", "render"]
 
@@ -107,17 +107,6 @@ def _count(value: float) -> str:
     return str(int(value)) if float(value).is_integer() else str(value)
 
 
-def _level(level: float) -> str:
-    """Helper: a confidence level as a percentage, e.g. 95%, never rounded to 100%.
-
-    Decimal arithmetic on the level's shortest repr: 100 * 0.9 is 90.00000000000001 in
-    binary, and 6 digits would turn 0.9999999999999999 into "100%".
-    """
-    from decimal import Decimal
-
-    return f"{(Decimal(repr(float(level))) * 100).normalize():f}%"
-
-
 def _relative_error(parameter: Mapping[str, Any]) -> float | None:
     """Helper: (estimate - truth) / truth, or None when the truth is unknown or zero."""
     truth = parameter["truth"]
@@ -204,7 +193,7 @@ def _parameters_section(result: Mapping[str, Any]) -> _Section:
     """Helper: the parameters table, energy parameters first, then damping."""
     parameters = result["parameters"]
     with_truth = any(p["truth"] is not None for p in parameters)
-    level = _level(result["method"]["level"])
+    level = percent(result["method"]["level"])
     header = ("name", "estimate", "std. error", f"{level} CI low", f"{level} CI high")
     if with_truth:
         header += ("truth", "rel. error")
@@ -285,7 +274,7 @@ def _method_section(result: Mapping[str, Any]) -> _Section:
     covariance = ("Gauss-Newton of the trajectory fit" if refinement and refinement["applied"]
                   else method["covariance"])
     rows = [
-        ("covariance", f"{covariance}, {_level(method['level'])} intervals"),
+        ("covariance", f"{covariance}, {percent(method['level'])} intervals"),
         ("weighting", method["weighting"]),
     ]
     if method["noise"]:
