@@ -8,7 +8,7 @@ F_i = -coefficient * law(v_i) of `hamid.model.DAMPING_KINDS`, the motion follows
 
 (docs/method.md, "The trajectory refinement" and "Damping: the energy balance"), derived
 here from the energy and never written per model. Because T is quadratic in v, M depends
-on q only and d/dq (dL/dv) v = (dM/dq v) v, which vanishes when M is constant.
+on q only, and (d/dq dL/dv) v = ((dM/dq) v) v vanishes when M is constant.
 
 `Dynamics` holds a model and its damping terms; `Dynamics.at` fixes the weights
 w = (1, theta, damping coefficients) and returns a `Motion`: the accelerations of many
