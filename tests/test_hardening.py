@@ -23,7 +23,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 from unittest import mock
 
@@ -37,6 +36,7 @@ import pytest
 import rich.console  # noqa: F401
 import sympy
 from click.testing import CliRunner
+from helpers import wait_until_integrating
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from sympy.parsing.sympy_parser import parse_expr, standard_transformations
@@ -788,22 +788,6 @@ def test_simulate_into_a_missing_folder_fails_before_the_run(runner, tmp_path, m
 LONG_SYSTEM = system_text(replace=[("t_end = 2.0", "t_end = 5000.0"), ("dt = 0.1", "dt = 0.01")])
 
 
-def _wait_until_integrating(process, timeout=30.0):
-    """Wait until the process has loaded scipy's integrators, i.e. is past its imports."""
-    maps = Path(f"/proc/{process.pid}/maps")
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and process.poll() is None:
-        try:
-            loaded = "scipy/integrate" in maps.read_text()
-        except OSError:  # no /proc here: give the imports time
-            time.sleep(3.0)
-            return
-        if loaded:
-            time.sleep(0.5)
-            return
-        time.sleep(0.05)
-
-
 @pytest.mark.skipif(not hasattr(signal, "SIGINT") or os.name != "posix", reason="POSIX signals")
 def test_simulate_ctrl_c_part_way_leaves_the_file_byte_for_byte(tmp_path):
     config = tmp_path / "long.toml"
@@ -819,7 +803,7 @@ def test_simulate_ctrl_c_part_way_leaves_the_file_byte_for_byte(tmp_path):
                                text=True,
                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
-        _wait_until_integrating(process)
+        wait_until_integrating(process)
         if process.poll() is not None:
             pytest.skip("the run finished before the signal could be sent")
         process.send_signal(signal.SIGINT)

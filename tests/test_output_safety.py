@@ -35,6 +35,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from helpers import wait_until_integrating
 
 from hamid import io, writing
 from hamid.cli import cli
@@ -594,28 +595,12 @@ def test_a_signal_ignored_by_the_caller_stays_ignored(work):
 LONG_SYSTEM = SYSTEM.replace("t_end = 20.0", "t_end = 5000.0")
 
 
-def _wait_until_integrating(process, timeout=30.0):
-    """Wait until the process has loaded scipy's integrators, i.e. is past its imports."""
-    maps = Path(f"/proc/{process.pid}/maps")
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and process.poll() is None:
-        try:
-            loaded = "scipy/integrate" in maps.read_text()
-        except OSError:  # no /proc here: give the imports time
-            time.sleep(3.0)
-            return
-        if loaded:
-            time.sleep(0.5)
-            return
-        time.sleep(0.05)
-
-
 def test_sigterm_during_a_long_simulation(tmp_path):
     (tmp_path / "long.toml").write_text(LONG_SYSTEM)
     (tmp_path / "out.csv").write_bytes(PRECIOUS)
     process = _start(["simulate", "--config", "long.toml", "-o", "out.csv"], cwd=tmp_path)
     try:
-        _wait_until_integrating(process)
+        wait_until_integrating(process)
         if process.poll() is not None:
             pytest.skip("the run finished before the signal could be sent")
         process.send_signal(signal.SIGTERM)
