@@ -18,6 +18,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, Literal
 
+from hamid import compressed
 from hamid.errors import DataError, ModelError, UsageError
 
 if TYPE_CHECKING:
@@ -55,7 +56,6 @@ _SUFFIX_FORMATS: dict[str, Format] = {
 }
 _DELIMITERS = {"csv": ",", "tsv": "\t"}
 _PARQUET_MAGIC = b"PAR1"
-_GZIP_MAGIC = b"\x1f\x8b"
 _UTF8_BOM = b"\xef\xbb\xbf"
 METADATA_KEY = b"hamid"
 _METADATA_LINE = re.compile(rb"#\s*hamid:(.*)")
@@ -122,10 +122,13 @@ def _read_arrow(
     source: str | os.PathLike[str], format: str | None
 ) -> tuple[pa.Table, dict[str, Any] | None, str]:
     """Helper reading a table file: its Arrow table, hamid metadata and name for messages."""
-    fmt = check_format(format) if format is not None else format_from_suffix(source)
+    fmt = check_format(format) if format is not None else input_format(source)
     data, name = read_bytes(source)
     if not data or data.isspace():
         raise DataError(f"{name}: file is empty")
+    data = compressed.decompressed(data, name)
+    if not data or data.isspace():
+        raise DataError(f"{name}: file is empty once decompressed")
     if fmt is None:
         fmt = "parquet" if data.startswith(_PARQUET_MAGIC) else None
     if fmt == "parquet":
@@ -281,8 +284,6 @@ def _text_layout(head: bytes, name: str,
                  fmt: Format | None) -> tuple[int, dict[str, Any] | None, str]:
     """Helper finding, in the start of delimited text (through its header line), the offset
     of the header line, the hamid metadata and the delimiter (sniffed when `fmt` is None)."""
-    if head.startswith(_GZIP_MAGIC):
-        raise DataError(f"{name}: is gzip-compressed; decompress it first")
     start = len(_UTF8_BOM) if head.startswith(_UTF8_BOM) else 0
     start, metadata = _skip_comments(head, start, name)
     if start >= len(head):
@@ -429,11 +430,20 @@ class TableChunks:
     def __init__(self, source: str | os.PathLike[str], *, format: str | None = None) -> None:
         self.path = source
         self.name = os.fsdecode(source)
-        fmt = check_format(format) if format is not None else format_from_suffix(source)
+        fmt = check_format(format) if format is not None else input_format(source)
         with _opened(source, self.name) as stream:
-            head = stream.read(len(_PARQUET_MAGIC))
+            head = stream.read(compressed.HEAD_BYTES)
         if not head:
             raise DataError(f"{self.name}: file is empty")
+        # Compressed text is decompressed as it is read, one block at a time.
+        self.compression = compressed.codec_of(head)
+        if self.compression is not None:
+            with self._open() as stream:
+                head = stream.read(len(_PARQUET_MAGIC))
+            if head == _PARQUET_MAGIC or fmt == "parquet":
+                raise DataError(f"{self.name}: a compressed Parquet file cannot be read in "
+                                "chunks; decompress it first")
+        head = head[:len(_PARQUET_MAGIC)]
         self.format: Format = fmt or ("parquet" if head == _PARQUET_MAGIC else "csv")
         if self.format == "parquet":
             _check_parquet_magic(head, self.name)
@@ -441,6 +451,16 @@ class TableChunks:
             self._open_parquet()
         else:
             self._open_text(fmt)
+
+    @contextlib.contextmanager
+    def _open(self) -> Iterator[IO[bytes]]:
+        """Helper opening the file, decompressing it as it is read when it is compressed."""
+        with _opened(self.path, self.name) as stream:
+            if self.compression is None:
+                yield stream
+            else:
+                with compressed.opened(stream, self.compression, self.name) as reader:
+                    yield reader
 
     def _open_parquet(self) -> None:
         import pyarrow as pa
@@ -458,7 +478,7 @@ class TableChunks:
 
     def _open_text(self, fmt: Format | None) -> None:
         head = b""
-        with _opened(self.path, self.name) as stream:
+        with self._open() as stream:
             for line in stream:   # comment and blank lines, then the header line
                 head += line
                 text = line.removeprefix(_UTF8_BOM) if head == line else line
@@ -515,9 +535,8 @@ class TableChunks:
                 yield from parquet.iter_batches(batch_size=rows, columns=columns,
                                                 row_groups=[group])
             return
-        stream = open(self.path, "rb")  # noqa: SIM115 (closed below, after the last batch)
-        try:
-            stream.seek(self.offset)
+        with self._open() as stream:
+            stream.read(self.offset)   # comment lines and the byte-order mark
             reader = pacsv.open_csv(
                 stream,
                 read_options=pacsv.ReadOptions(block_size=max(rows * 64, 1 << 12)),
@@ -528,8 +547,6 @@ class TableChunks:
                     else None))
             for batch in reader:
                 yield batch.rename_columns([c.strip() for c in batch.schema.names])
-        finally:
-            stream.close()
 
 
 @contextlib.contextmanager
@@ -743,6 +760,17 @@ def format_from_suffix(path: str | os.PathLike[str]) -> Format | None:
     if is_stdio(path):
         return None
     return _SUFFIX_FORMATS.get(Path(os.fsdecode(path)).suffix.lower())
+
+
+def input_format(path: str | os.PathLike[str]) -> Format | None:
+    """The format of a file to read implied by its extension, under a compression one
+    (``run.csv.gz`` is CSV)."""
+    if is_stdio(path):
+        return None
+    name = Path(os.fsdecode(path))
+    if name.suffix.lower() in compressed.SUFFIXES:
+        name = name.with_suffix("")
+    return _SUFFIX_FORMATS.get(name.suffix.lower())
 
 
 def os_reason(exc: OSError) -> str:
