@@ -9,6 +9,7 @@ imported inside the commands so that `hamid --help` starts fast.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 import warnings
@@ -18,7 +19,7 @@ from typing import Any, NoReturn
 import click
 
 from hamid import __version__
-from hamid.errors import HamidError, UsageError
+from hamid.errors import DataError, HamidError, UsageError
 from hamid.options import COVARIANCE_KINDS, METHODS, VELOCITY_SOURCES
 
 _debug = False
@@ -227,6 +228,7 @@ def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_met
 
     table_format = writing.table_format(output, fmt)
     _check_output("-o", output, [config], binary=table_format == "parquet")
+    _check_room(config, output, table_format, max_samples)
     console = _stderr_console()
     with _progress(console, "simulating") as progress:
         frame = run_simulation(config, seed=seed, max_samples=max_samples, progress=progress)
@@ -237,6 +239,32 @@ def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_met
                   f"(t = 0..{frame['t'].iloc[-1]:g}, dt = {meta['dt']:g}); "
                   f"largest relative energy drift {drift:.2g}"
                   + ("" if not meta["damping"] else " (energy plus dissipated work)"))
+
+
+# Bytes a value takes in a written table: CSV text of a double's shortest form and a
+# separator, or Parquet's uncompressed double.
+_VALUE_BYTES = {"csv": 20, "tsv": 20, "parquet": 8}
+
+
+def _check_room(config: str, output: str, table_format: str, max_samples: int | None) -> None:
+    """Refuse a simulation whose output would not fit on the disk it goes to, before the
+    run (150 coordinates of 20 million samples, 48 GB, started writing before)."""
+    import shutil
+
+    from hamid import documents, simulation
+
+    if output == "-" or not os.path.isdir(os.path.dirname(os.path.abspath(output))):
+        return
+    system = simulation.parse_system(documents.read_toml(config), where=config)
+    if max_samples is not None:
+        system = dataclasses.replace(system, max_samples=max_samples)
+    values = simulation.output_values(system)
+    needed = values * _VALUE_BYTES[table_format]
+    free = shutil.disk_usage(os.path.dirname(os.path.abspath(output))).free
+    if needed > free:
+        raise DataError(f"{output}: the run would write about {needed / 2**30:,.1f} GiB "
+                        f"({values:,.0f} values), more than the {free / 2**30:,.1f} GiB "
+                        "free on its disk; simulate less, or write elsewhere")
 
 
 class _progress:

@@ -128,6 +128,12 @@ def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:
                   noise, relative, damping, max_samples)
 
 
+def output_values(system: System) -> float:
+    """The values a run writes: its samples times the trajectory, time and state columns."""
+    n = len(system.model.coordinates)
+    return sample_count(system.t_end, system.dt) * len(system.initial) * (2 * n + 2)
+
+
 def sample_count(t_end: float, dt: float) -> float:
     """Number of samples t = k*dt up to t_end (inf when it does not fit a float)."""
     steps = t_end / dt

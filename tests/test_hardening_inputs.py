@@ -238,3 +238,26 @@ def test_a_level_just_below_one_is_not_shown_as_100_percent():
                        level=0.9999999999999999)
     shown = [w for w in result.warnings if "interval contains 0" in w]
     assert shown and all("99.99999999999999% interval" in w for w in shown)
+
+
+def test_a_simulation_larger_than_the_free_disk_is_refused_before_it_runs(tmp_path,
+                                                                       monkeypatch):
+    """150 coordinates of 20 million samples (48 GB) started writing."""
+    import shutil
+    from collections import namedtuple
+
+    from click.testing import CliRunner
+
+    from hamid import cli, simulation
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**6, 0, 10_000))
+    ran = []
+    monkeypatch.setattr(simulation, "run", lambda *a, **k: ran.append(1))
+    (tmp_path / "sys.toml").write_text(_system())
+    result = CliRunner().invoke(cli.cli, ["simulate", "--config", str(tmp_path / "sys.toml"),
+                                          "-o", str(tmp_path / "out.csv")])
+    assert result.exit_code == 1
+    assert "the run would write about" in result.output
+    assert "(4,004 values), more than the 0.0 GiB free on its disk" in result.output
+    assert ran == [] and not (tmp_path / "out.csv").exists()
