@@ -62,7 +62,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         cov: str = "hac", level: float = 0.95, bootstrap: int = 200,
         seed: int | None = None, format: str | None = None,
         chunk_rows: int | None = None, in_memory: bool = False,
-        progress: Callable[[str], None] | None = None) -> FitResult:
+        progress: Callable[[str], None] | None = None, time_unit: str | None = None,
+        scale: Mapping[str, float] | None = None, gaps: str = "split") -> FitResult:
     """Fit the energy of recorded free oscillations.
 
     Parameters
@@ -75,7 +76,17 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     columns : dict, optional
         Model name -> file column, for columns named otherwise.
     time, trajectory : str, optional
-        Names of the time and trajectory columns (default ``t``/``time``, ``trajectory``).
+        Names of the time and trajectory columns (default ``t`` or ``time`` in any case,
+        with a unit suffix such as ``time_ms`` or ``Time [s]``; ``trajectory``).
+    time_unit : {"s", "ms", "us", "ns"}, optional
+        Unit of the time column (default: its name's suffix, else seconds); times are
+        converted to seconds before anything else.
+    scale : dict, optional
+        File column -> factor that brings it to the units of the others (SI); by default a
+        column's unit suffix (``x1_mm``, ``v1_mm_s``) or the units in the table's metadata.
+    gaps : {"split", "error"}
+        At a missing value or a time step over 5 times the median, cut the trajectory into
+        separate trajectories, each with its own level (said in a warning), or refuse.
     velocity : {"measured", "savgol"}
         Take the velocities from the file, or derive them from the positions by
         Savitzky-Golay differentiation with an odd `window` (samples; default about a tenth
@@ -134,7 +145,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                       window=window, order=order, noise=noise, bias_correct=bias_correct,
                       fix=fix or {}, method=method, weak_window=weak_window, damping=damping,
                       cov=cov, level=level, bootstrap=bootstrap, seed=seed, format=format,
-                      chunk_rows=chunk_rows, in_memory=in_memory)
+                      chunk_rows=chunk_rows, in_memory=in_memory, time_unit=time_unit,
+                      scale=scale, gaps=gaps)
     if isinstance(data, list | tuple) and len(data) == 1:
         data = data[0]
     chunks = opts.chunking(data)

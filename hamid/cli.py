@@ -326,7 +326,17 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.argument("data", nargs=-1, required=True)
 @click.option("--model", metavar="NAME|MODEL.toml", help="Built-in model or model file.")
 @click.option("--columns", metavar="NAME=COL,...", help="Map model names to file columns.")
-@click.option("--time", "time_column", metavar="COL", help="Time column (default t or time).")
+@click.option("--time", "time_column", metavar="COL",
+              help="Time column (default t or time in any case, with a unit: time_ms, "
+                   "Time [s]).")
+@click.option("--time-unit", type=click.Choice(["s", "ms", "us", "ns"]),
+              help="Unit of the time column (default: its name's suffix, else s).")
+@click.option("--scale", metavar="COL=FACTOR,...",
+              help="Multiply file columns by these factors to bring them to SI units "
+                   "(default: from unit suffixes such as x1_mm, v1_mm_s).")
+@click.option("--gaps", default="split", show_default=True,
+              type=click.Choice(["split", "error"]),
+              help="At a missing value or a time gap, cut the trajectory in two, or refuse.")
 @click.option("--trajectory", metavar="COL", help="Trajectory column (default trajectory).")
 @click.option("--format-in", type=click.Choice(["csv", "tsv", "parquet"]),
               help="Input format, when the file name does not tell it.")
@@ -370,7 +380,8 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
                    "skips its trajectory refinement (default for files over 64 MB: chunks "
                    "of 262144 rows, and auto refines holding only the records).")
 def fit(data: tuple[str, ...], model: str | None, columns: str | None,
-        time_column: str | None, trajectory: str | None, format_in: str | None,
+        time_column: str | None, time_unit: str | None, scale: str | None, gaps: str,
+        trajectory: str | None, format_in: str | None,
         velocity: str, window: int | None, order: int, noise: str | None,
         bias_correct: bool, method: str,
         weak_window: float | None, damping: str, fix: str | None, cov: str, level: float,
@@ -405,7 +416,8 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
                          method=method, weak_window=weak_window, damping=damping, cov=cov,
                          level=level, bootstrap=n_boot, seed=seed, format=format_in,
                          chunk_rows=chunk_rows, in_memory=residuals is not None,
-                         progress=status)
+                         progress=status, time_unit=time_unit,
+                         scale=_parse_floats(scale, "--scale"), gaps=gaps)
 
     def write_residuals() -> None:
         import pandas as pd

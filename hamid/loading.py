@@ -77,13 +77,16 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
     m, notes = _settle_model(model, metadata, [str(c) for c in first_table], first_name,
                              options)
     derived = options.velocity == "savgol"
-    parts, labels, mapping = [], [], {}
-    for source, frame, _ in tables:
+    parts, labels, mapping, units = [], [], {}, {}
+    for source, frame, table_metadata in tables:
         names = [str(c) for c in frame]
         mapping = naming.resolve_columns(names, m.coordinates, () if derived else m.velocities,
                                          mapping=options.columns, source=source)
-        reader = Reader(m, mapping, *_special_columns(names, options, source), source,
-                        typed=source == _DATA_FRAME or io.is_parquet(source))
+        time, trajectory = _special_columns(names, mapping, options, source, notes)
+        units = _units(names, mapping, time, options, table_metadata, source)
+        reader = Reader(m, mapping, time, trajectory, source,
+                        typed=source == _DATA_FRAME or io.is_parquet(source),
+                        scales=units["scale"])
         piece = next(reader.read([(frame, 0)]))
         notes.extend(reader.notes)
         parts.append(dataclasses.replace(piece, group=piece.group + len(labels)))
@@ -104,7 +107,7 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
                      f"{derivation[0]} samples, order {options.order}); their noise is "
                      "correlated with the positions'")
     data_info = _data_info([name for name, _, _ in tables], len(records.group), len(labels),
-                           mapping, options)
+                           mapping, options, units)
     if derivation:
         data_info.update(velocity_window=derivation[0], velocity_order=options.order)
     firsts = np.cumsum([0] + [len(part.group) for part in parts[:-1]])
@@ -119,8 +122,11 @@ class Reader:
     increasing, also across chunks. Errors name the table's 1-based data row."""
 
     def __init__(self, model: Model, mapping: Mapping[str, str], time: str | None,
-                 trajectory: str | None, source: str, typed: bool) -> None:
+                 trajectory: str | None, source: str, typed: bool,
+                 scales: Mapping[str, float] | None = None) -> None:
         self.model, self.mapping, self.source = model, mapping, source
+        # Column -> factor to SI units (seconds for time), applied as values are read.
+        self.scales = dict(scales or {})
         self.time, self.trajectory = time, trajectory
         # Without a trajectory column the table is one trajectory, labelled 1.
         self._ids: dict[Any, int] = {} if trajectory else {1: 0}
@@ -138,7 +144,9 @@ class Reader:
         values = io.column_values(chunk[column])
         if self.typed and values.dtype.kind not in "iuf":
             self.text_columns.add(column)
-        return io.numeric_values(values, column, self.source, first_row=row + 1)
+        numbers = io.numeric_values(values, column, self.source, first_row=row + 1)
+        factor = self.scales.get(column, 1.0)
+        return numbers if factor == 1.0 else numbers * factor
 
     @property
     def columns(self) -> list[str]:
@@ -221,6 +229,7 @@ class Chunked:
     reader: Reader
     chunk_rows: int
     progress: Callable[[str], None] | None
+    units: dict[str, Any]
 
     @property
     def labels(self) -> tuple[Any, ...]:
@@ -286,7 +295,7 @@ class Chunked:
     def data_info(self, sizes: np.ndarray, options: FitOptions) -> dict[str, Any]:
         """What the report says about the data, once a pass has counted the samples."""
         return _data_info([self.table.name], int(sizes.sum()), len(self.labels),
-                          self.reader.mapping, options)
+                          self.reader.mapping, options, self.units)
 
 
 def open_chunks(path: str, model: str | os.PathLike[str] | Model | None,
@@ -298,18 +307,59 @@ def open_chunks(path: str, model: str | os.PathLike[str] | Model | None,
     m, notes = _settle_model(model, table.metadata, table.columns, table.name, options)
     mapping = naming.resolve_columns(table.columns, m.coordinates, m.velocities,
                                      mapping=options.columns, source=table.name)
-    reader = Reader(m, mapping, *_special_columns(table.columns, options, table.name),
-                    table.name, typed=table.format == "parquet")
+    time, trajectory = _special_columns(table.columns, mapping, options, table.name, notes)
+    units = _units(table.columns, mapping, time, options, table.metadata, table.name)
+    reader = Reader(m, mapping, time, trajectory, table.name,
+                    typed=table.format == "parquet", scales=units["scale"])
     return Chunked(m, tuple(notes), _truth(table.metadata, m), table, reader, chunk_rows,
-                   progress)
+                   progress, units)
 
 
 def _data_info(sources: list[str], n_samples: int, n_trajectories: int,
-               mapping: Mapping[str, str], options: FitOptions) -> dict[str, Any]:
+               mapping: Mapping[str, str], options: FitOptions,
+               units: Mapping[str, Any]) -> dict[str, Any]:
     """What the report says about the data (docs/output.md, `data`)."""
     return {"sources": sources, "n_samples": n_samples,
             "n_trajectories": n_trajectories, "columns": dict(mapping),
-            "velocity_source": options.velocity}
+            "velocity_source": options.velocity, "time": units["time"],
+            "time_unit": units["time_unit"],
+            "scale": {c: f for c, f in units["scale"].items() if f != 1.0}}
+
+
+def _units(names: list[str], mapping: Mapping[str, str], time: str | None,
+           options: FitOptions, metadata: Mapping[str, Any] | None,
+           source: str) -> dict[str, Any]:
+    """The time column, its unit, and the factor bringing each column read to SI units
+    (seconds for time): --scale, else the column's unit suffix, else the unit the table's
+    metadata records (``{"units": {column: unit}}``), else 1."""
+    recorded = metadata.get("units") if isinstance(metadata, Mapping) else None
+    recorded = recorded if isinstance(recorded, Mapping) else {}
+    given = dict(options.scale or {})
+    read = [*mapping.values(), *([time] if time else [])]
+    for column in given:
+        if column not in read:
+            raise UsageError(f"--scale: {column!r} is not a column read from {source} "
+                             f"(read: {', '.join(read)})")
+    scale: dict[str, float] = {}
+    for column in mapping.values():
+        factor, unit = naming.column_scale(column)
+        if unit is None and isinstance(recorded.get(column), str):
+            factor = naming.COLUMN_UNITS.get(naming.unit_text(recorded[column]), 1.0)
+        scale[column] = given.get(column, factor)
+    time_unit = None
+    if time is not None:
+        unit = options.time_unit
+        if unit is None and naming.split_unit(time, naming.TIME_UNITS)[1] is None \
+                and isinstance(recorded.get(time), str) \
+                and naming.unit_text(recorded[time]) in naming.TIME_UNITS:
+            unit = naming.unit_text(recorded[time])
+        scale[time], time_unit = naming.time_scale(time, unit)
+        if time in given:
+            scale[time], time_unit = given[time], f"{given[time]:g} s"
+    elif options.time_unit is not None:
+        raise UsageError(f"--time-unit {options.time_unit}: {source} has no time column; "
+                         "name it with --time COL")
+    return {"time": time, "time_unit": time_unit, "scale": scale}
 
 
 def _settle_model(model: str | os.PathLike[str] | Model | None,
@@ -353,9 +403,10 @@ def _model_from_metadata(info: Mapping[str, Any], source: str) -> Model:
                         "give one with --model") from exc
 
 
-def _special_columns(names: list[str], options: FitOptions,
-                     source: str) -> tuple[str | None, str | None]:
-    """The time and trajectory columns: as asked for, else by their usual names."""
+def _special_columns(names: list[str], mapping: Mapping[str, str], options: FitOptions,
+                     source: str, notes: list[str]) -> tuple[str | None, str | None]:
+    """The time and trajectory columns: as asked for, else by their usual names. A column
+    named as time that is not taken is said in `notes`."""
     found = []
     for asked, default, option in (
             (options.time, naming.default_time_column(names), "--time"),
@@ -364,6 +415,13 @@ def _special_columns(names: list[str], options: FitOptions,
             raise DataError(f"{source}: no column {asked!r} for {option} "
                             f"(columns: {', '.join(names)})")
         found.append(default if asked is None else asked)
+    if found[0] is None:
+        unused = [name for name in names if naming.looks_like_time(name)
+                  and name not in mapping.values() and name != found[1]]
+        if unused:
+            notes.append(f"{source}: column {unused[0]!r} looks like time but its unit is "
+                         f"not one of {', '.join(naming.TIME_UNITS)}: it was not used; give "
+                         f"--time {unused[0]} --time-unit UNIT")
     return found[0], found[1]
 
 

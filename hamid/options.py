@@ -101,6 +101,8 @@ def _parse_items(
 METHODS = ("auto", "joint", "weak", "energy")
 COVARIANCE_KINDS = ("hac", "classical", "hc", "bootstrap")
 VELOCITY_SOURCES = ("measured", "savgol")
+TIME_UNITS = ("s", "ms", "us", "ns")   # naming.TIME_UNITS, without importing it
+GAP_POLICIES = ("split", "error")
 SAVGOL_ORDER = 5
 
 # Files larger than this are read in chunks when the options allow it: the chunked fit is
@@ -140,8 +142,18 @@ class FitOptions:
     format: str | None = None
     chunk_rows: int | None = None
     in_memory: bool = False
+    time_unit: str | None = None
+    scale: Mapping[str, float] | None = None
+    gaps: str = "split"
 
     def __post_init__(self) -> None:
+        if self.time_unit is not None:
+            _check_choice(self.time_unit, TIME_UNITS, "time_unit")
+        _check_choice(self.gaps, GAP_POLICIES, "gaps")
+        for column, factor in (self.scale or {}).items():
+            if not isinstance(factor, int | float) or not 0 < abs(factor) < float("inf"):
+                raise UsageError(f"--scale: {column}={factor!r} is not a finite non-zero "
+                                 "number")
         _check_choice(self.method, METHODS, "method")
         _check_choice(self.cov, COVARIANCE_KINDS, "cov")
         if not 0 < self.level < 1:

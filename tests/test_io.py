@@ -890,7 +890,8 @@ def test_find_velocity_pattern_order(columns, expected):
         (["x", "dx", "ddx"], set(), [("x", "dx")]),
         (["dx", "ddx", "x"], set(), [("x", "dx")]),
         (["x", "vx", "vvx", "vvvx"], set(), [("x", "vx")]),
-        (["trajectory", "t", "u2", "u1", "v1", "du2"], {"t", "trajectory"}, [("u2", "du2")]),
+        (["trajectory", "t", "u2", "u1", "v1", "du2"], {"t", "trajectory"},
+         [("u2", "du2"), ("u1", "v1")]),
         (["t", "q1", "q2", "q1_dot", "q2dot"], {"t"}, [("q1", "q1_dot"), ("q2", "q2dot")]),
         (["t", "dt", "x", "vx"], {"t"}, [("x", "vx")]),
         (["", "v", "x"], set(), []),
@@ -991,7 +992,9 @@ def test_resolve_two_names_one_column(mapping, message):
         (["t", "x"], "t", None),
         (["time", "x", "trajectory"], "time", "trajectory"),
         (["time", "t"], "t", None),
-        (["T", "Time", "traj"], None, None),
+        (["T", "Time", "traj"], "T", None),   # any case (issue 18)
+        (["x", "Time [ms]"], "Time [ms]", None),
+        (["timestamp", "x"], None, None),   # no unit: said in a warning, not taken
     ],
 )
 def test_default_columns(columns, time, trajectory):

@@ -1,0 +1,173 @@
+"""Files as a lab writes them (issue 18): time columns with units, column names with unit
+suffixes, `--scale`, dropouts and gaps, hints in errors, and the self-checks.
+
+The truth is the fit of the same record in SI units (`sample_data/peng_quadratic.csv`),
+converted here by hand, never by hamid's tables.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+
+import pandas as pd
+import pytest
+
+import hamid
+from hamid.errors import UsageError
+
+SAMPLE = "sample_data/peng_quadratic.csv"
+
+
+@pytest.fixture(scope="module")
+def si() -> pd.DataFrame:
+    return pd.read_csv(SAMPLE, comment="#")
+
+
+@pytest.fixture(scope="module")
+def si_fit() -> hamid.FitResult:
+    return hamid.fit(SAMPLE, "peng-quadratic")
+
+
+def _same_estimates(result, expected) -> None:
+    for name, value in expected.estimates.items():
+        assert result.estimates[name] == pytest.approx(value, rel=1e-8), name
+
+
+def _daq(frame: pd.DataFrame, time: str, time_factor: float) -> pd.DataFrame:
+    """The record with time in other units, positions in mm, velocities in m/s."""
+    daq = frame.rename(columns={"t": time, "u1": "x1_mm", "u2": "x2_mm"})
+    daq[time] = frame["t"] * time_factor
+    daq["x1_mm"] = frame["u1"] * 1000.0
+    daq["x2_mm"] = frame["u2"] * 1000.0
+    return daq
+
+
+@pytest.mark.parametrize(("time", "factor"), [("time_ms", 1e3), ("Time [ms]", 1e3),
+                                              ("t (us)", 1e6), ("TIME", 1.0)])
+def test_time_column_with_a_unit_gives_the_si_estimates(tmp_path, si, si_fit, time, factor):
+    path = tmp_path / "daq.csv"
+    _daq(si, time, factor).to_csv(path, index=False)
+    result = hamid.fit(path, "peng-quadratic", columns={"u1": "x1_mm", "u2": "x2_mm"})
+    _same_estimates(result, si_fit)
+    data = result.to_dict()["data"]
+    assert data["time"] == time
+    assert data["scale"]["x1_mm"] == 1e-3 and data["scale"]["x2_mm"] == 1e-3
+    # windows in seconds, as for the SI file
+    assert result.to_dict()["method"]["weak_window"] == pytest.approx(
+        si_fit.to_dict()["method"]["weak_window"], rel=1e-8)
+    assert result.to_dict()["method"]["kind"] == si_fit.to_dict()["method"]["kind"]
+
+
+def test_time_unit_option_overrides_the_name(tmp_path, si, si_fit):
+    frame = si.copy()
+    frame["clock"] = frame["t"] * 1e9
+    frame = frame.drop(columns="t")
+    path = tmp_path / "ns.csv"
+    frame.to_csv(path, index=False)
+    result = hamid.fit(path, "peng-quadratic", time="clock", time_unit="ns")
+    _same_estimates(result, si_fit)
+    assert result.to_dict()["data"]["time_unit"] == "ns"
+
+
+def test_time_unit_without_a_time_column_is_a_usage_error(si):
+    frame = si.drop(columns="t")
+    with pytest.raises(UsageError, match="no time column; name it with --time COL"):
+        hamid.fit(frame, "peng-quadratic", time_unit="ms")
+
+
+def test_a_column_that_looks_like_time_is_never_dropped_silently(si):
+    frame = si.rename(columns={"t": "time_min"})
+    result = hamid.fit(frame, "peng-quadratic", method="energy")
+    assert result.to_dict()["data"]["time"] is None
+    assert any("'time_min' looks like time" in w and "--time-unit" in w
+               for w in result.warnings)
+
+
+def test_scale_option_brings_columns_to_si_units(tmp_path, si, si_fit):
+    frame = si.rename(columns={"u1": "pos1", "u2": "pos2", "v1": "vel1", "v2": "vel2"})
+    frame["pos1"] *= 1000.0
+    frame["vel2"] *= 25.4
+    path = tmp_path / "odd.csv"
+    frame.to_csv(path, index=False)
+    result = hamid.fit(path, "peng-quadratic",
+                       columns={"u1": "pos1", "u2": "pos2", "v1": "vel1", "v2": "vel2"},
+                       scale={"pos1": 1e-3, "vel2": 1 / 25.4})
+    _same_estimates(result, si_fit)
+    assert result.to_dict()["data"]["scale"] == {"pos1": 1e-3, "vel2": 1 / 25.4}
+
+
+def test_scale_of_a_column_not_read_is_a_usage_error(si):
+    with pytest.raises(UsageError, match=r"--scale: 'nope' is not a column read"):
+        hamid.fit(si, "peng-quadratic", scale={"nope": 2.0})
+
+
+def test_velocity_suffix_mm_s_is_converted(tmp_path, si, si_fit):
+    frame = _daq(si, "t", 1.0).rename(columns={"v1": "v1_mm_s", "v2": "v2_mm_s"})
+    frame["v1_mm_s"] *= 1000.0
+    frame["v2_mm_s"] *= 1000.0
+    path = tmp_path / "mm.csv"
+    frame.to_csv(path, index=False)
+    result = hamid.fit(path, "peng-quadratic", columns={"u1": "x1_mm", "u2": "x2_mm"})
+    _same_estimates(result, si_fit)
+    assert result.to_dict()["data"]["columns"]["v1"] == "v1_mm_s"
+
+
+@pytest.mark.parametrize(("columns", "pairs"), [
+    (["t", "x1", "x2", "v1", "v2"], [("x1", "v1"), ("x2", "v2")]),
+    (["t", "theta", "omega"], [("theta", "omega")]),
+    (["t", "q1", "dq1"], [("q1", "dq1")]),
+    (["t", "x", "xdot"], [("x", "xdot")]),
+    (["time_ms", "x1_mm", "x2_mm", "v1", "v2"], [("x1_mm", "v1"), ("x2_mm", "v2")]),
+    (["x1 [mm]", "v1 [mm/s]"], [("x1 [mm]", "v1 [mm/s]")]),
+])
+def test_pairing_rules(columns, pairs):
+    from hamid import naming
+
+    time = naming.default_time_column(columns)
+    assert naming.find_coordinates(columns, exclude={time} if time else set()) == pairs
+
+
+def test_daq_header_fits_in_one_command(tmp_path, si, si_fit, hamid_cli):
+    """`time_ms,x1_mm,x2_mm,v1,v2` fits with the model and the column names only."""
+    path = tmp_path / "daq.csv"
+    _daq(si, "time_ms", 1e3).to_csv(path, index=False)
+    done = subprocess.run([*hamid_cli, "fit", str(path), "--model", "peng-quadratic",
+                           "--columns", "u1=x1_mm,u2=x2_mm", "--format", "json"],
+                          capture_output=True, text=True, check=False)
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    for p in report["parameters"]:
+        assert p["estimate"] == pytest.approx(si_fit.estimates[p["name"]], rel=1e-8)
+    assert report["data"]["time_unit"] == "ms"
+
+
+def test_time_unit_and_scale_on_the_command_line(tmp_path, si, si_fit, hamid_cli):
+    frame = _daq(si, "clock", 1e3).rename(columns={"x1_mm": "a", "x2_mm": "b"})
+    path = tmp_path / "plain.csv"
+    frame.to_csv(path, index=False)
+    done = subprocess.run([*hamid_cli, "fit", str(path), "--model", "peng-quadratic",
+                           "--columns", "u1=a,u2=b", "--time", "clock", "--time-unit", "ms",
+                           "--scale", "a=0.001,b=0.001", "--format", "json"],
+                          capture_output=True, text=True, check=False)
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    for p in report["parameters"]:
+        assert p["estimate"] == pytest.approx(si_fit.estimates[p["name"]], rel=1e-8)
+    assert report["data"]["scale"] == {"a": 0.001, "b": 0.001, "clock": 0.001}
+
+
+def test_bad_time_unit_is_exit_2(hamid_cli):
+    done = subprocess.run([*hamid_cli, "fit", SAMPLE, "--time-unit", "min"],
+                          capture_output=True, text=True, check=False)
+    assert done.returncode == 2
+
+
+def test_metadata_units_convert_like_suffixes(si, si_fit):
+    frame = si.rename(columns={"t": "clock"})
+    frame["clock"] *= 1e3
+    frame["u1"] *= 1e3
+    frame.attrs["hamid"] = {"units": {"clock": "ms", "u1": "mm", "u2": "m"}}
+    result = hamid.fit(frame, "peng-quadratic", time="clock")
+    _same_estimates(result, si_fit)
+    assert result.to_dict()["data"]["scale"] == {"u1": 1e-3, "clock": 1e-3}
