@@ -18,7 +18,7 @@ import numpy.typing as npt
 
 from hamid import design, solve, uncertainty
 from hamid.design import Block, Damping, Windows
-from hamid.errors import FitError
+from hamid.errors import DataError, FitError
 from hamid.loading import Loaded
 from hamid.model import Model
 from hamid.options import FitOptions
@@ -535,16 +535,20 @@ _NOISE_LOOKED_AT = 5e-3
 
 
 def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unknowns,
-                damping: Damping, options: FitOptions, sigma: Any) -> NoiseCheck:
+                damping: Damping, options: FitOptions, sigma: Any) -> NoiseCheck | None:
     """The noise against the motion, and the errors-in-variables bias of the linear fit
     `fit` of `rows` (None: a refined fit, which has none to look for): least squares
     against adjusted least squares (`hamid.adjust`), which is unbiased for polynomial
-    energies and measured velocities."""
+    energies and measured velocities; None when the trajectories are too short to tell
+    the noise."""
     from hamid import adjust, measurement
 
     m, records = loaded.model, loaded.records
     if sigma is None:
-        sigma = measurement.estimate_noise(records.X, records.bounds())
+        try:
+            sigma = measurement.estimate_noise(records.X, records.bounds())
+        except DataError:   # trajectories too short to tell the noise: nothing to check
+            return None
     spread = records.X.std(axis=0)
     ratio = {name: float(s / d) if d > 0 else 0.0
              for name, s, d in zip(m.variables, sigma, spread, strict=True)}
