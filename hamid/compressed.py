@@ -6,13 +6,15 @@ pyarrow's codecs (issue 18). `hamid.io` reads a compressed table whole through
 from __future__ import annotations
 
 import contextlib
+import os
 import re
 from collections.abc import Iterator
+from pathlib import Path
 from typing import IO
 
 from hamid.errors import DataError
 
-__all__ = ["SUFFIXES", "codec_of", "decompressed", "opened"]
+__all__ = ["SUFFIXES", "codec_of", "decompressed", "opened", "suffix"]
 
 # Whatever the file's name (standard input too).
 _MAGIC = {"gzip": re.compile(rb"\x1f\x8b"),
@@ -22,6 +24,15 @@ _MAGIC = {"gzip": re.compile(rb"\x1f\x8b"),
 SUFFIXES = (".gz", ".bz2", ".zst")
 # Enough of a file's start to tell its codec.
 HEAD_BYTES = 10
+
+
+def suffix(path: str | os.PathLike[str]) -> str:
+    """A file's extension in lower case, under a compression one (``.csv`` for
+    ``run.CSV.gz``)."""
+    name = Path(os.fsdecode(path))
+    if name.suffix.lower() in SUFFIXES:
+        name = name.with_suffix("")
+    return name.suffix.lower()
 
 
 def codec_of(head: bytes) -> str | None:

@@ -18,7 +18,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, Literal
 
-from hamid import compressed
+from hamid import compressed, labfiles
 from hamid.errors import DataError, ModelError, UsageError
 
 if TYPE_CHECKING:
@@ -102,6 +102,11 @@ def read_table(
     >>> table, metadata = read_table("run3.csv")  # doctest: +SKIP
     >>> x = numeric_column(table, "x", source="run3.csv")  # doctest: +SKIP
     """
+    if _is_lab_file(source, format):
+        import pandas as pd
+
+        columns, metadata = labfiles.read(source)
+        return pd.DataFrame(columns), metadata
     table, metadata, name = _read_arrow(source, format)
     return _to_pandas(table, name), metadata
 
@@ -110,7 +115,10 @@ def read_columns(
     source: str | os.PathLike[str], *, format: str | None = None
 ) -> tuple[dict[str, npt.NDArray[Any]], dict[str, Any] | None]:
     """`read_table` as numpy arrays by column name, in file order, without pandas (whose
-    import costs a third of a second) unless a Parquet file stores a pandas index."""
+    import costs a third of a second) unless a Parquet file stores a pandas index. MATLAB,
+    HDF5, TDMS and UFF files (by extension) are read by `hamid.labfiles`."""
+    if _is_lab_file(source, format):
+        return labfiles.read(source)
     table, metadata, name = _read_arrow(source, format)
     if _stores_pandas_index(table):
         frame = _to_pandas(table, name)
@@ -135,6 +143,11 @@ def _read_arrow(
         _check_parquet_magic(data, name)
         return (*_read_parquet(data, name), name)
     return (*_read_text(data, name, fmt), name)
+
+
+def _is_lab_file(source: str | os.PathLike[str], format: str | None) -> bool:
+    """Helper telling whether a source is read by `hamid.labfiles` (by its extension)."""
+    return format is None and not is_stdio(source) and labfiles.format_of(source) is not None
 
 
 def json_kind(value: object) -> str:
@@ -430,6 +443,11 @@ class TableChunks:
     def __init__(self, source: str | os.PathLike[str], *, format: str | None = None) -> None:
         self.path = source
         self.name = os.fsdecode(source)
+        if _is_lab_file(source, format):   # read whole, given in chunks
+            self.format, self.compression = "lab", None
+            self._whole, self.metadata = labfiles.read(source)
+            self.columns = list(self._whole)
+            return
         fmt = check_format(format) if format is not None else input_format(source)
         with _opened(source, self.name) as stream:
             head = stream.read(compressed.HEAD_BYTES)
@@ -444,7 +462,7 @@ class TableChunks:
                 raise DataError(f"{self.name}: a compressed Parquet file cannot be read in "
                                 "chunks; decompress it first")
         head = head[:len(_PARQUET_MAGIC)]
-        self.format: Format = fmt or ("parquet" if head == _PARQUET_MAGIC else "csv")
+        self.format = fmt or ("parquet" if head == _PARQUET_MAGIC else "csv")
         if self.format == "parquet":
             _check_parquet_magic(head, self.name)
         if self.format == "parquet":
@@ -497,6 +515,9 @@ class TableChunks:
     def chunks(self, columns: Sequence[str], rows: int) -> Iterator[dict[str, Any]]:
         """The named columns, about `rows` rows at a time, as numpy arrays."""
         names = list(dict.fromkeys(columns))
+        if self.format == "lab":
+            yield from labfiles.chunks(self._whole, names, rows)
+            return
         try:
             with _arrow_reading(self.name):
                 for batch in self._batches(names, rows):
@@ -763,14 +784,8 @@ def format_from_suffix(path: str | os.PathLike[str]) -> Format | None:
 
 
 def input_format(path: str | os.PathLike[str]) -> Format | None:
-    """The format of a file to read implied by its extension, under a compression one
-    (``run.csv.gz`` is CSV)."""
-    if is_stdio(path):
-        return None
-    name = Path(os.fsdecode(path))
-    if name.suffix.lower() in compressed.SUFFIXES:
-        name = name.with_suffix("")
-    return _SUFFIX_FORMATS.get(name.suffix.lower())
+    """The format implied by the extension of a file to read (``run.csv.gz`` is CSV)."""
+    return None if is_stdio(path) else _SUFFIX_FORMATS.get(compressed.suffix(path))
 
 
 def os_reason(exc: OSError) -> str:
