@@ -49,9 +49,12 @@ class Loaded:
     notes: tuple[str, ...]
     velocity_gain: float | None  # noise gain of derived velocities, None when measured
     row_sources: tuple[tuple[str, int], ...]  # (source, first row) of each input table
+    file_rows: Any = None   # the row read of each row of the records, when rows were dropped
 
     def locate(self, row: int) -> tuple[str, int]:
         """The source and 1-based data row of a row of the records."""
+        if self.file_rows is not None:
+            row = int(self.file_rows[row])
         source, first = next((s, f) for s, f in reversed(self.row_sources) if f <= row)
         return source, row - first + 1
 
@@ -86,7 +89,7 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
         units = _units(names, mapping, time, options, table_metadata, source)
         reader = Reader(m, mapping, time, trajectory, source,
                         typed=source == _DATA_FRAME or io.is_parquet(source),
-                        scales=units["scale"])
+                        scales=units["scale"], missing_ok=options.gaps == "split")
         piece = next(reader.read([(frame, 0)]))
         notes.extend(reader.notes)
         parts.append(dataclasses.replace(piece, group=piece.group + len(labels)))
@@ -100,6 +103,10 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
     records = Records(np.vstack([part.X for part in parts]),
                       np.concatenate([part.t for part in parts]) if has_time else None,
                       np.concatenate([part.group for part in parts]), tuple(labels))
+    firsts = np.cumsum([0] + [len(part.group) for part in parts[:-1]])
+    row_sources = tuple((name, int(f)) for (name, _, _), f in zip(tables, firsts, strict=True))
+    records, file_rows = _split_gaps(records, options.gaps, row_sources, notes)
+    labels = list(records.labels)
     derivation = None
     if derived:
         records, derivation = _derive_velocities(records, m, options.window, options.order)
@@ -110,10 +117,8 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
                            mapping, options, units)
     if derivation:
         data_info.update(velocity_window=derivation[0], velocity_order=options.order)
-    firsts = np.cumsum([0] + [len(part.group) for part in parts[:-1]])
     return Loaded(m, records, _truth(metadata, m), data_info, tuple(notes),
-                  derivation[1] if derivation else None,
-                  tuple((name, int(f)) for (name, _, _), f in zip(tables, firsts, strict=True)))
+                  derivation[1] if derivation else None, row_sources, file_rows)
 
 
 class Reader:
@@ -123,8 +128,10 @@ class Reader:
 
     def __init__(self, model: Model, mapping: Mapping[str, str], time: str | None,
                  trajectory: str | None, source: str, typed: bool,
-                 scales: Mapping[str, float] | None = None) -> None:
+                 scales: Mapping[str, float] | None = None, missing_ok: bool = False) -> None:
         self.model, self.mapping, self.source = model, mapping, source
+        # Missing cells read as NaN (for `_split_gaps`), else they are errors.
+        self.missing_ok = missing_ok
         # Column -> factor to SI units (seconds for time), applied as values are read.
         self.scales = dict(scales or {})
         self.time, self.trajectory = time, trajectory
@@ -144,7 +151,17 @@ class Reader:
         values = io.column_values(chunk[column])
         if self.typed and values.dtype.kind not in "iuf":
             self.text_columns.add(column)
+        missing = None
+        if self.missing_ok:
+            missing = (np.isnan(values.astype(np.float64)) if values.dtype.kind in "iuf" else
+                       np.fromiter((io.is_missing(v) or (isinstance(v, str) and not v.strip())
+                                    for v in values), bool, len(values)))
+            if missing.any():
+                values = values.copy()
+                values[missing] = 0
         numbers = io.numeric_values(values, column, self.source, first_row=row + 1)
+        if missing is not None and missing.any():
+            numbers[missing] = np.nan
         factor = self.scales.get(column, 1.0)
         return numbers if factor == 1.0 else numbers * factor
 
@@ -190,7 +207,8 @@ class Reader:
                 before = np.concatenate([[np.nan if last_t is None else last_t], t[:-1]])
                 same = np.ones(n, dtype=bool)
                 same[starts] = False
-                bad = np.flatnonzero(same & ~(t > before))
+                # a missing time is cut at by `_split_gaps`
+                bad = np.flatnonzero(same & ~(t > before) & ~np.isnan(t) & ~np.isnan(before))
                 if bad.size:
                     k = int(bad[0])
                     raise DataError(f"{self.source}: column {self.time!r}, row {row + k + 1}: "
@@ -436,6 +454,88 @@ def _truth(metadata: Mapping[str, Any] | None, m: Model) -> dict[str, float]:
     values = {**undamped, **(metadata.get("parameters") or {}),
               **(metadata.get("damping") or {})}
     return {k: float(v) for k, v in values.items() if isinstance(v, int | float)}
+
+
+GAP_STEPS = 5.0   # a time step over this many times the median step is a gap
+SHORTEST_PIECE = 3   # pieces of fewer samples are dropped
+
+
+def _split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int], ...],
+                notes: list[str]) -> tuple[Records, Any]:
+    """Cut the trajectories at rows with a missing value (dropped) and at time steps over
+    `GAP_STEPS` times their trajectory's median step, into trajectories of their own (each
+    with its own energy level); nothing is interpolated. With ``gaps="error"`` a time gap is
+    an error (missing values already are). Returns the records and, when rows were dropped,
+    the row read of each row kept."""
+    missing = np.isnan(records.X).any(axis=1)
+    if records.t is not None:
+        missing |= np.isnan(records.t)
+    kept = np.flatnonzero(~missing)
+    group, t = records.group, records.t
+    cut = np.zeros(len(kept), dtype=bool)
+    cut[1:] = (kept[1:] - kept[:-1] > 1) & (group[kept[1:]] == group[kept[:-1]])
+    n_gaps = 0
+    if t is not None and len(kept) > 1:
+        tk, gk = t[kept], group[kept]
+        steps = np.diff(tk)
+        same = gk[1:] == gk[:-1]
+        adjacent = same & (kept[1:] - kept[:-1] == 1)
+        limit = np.full(len(steps), np.inf)
+        for j in np.unique(gk):
+            mine = adjacent & (gk[1:] == j)
+            if mine.any():
+                limit[gk[1:] == j] = GAP_STEPS * float(np.median(steps[mine]))
+        back = np.flatnonzero(same & ~(steps > 0))
+        if back.size:
+            source, row = _locate(row_sources, int(kept[back[0] + 1]))
+            raise DataError(f"{source}: row {row}: time does not increase across the missing "
+                            "values before it; sort the file by trajectory then time")
+        gap = same & (steps > limit)
+        if gap.any() and gaps == "error":
+            source, row = _locate(row_sources, int(kept[np.argmax(gap) + 1]))
+            raise DataError(f"{source}: row {row}: a time gap of {steps[np.argmax(gap)]:g} s "
+                            f"(over {GAP_STEPS:g} times the median step); give --gaps split "
+                            "to fit the pieces as separate trajectories")
+        n_gaps = int(gap.sum())
+        cut[1:] |= gap
+    n_dropouts = int(cut.sum()) - n_gaps
+    if not cut.any() and not missing.any():
+        return records, None
+    start = np.ones(len(kept), dtype=bool)
+    start[1:] = cut[1:] | (group[kept[1:]] != group[kept[:-1]])
+    piece = np.cumsum(start) - 1
+    sizes = np.bincount(piece) if len(piece) else np.zeros(0, np.int64)
+    short = sizes < SHORTEST_PIECE
+    keep_rows = ~short[piece] if len(piece) else np.zeros(0, bool)
+    kept, piece = kept[keep_rows], piece[keep_rows]
+    first_of = {}
+    for p, row in zip(piece.tolist(), kept.tolist(), strict=True):
+        first_of.setdefault(p, row)
+    owner = {p: int(group[row]) for p, row in first_of.items()}
+    count: dict[int, int] = {}
+    for p in first_of:
+        count[owner[p]] = count.get(owner[p], 0) + 1
+    labels, seen, number = [], {}, {}
+    for p in first_of:
+        j = owner[p]
+        seen[j] = seen.get(j, 0) + 1
+        label = records.labels[j]
+        labels.append(label if count[j] == 1 else f"{label}/{seen[j]}")
+        number[p] = len(number)
+    new_group = np.array([number[p] for p in piece.tolist()], dtype=np.int64)
+    notes.append(f"{n_dropouts + n_gaps} cut(s) in the trajectories ({n_dropouts} at missing "
+                 f"values, {n_gaps} at time gaps over {GAP_STEPS:g} times the median step): "
+                 f"{len(labels)} trajectories fitted, each with its own energy level; "
+                 f"{int(missing.sum())} row(s) with missing values and "
+                 f"{int((~keep_rows).sum())} row(s) in pieces under {SHORTEST_PIECE} samples "
+                 "dropped, nothing interpolated (--gaps error refuses instead)")
+    return Records(records.X[kept], None if t is None else t[kept], new_group,
+                   tuple(labels)), kept
+
+
+def _locate(row_sources: tuple[tuple[str, int], ...], row: int) -> tuple[str, int]:
+    source, first = next((s, f) for s, f in reversed(row_sources) if f <= row)
+    return source, row - first + 1
 
 
 def _derive_velocities(records: Records, model: Model, window: int | None,

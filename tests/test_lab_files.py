@@ -10,11 +10,12 @@ from __future__ import annotations
 import json
 import subprocess
 
+import numpy as np
 import pandas as pd
 import pytest
 
 import hamid
-from hamid.errors import UsageError
+from hamid.errors import DataError, UsageError
 
 SAMPLE = "sample_data/peng_quadratic.csv"
 
@@ -171,3 +172,58 @@ def test_metadata_units_convert_like_suffixes(si, si_fit):
     result = hamid.fit(frame, "peng-quadratic", time="clock")
     _same_estimates(result, si_fit)
     assert result.to_dict()["data"]["scale"] == {"u1": 1e-3, "clock": 1e-3}
+
+
+def _with_dropout(frame: pd.DataFrame, row: int, column: str, value: object) -> pd.DataFrame:
+    holed = frame.copy()
+    holed[column] = holed[column].astype(object)
+    holed.loc[row, column] = value
+    return holed
+
+
+@pytest.mark.parametrize("cell", ["", "nan"])
+def test_one_missing_value_splits_the_trajectory(tmp_path, si, si_fit, cell):
+    path = tmp_path / "dropout.csv"
+    _with_dropout(si, 100, "u1", cell).to_csv(path, index=False)
+    result = hamid.fit(path, "peng-quadratic")
+    for name, value in si_fit.estimates.items():   # exact data: the same answer
+        assert result.estimates[name] == pytest.approx(value, rel=1e-8), name
+    report = result.to_dict()
+    assert report["data"]["n_trajectories"] == si_fit.to_dict()["data"]["n_trajectories"] + 1
+    assert report["data"]["n_samples"] == si_fit.to_dict()["data"]["n_samples"] - 1
+    labels = [level["trajectory"] for level in report["energy_levels"]]
+    assert labels[:2] == ["1/1", "1/2"]
+    assert [level["n_samples"] for level in report["energy_levels"][:2]] == [100, 700]
+    assert any("1 cut(s)" in w and "1 at missing values" in w for w in result.warnings)
+
+
+def test_gaps_error_refuses_a_missing_value(si):
+    with pytest.raises(DataError, match=r"column 'u1', row 101: missing value"):
+        hamid.fit(_with_dropout(si, 100, "u1", np.nan), "peng-quadratic", gaps="error")
+
+
+def test_a_time_gap_splits_or_is_refused(si):
+    gapped = si.drop(index=range(200, 260)).reset_index(drop=True)
+    result = hamid.fit(gapped, "peng-quadratic", method="energy")
+    assert result.to_dict()["data"]["n_trajectories"] == 4
+    assert any("1 at time gaps" in w for w in result.warnings)
+    with pytest.raises(DataError, match=r"row 201: a time gap of 3\.05 s .*--gaps split"):
+        hamid.fit(gapped, "peng-quadratic", gaps="error")
+
+
+def test_no_gap_no_cut(si, si_fit):
+    assert not any("cut(s)" in w for w in si_fit.warnings)
+
+
+def test_gaps_on_the_command_line(tmp_path, si, hamid_cli):
+    path = tmp_path / "dropout.csv"
+    _with_dropout(si, 100, "u1", "").to_csv(path, index=False)
+    split = subprocess.run([*hamid_cli, "fit", str(path), "--model", "peng-quadratic",
+                            "--method", "energy", "--format", "json"],
+                           capture_output=True, text=True, check=False)
+    assert split.returncode == 0, split.stderr
+    assert "1 cut(s)" in split.stderr
+    refused = subprocess.run([*hamid_cli, "fit", str(path), "--model", "peng-quadratic",
+                              "--gaps", "error"], capture_output=True, text=True, check=False)
+    assert refused.returncode == 1
+    assert "row 101: missing value" in refused.stderr
