@@ -12,13 +12,12 @@ import contextlib
 import json
 import math
 import os
-import re
 import sys
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, Literal
 
-from hamid import compressed, labfiles
+from hamid import compressed, labfiles, textlayout
 from hamid.errors import DataError, ModelError, UsageError
 
 if TYPE_CHECKING:
@@ -54,11 +53,8 @@ _SUFFIX_FORMATS: dict[str, Format] = {
     ".parquet": "parquet",
     ".pq": "parquet",
 }
-_DELIMITERS = {"csv": ",", "tsv": "\t"}
 _PARQUET_MAGIC = b"PAR1"
-_UTF8_BOM = b"\xef\xbb\xbf"
 METADATA_KEY = b"hamid"
-_METADATA_LINE = re.compile(rb"#\s*hamid:(.*)")
 # pyarrow's block_size is an int32; a larger file falls back to reading text columns.
 _MAX_BLOCK = 2**31 - 1
 _MAX_LISTED_COLUMNS = 20
@@ -70,7 +66,8 @@ _MAX_CELL_CHARS = 40
 
 
 def read_table(
-    source: str | os.PathLike[str], *, format: str | None = None
+    source: str | os.PathLike[str], *, format: str | None = None,
+    text: textlayout.TextOptions | None = None,
 ) -> tuple[pd.DataFrame, dict[str, Any] | None]:
     """Read a CSV, TSV or Parquet table and its hamid metadata.
 
@@ -80,7 +77,9 @@ def read_table(
         File to read; ``"-"`` reads standard input.
     format : {"csv", "tsv", "parquet"}, optional
         Overrides the format implied by the extension. Without it, an unknown extension
-        (and standard input) is recognised from the content.
+        (and standard input) is recognised from the content, compressed text too.
+    text : hamid.textlayout.TextOptions, optional
+        Delimiter, decimal mark, preamble lines and units row of text; detected without.
 
     Returns
     -------
@@ -107,19 +106,20 @@ def read_table(
 
         columns, metadata = labfiles.read(source)
         return pd.DataFrame(columns), metadata
-    table, metadata, name = _read_arrow(source, format)
+    table, metadata, name = _read_arrow(source, format, text)
     return _to_pandas(table, name), metadata
 
 
 def read_columns(
-    source: str | os.PathLike[str], *, format: str | None = None
+    source: str | os.PathLike[str], *, format: str | None = None,
+    text: textlayout.TextOptions | None = None,
 ) -> tuple[dict[str, npt.NDArray[Any]], dict[str, Any] | None]:
     """`read_table` as numpy arrays by column name, in file order, without pandas (whose
     import costs a third of a second) unless a Parquet file stores a pandas index. MATLAB,
     HDF5, TDMS and UFF files (by extension) are read by `hamid.labfiles`."""
     if _is_lab_file(source, format):
         return labfiles.read(source)
-    table, metadata, name = _read_arrow(source, format)
+    table, metadata, name = _read_arrow(source, format, text)
     if _stores_pandas_index(table):
         frame = _to_pandas(table, name)
         return {column: frame[column].to_numpy() for column in frame.columns}, metadata
@@ -127,7 +127,7 @@ def read_columns(
 
 
 def _read_arrow(
-    source: str | os.PathLike[str], format: str | None
+    source: str | os.PathLike[str], format: str | None, text: textlayout.TextOptions | None
 ) -> tuple[pa.Table, dict[str, Any] | None, str]:
     """Helper reading a table file: its Arrow table, hamid metadata and name for messages."""
     fmt = check_format(format) if format is not None else input_format(source)
@@ -142,7 +142,7 @@ def _read_arrow(
     if fmt == "parquet":
         _check_parquet_magic(data, name)
         return (*_read_parquet(data, name), name)
-    return (*_read_text(data, name, fmt), name)
+    return (*_read_text(data, name, fmt, text), name)
 
 
 def _is_lab_file(source: str | os.PathLike[str], format: str | None) -> bool:
@@ -150,10 +150,7 @@ def _is_lab_file(source: str | os.PathLike[str], format: str | None) -> bool:
     return format is None and not is_stdio(source) and labfiles.format_of(source) is not None
 
 
-def json_kind(value: object) -> str:
-    """The JSON type of a decoded value, in words."""
-    kinds = {list: "an array", str: "a string", bool: "a boolean", type(None): "null"}
-    return kinds.get(type(value), "a number")
+json_kind = textlayout.json_kind
 
 
 def is_parquet(source: str | os.PathLike[str]) -> bool:
@@ -193,7 +190,7 @@ def _read_parquet(data: bytes, name: str) -> tuple[pa.Table, dict[str, Any] | No
         raise DataError(f"{name}: is not a valid Parquet file ({first_line(exc)})") from exc
     metadata = None
     if raw is not None:
-        metadata = _parse_metadata(raw, name)
+        metadata = textlayout.parse_metadata(raw, name)
     if table.num_columns == 0:
         raise DataError(f"{name}: has no columns")
     if table.num_rows == 0:
@@ -269,17 +266,17 @@ def _is_default_index(frame: pd.DataFrame) -> bool:
 
 
 def _read_text(
-    data: bytes, name: str, fmt: Format | None
+    data: bytes, name: str, fmt: Format | None, text: textlayout.TextOptions | None
 ) -> tuple[pa.Table, dict[str, Any] | None]:
     """Helper function reading CSV or TSV text; ``fmt=None`` sniffs the delimiter."""
     import pyarrow as pa
 
     if fmt is not None and data.startswith(_PARQUET_MAGIC):
         raise DataError(f"{name}: is a Parquet file, not {fmt.upper()} text")
-    start, metadata, delimiter = _text_layout(data, name, fmt)
-    body = pa.py_buffer(data)[start:]
+    layout = textlayout.layout(data, name, fmt, text)
+    body = pa.py_buffer(data)[layout.start:]
     try:
-        table = _parse_csv(body, delimiter, name)
+        table = _parse_csv(body, layout, name)
         names = table.column_names
     except UnicodeDecodeError as exc:
         raise not_utf8(data, name) from exc
@@ -290,31 +287,21 @@ def _read_text(
     check_unique(stripped, name)
     if table.num_rows == 0:
         raise DataError(f"{name}: has a header but no data rows")
-    return table.rename_columns(stripped), metadata
+    return table.rename_columns(stripped), layout.metadata
 
 
-def _text_layout(head: bytes, name: str,
-                 fmt: Format | None) -> tuple[int, dict[str, Any] | None, str]:
-    """Helper finding, in the start of delimited text (through its header line), the offset
-    of the header line, the hamid metadata and the delimiter (sniffed when `fmt` is None)."""
-    start = len(_UTF8_BOM) if head.startswith(_UTF8_BOM) else 0
-    start, metadata = _skip_comments(head, start, name)
-    if start >= len(head):
-        raise DataError(f"{name}: has comment lines but no header line")
-    delimiter = _DELIMITERS[fmt] if fmt is not None else _sniff_delimiter(head, start)
-    return start, metadata, delimiter
-
-
-def _parse_csv(body: pa.Buffer, delimiter: str, name: str) -> pa.Table:
+def _parse_csv(body: pa.Buffer, layout: textlayout.Layout, name: str) -> pa.Table:
     """Helper function parsing delimited text with pyarrow, typed if possible."""
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
     # Only an empty cell is missing: 'n/a' in a number column must be reported, not hidden.
-    convert = pacsv.ConvertOptions(null_values=[""])
-    parse = pacsv.ParseOptions(delimiter=delimiter)
+    convert = pacsv.ConvertOptions(null_values=[""], decimal_point=layout.decimal)
+    parse = pacsv.ParseOptions(delimiter=layout.delimiter)
+    read = pacsv.ReadOptions(skip_rows_after_names=layout.skip)
     try:
-        return pacsv.read_csv(pa.BufferReader(body), parse_options=parse, convert_options=convert)
+        return pacsv.read_csv(pa.BufferReader(body), read_options=read, parse_options=parse,
+                              convert_options=convert)
     except MemoryError:   # pyarrow's ArrowMemoryError is also an ArrowException
         raise
     except pa.ArrowException:
@@ -332,9 +319,10 @@ def _parse_csv(body: pa.Buffer, delimiter: str, name: str) -> pa.Table:
         bad_rows.append(row)
         return "error"
 
-    parse = pacsv.ParseOptions(delimiter=delimiter, invalid_row_handler=on_invalid_row)
+    parse = pacsv.ParseOptions(delimiter=layout.delimiter, invalid_row_handler=on_invalid_row)
     block_size = min(body.size + 1, _MAX_BLOCK)
-    read = pacsv.ReadOptions(use_threads=False, block_size=block_size)
+    read = pacsv.ReadOptions(use_threads=False, block_size=block_size,
+                             skip_rows_after_names=layout.skip)
     try:
         return pacsv.read_csv(
             pa.BufferReader(body),
@@ -353,55 +341,12 @@ def _parse_csv(body: pa.Buffer, delimiter: str, name: str) -> pa.Table:
             raise DataError(f"{name}: not valid delimited text ({first_line(exc)})") from exc
     # Larger than one block can be: every column as text, numeric_column converts.
     convert = pacsv.ConvertOptions(null_values=[""], default_column_type=pa.string())
+    read = pacsv.ReadOptions(skip_rows_after_names=layout.skip)
     try:
-        return pacsv.read_csv(pa.BufferReader(body), parse_options=parse, convert_options=convert)
+        return pacsv.read_csv(pa.BufferReader(body), read_options=read, parse_options=parse,
+                              convert_options=convert)
     except pa.ArrowException as exc:
         raise DataError(f"{name}: not valid delimited text ({first_line(exc)})") from exc
-
-
-def _skip_comments(data: bytes, start: int, name: str) -> tuple[int, dict[str, Any] | None]:
-    """Helper function skipping leading ``#`` and blank lines and reading the metadata line."""
-    metadata = None
-    line_number = 0
-    while start < len(data):
-        end = data.find(b"\n", start)
-        end = len(data) if end < 0 else end
-        line = data[start:end].rstrip(b"\r")
-        if line.strip() and not line.startswith(b"#"):
-            break
-        line_number += 1
-        match = _METADATA_LINE.fullmatch(line)
-        if match is not None and metadata is None:
-            metadata = _parse_metadata(match.group(1), name, line_number)
-        start = end + 1
-    return start, metadata
-
-
-def _sniff_delimiter(data: bytes, start: int) -> str:
-    """Helper function choosing tab or comma from the header line."""
-    end = data.find(b"\n", start)
-    header = data[start:] if end < 0 else data[start:end]
-    return "\t" if b"\t" in header else ","
-
-
-def _parse_metadata(raw: bytes, name: str, line_number: int | None = None) -> dict[str, Any]:
-    """Helper function decoding the JSON of hamid's metadata."""
-    where = f"line {line_number}: " if line_number is not None else ""
-    try:
-        metadata = json.loads(raw.decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise DataError(f"{name}: {where}the hamid metadata is not UTF-8 text") from exc
-    except json.JSONDecodeError as exc:
-        raise DataError(
-            f"{name}: {where}the hamid metadata is not valid JSON ({exc.msg} at column "
-            f"{exc.colno})"
-        ) from exc
-    if not isinstance(metadata, dict):
-        raise DataError(
-            f"{name}: {where}the hamid metadata is not a JSON object "
-            f"(found {json_kind(metadata)})"
-        )
-    return metadata
 
 
 def not_utf8(data: bytes, name: str, what: str = "",
@@ -440,7 +385,8 @@ class TableChunks:
     start of the file, so a fit can take several passes in bounded memory.
     """
 
-    def __init__(self, source: str | os.PathLike[str], *, format: str | None = None) -> None:
+    def __init__(self, source: str | os.PathLike[str], *, format: str | None = None,
+                 text: textlayout.TextOptions | None = None) -> None:
         self.path = source
         self.name = os.fsdecode(source)
         if _is_lab_file(source, format):   # read whole, given in chunks
@@ -468,7 +414,7 @@ class TableChunks:
         if self.format == "parquet":
             self._open_parquet()
         else:
-            self._open_text(fmt)
+            self._open_text(fmt, text)
 
     @contextlib.contextmanager
     def _open(self) -> Iterator[IO[bytes]]:
@@ -492,19 +438,24 @@ class TableChunks:
         self.columns = [str(name) for name in schema.names]
         check_unique(self.columns, self.name)
         raw = (schema.metadata or {}).get(METADATA_KEY)
-        self.metadata = _parse_metadata(raw, self.name) if raw is not None else None
+        self.metadata = textlayout.parse_metadata(raw, self.name) if raw is not None else None
 
-    def _open_text(self, fmt: Format | None) -> None:
-        head = b""
+    def _open_text(self, fmt: Format | None, options: textlayout.TextOptions | None) -> None:
+        head, more = b"", 0
+        skip = options.skip_rows if options else 0
         with self._open() as stream:
-            for line in stream:   # comment and blank lines, then the header line
-                head += line
-                text = line.removeprefix(_UTF8_BOM) if head == line else line
-                if text.strip() and not text.startswith(b"#"):
+            for number, line in enumerate(stream):   # comment and blank lines, the header
+                head += line                         # line, and a few rows for the layout
+                text = line.removeprefix(textlayout.UTF8_BOM) if head == line else line
+                more += bool(more) or (number >= skip and text.strip()
+                                       and not text.startswith(b"#"))
+                if more > 9:
                     break
-        self.offset, self.metadata, self.delimiter = _text_layout(head, self.name, fmt)
+        self.layout = textlayout.layout(head, self.name, fmt, options)
+        self.offset, self.metadata = self.layout.start, self.layout.metadata
+        self.delimiter = self.layout.delimiter
         try:
-            header = head[self.offset:].rstrip(b"\r\n").decode("utf-8")
+            header = head[self.offset:].split(b"\n", 1)[0].rstrip(b"\r").decode("utf-8")
         except UnicodeDecodeError as exc:
             raise not_utf8(head, self.name) from exc
         raw = [cell.strip('"') for cell in header.split(self.delimiter)]
@@ -560,10 +511,12 @@ class TableChunks:
             stream.read(self.offset)   # comment lines and the byte-order mark
             reader = pacsv.open_csv(
                 stream,
-                read_options=pacsv.ReadOptions(block_size=max(rows * 64, 1 << 12)),
+                read_options=pacsv.ReadOptions(block_size=max(rows * 64, 1 << 12),
+                                               skip_rows_after_names=self.layout.skip),
                 parse_options=pacsv.ParseOptions(delimiter=self.delimiter),
                 convert_options=pacsv.ConvertOptions(
-                    null_values=[""], include_columns=[self._raw[c] for c in columns],
+                    null_values=[""], decimal_point=self.layout.decimal,
+                    include_columns=[self._raw[c] for c in columns],
                     column_types={self._raw[c]: pa.string() for c in columns} if as_text
                     else None))
             for batch in reader:

@@ -3,6 +3,7 @@
 
 import bz2
 import gzip
+import re
 import shutil
 
 import numpy as np
@@ -11,7 +12,8 @@ import pytest
 
 import hamid
 from hamid import io as hio
-from hamid.errors import DataError
+from hamid.errors import DataError, UsageError
+from hamid.textlayout import TextOptions
 
 SAMPLE = "sample_data/duffing.csv"
 with open(SAMPLE, "rb") as _file:
@@ -113,3 +115,113 @@ def test_compressed_copy_keeps_metadata(tmp_path):
     with open(SAMPLE, "rb") as source, gzip.open(path, "wb") as sink:
         shutil.copyfileobj(source, sink)
     assert hio.read_columns(path)[1] == hio.read_columns(SAMPLE)[1]
+
+
+# --- ;-separated text with decimal commas, and a units row (detected or given) -----------
+
+
+def _european(data: bytes, units: bytes | None = None, sep: bytes = b";") -> bytes:
+    """The sample as a spreadsheet in a comma-decimal locale writes it."""
+    lines = data.split(b"\n")
+    out = []
+    for number, line in enumerate(lines):
+        if line.startswith(b"#"):
+            out.append(line)
+            continue
+        out.append(line.replace(b",", sep).replace(b".", b","))
+        if units is not None and number == 1:   # the header is line 1 (after metadata)
+            out.append(units)
+    return b"\n".join(out)
+
+
+def test_semicolon_and_decimal_comma_are_detected(tmp_path, plain):
+    path = tmp_path / "daq.csv"
+    path.write_bytes(_european(SAMPLE_BYTES))
+    assert b"0,05" in path.read_bytes()
+    columns, metadata = hio.read_columns(path)
+    whole, _ = hio.read_columns(SAMPLE)
+    assert list(columns) == list(whole) and "units" not in metadata
+    for name in whole:
+        assert np.array_equal(columns[name], whole[name])
+    got = hamid.fit(str(path)).estimates
+    for name, value in plain.items():
+        assert got[name] == pytest.approx(value, rel=1e-12, abs=1e-15)
+
+
+def test_tab_with_decimal_comma(tmp_path):
+    path = tmp_path / "daq.tsv"
+    path.write_bytes(b"t\tx\n0\t1,5\n0,5\t-2,25e-1\n")
+    columns, _ = hio.read_columns(path)
+    assert list(columns["x"]) == [1.5, -0.225] and list(columns["t"]) == [0.0, 0.5]
+
+
+def test_units_row_is_detected_and_recorded(tmp_path, plain):
+    path = tmp_path / "daq.csv"
+    path.write_bytes(_european(SAMPLE_BYTES, units=b"; s ;m;m/s"))
+    columns, metadata = hio.read_columns(path)
+    assert metadata["units"] == {"t": "s", "x": "m", "v": "m/s"}   # empty cell left out
+    assert metadata["model"]["name"] == "duffing"                   # the file's own kept
+    whole, _ = hio.read_columns(SAMPLE)
+    assert np.array_equal(columns["x"], whole["x"])
+    assert hio.read_table(path)[1]["units"] == metadata["units"]
+    got = hamid.fit(str(path)).estimates
+    for name, value in plain.items():
+        assert got[name] == pytest.approx(value, rel=1e-12, abs=1e-15)
+
+
+def test_units_row_in_a_comma_file_read_in_chunks(tmp_path):
+    """The units row of the issue (`s,mm,mm,mm/s,mm/s`), read whole and in chunks."""
+    rows = "\n".join(f"{k * 0.001:.3f},{k},{-k},{2 * k},{-2 * k}" for k in range(300))
+    path = tmp_path / "daq.csv"
+    path.write_text(f"time_ms,x1_mm,x2_mm,v1,v2\ns,mm,mm,mm/s,mm/s\n{rows}\n")
+    columns, metadata = hio.read_columns(path)
+    assert metadata == {"units": {"time_ms": "s", "x1_mm": "mm", "x2_mm": "mm",
+                                  "v1": "mm/s", "v2": "mm/s"}}
+    assert len(columns["x1_mm"]) == 300 and columns["x1_mm"][0] == 0
+    table = hio.TableChunks(path)
+    assert table.metadata == metadata
+    x = np.concatenate([chunk["x1_mm"] for chunk in table.chunks(["x1_mm"], 64)])
+    assert np.array_equal(x, np.arange(300))
+
+
+def test_no_units_row_when_the_first_row_has_numbers_or_is_missing(tmp_path):
+    path = tmp_path / "run.csv"
+    path.write_text("t,x,label\n0,1,a\n1,2,b\n")
+    columns, metadata = hio.read_columns(path)
+    assert metadata is None and list(columns["x"]) == [1, 2]
+    path.write_text("t,x\n,\n1,2\n")   # a row of missing cells is data, not units
+    assert hio.read_columns(path)[1] is None
+
+
+def test_text_options_given(tmp_path):
+    path = tmp_path / "logger.txt"
+    path.write_bytes(b"Logger 7 preamble\nstarted 2026-11-24\nt|x\nsec|mm\n0|1,5\n1|2,5\n")
+    options = TextOptions(delimiter="|", decimal=",", skip_rows=2, units_row=True)
+    columns, metadata = hio.read_columns(path, format="csv", text=options)
+    assert list(columns["x"]) == [1.5, 2.5] and metadata == {"units": {"t": "sec", "x": "mm"}}
+    table = hio.TableChunks(path, format="csv", text=options)
+    assert table.columns == ["t", "x"]
+    assert [list(c["x"]) for c in table.chunks(["x"], 10)] == [[1.5, 2.5]]
+    path.write_bytes(b"t;x\n0;1.5\n")   # told: the point is the decimal mark here
+    columns, _ = hio.read_columns(path, format="csv", text=TextOptions(delimiter=";"))
+    assert list(columns["x"]) == [1.5]
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"delimiter": ";;"}, "--delimiter: ';;' is not one character that can separate cells"),
+    ({"decimal": ";"}, "--decimal: ';' is not '.' or ','"),
+    ({"delimiter": ",", "decimal": ","}, "--decimal: the decimal mark cannot be the delimiter"),
+    ({"skip_rows": -1}, "--skip-rows: must be 0 or more"),
+])
+def test_bad_text_options(kwargs, message):
+    with pytest.raises(UsageError, match=f"^{re.escape(message)}$"):
+        TextOptions(**kwargs)
+
+
+def test_compressed_semicolon_file_with_units(tmp_path, plain):
+    path = tmp_path / "daq.csv.gz"
+    path.write_bytes(gzip.compress(_european(SAMPLE_BYTES, units=b"-;s;m;m/s")))
+    assert hio.read_columns(path)[1]["units"]["v"] == "m/s"
+    got = hamid.fit(str(path)).estimates
+    for name, value in plain.items():
+        assert got[name] == pytest.approx(value, rel=1e-12, abs=1e-15)
