@@ -332,3 +332,24 @@ def test_split_names_the_inner_path(tmp_path):
 def test_missing_file(tmp_path):
     with pytest.raises(DataError, match=rf"^{tmp_path}/no.h5: no such file$"):
         _read(f"{tmp_path}/no.h5:/g")
+
+
+def test_cli_fits_an_hdf5_group_with_columns(tmp_path, sample, truth):
+    """`hamid fit run.h5:/bench/run --columns ...` through the command line, JSON out."""
+    from click.testing import CliRunner
+
+    from hamid.cli import cli
+
+    columns, _ = sample
+    path = tmp_path / "run.h5"
+    with h5py.File(path, "w") as file:
+        group = file.create_group("bench/run")
+        for name, stored in zip(NAMES, ["trajectory", "t", "disp", "vel"], strict=True):
+            group.create_dataset(stored, data=columns[name])
+    result = CliRunner().invoke(cli, ["fit", f"{path}:/bench/run", "--model", "duffing",
+                                      "--columns", "x=disp,v=vel", "--format", "json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    got = {p["name"]: p["estimate"] for p in report["parameters"]}
+    for name, value in truth.items():
+        assert got[name] == pytest.approx(value, rel=1e-10)

@@ -3,6 +3,7 @@
 
 import bz2
 import gzip
+import json
 import re
 import shutil
 
@@ -223,5 +224,20 @@ def test_compressed_semicolon_file_with_units(tmp_path, plain):
     path.write_bytes(gzip.compress(_european(SAMPLE_BYTES, units=b"-;s;m;m/s")))
     assert hio.read_columns(path)[1]["units"]["v"] == "m/s"
     got = hamid.fit(str(path)).estimates
+    for name, value in plain.items():
+        assert got[name] == pytest.approx(value, rel=1e-12, abs=1e-15)
+
+
+def test_cli_fits_the_issue_units_row_file(tmp_path, plain):
+    """Issue 18: a units row under the header was "'m' is not a number"."""
+    from click.testing import CliRunner
+
+    from hamid.cli import cli
+
+    path = tmp_path / "daq.csv"
+    path.write_bytes(_european(SAMPLE_BYTES, units=b"-;s;m;m/s"))
+    result = CliRunner().invoke(cli, ["fit", str(path), "--format", "json"])
+    assert result.exit_code == 0, result.output
+    got = {p["name"]: p["estimate"] for p in json.loads(result.stdout)["parameters"]}
     for name, value in plain.items():
         assert got[name] == pytest.approx(value, rel=1e-12, abs=1e-15)
