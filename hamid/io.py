@@ -1,5 +1,8 @@
 """Reading files: data tables (whole or in chunks), their metadata, system files and reports.
 
+Compressed text is decompressed here (`hamid.compressed`), the layout of text found by
+`hamid.textlayout`, and MATLAB, HDF5, TDMS and UFF files read by `hamid.labfiles`.
+
 Every problem with a file becomes a `DataError` (or a `ModelError` for a system file) that
 names the file, column and row at fault. Writing is `hamid.writing`.
 

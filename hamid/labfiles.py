@@ -259,7 +259,7 @@ def _read_hdf5(path: str, inner: str | None, name: str,
                     and not key.endswith("_columns")}
         vectors = {key: item for key, item in datasets.items()
                    if _h5_length(item, matlab) is not None}
-        if not vectors and len(datasets) == 1:   # a file holding one table
+        if not vectors and len(datasets) == 1 and not matlab:   # a file holding one table
             _h5_dataset(columns, next(iter(datasets.values())), name, matlab, whole=True)
             return columns, metadata
         for key, item in datasets.items():
@@ -307,7 +307,7 @@ def _h5_dataset(columns: Columns, item: Any, name: str, matlab: bool, *, whole: 
             raise DataError(f"{name}: {item.name!r} is not numeric")
         return
     data = item[()]
-    if getattr(data, "ndim", 0) == 0:
+    if getattr(data, "size", 1) <= 1:   # a scalar (MATLAB's are 1 x 1)
         if whole:
             raise DataError(f"{name}: {item.name!r} is a single number, not a table")
         return

@@ -134,6 +134,22 @@ def test_mat_v73(tmp_path, sample, truth):
     _same(hamid.fit(str(path)), truth)
 
 
+def test_mat_v73_struct(tmp_path, sample, truth):
+    """A MATLAB struct is an HDF5 group; its vector fields are the columns."""
+    columns, _ = sample
+    path = tmp_path / "run73.mat"
+    _write_mat73(path, {"fs": 20.0})
+    with h5py.File(path, "a") as file:
+        group = file.create_group("run")
+        group.attrs["MATLAB_class"] = np.bytes_("struct")
+        for name in NAMES:
+            group.create_dataset(name, data=np.atleast_2d(columns[name].astype(float)))
+    got, meta = _read(path)
+    assert sorted(got) == sorted(NAMES) and meta is None   # fs (1 x 1) is not a column
+    assert np.array_equal(got["x"], columns["x"])
+    _same(hamid.fit(str(path), "duffing"), truth)
+
+
 # --- HDF5 ----------------------------------------------------------------------------------
 
 
