@@ -156,7 +156,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         sigma, noise_info = loading.noise_levels(source, opts.noise)
         if opts.damping and source.records.t is None:
             raise UsageError("--damping needs a time column (the dissipated work is an "
-                             "integral over time)")
+                             "integral over time); name it with --time COL")
     else:
         source = loading.open_chunks(data, model, opts, chunks, progress)
         sigma, noise_info = None, None

@@ -77,6 +77,8 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
         tables = [(os.fspath(p) if os.fspath(p) != "-" else io.STDIN,
                    *io.read_columns(p, format=options.format)) for p in paths]
     first_name, first_table, metadata = tables[0]
+    if model is None:
+        _check_same_model(tables)
     m, notes = _settle_model(model, metadata, [str(c) for c in first_table], first_name,
                              options)
     derived = options.velocity == "savgol"
@@ -396,13 +398,48 @@ def _settle_model(model: str | os.PathLike[str] | Model | None,
     pairs = naming.find_coordinates(names, exclude=exclude)
     if not pairs:
         raise DataError(f"{source}: no model given and no coordinate with a velocity column "
-                        f"found (columns: {', '.join(names)}); give --model, or name "
-                        "velocities vx, x_dot, xdot or dx")
+                        f"found (columns: {', '.join(names)}); give --model "
+                        f"{_model_beside(source)}, or name velocities vx, x_dot, xdot, dx "
+                        "or v1 for x1; for positions without velocities give --model and "
+                        "--velocity savgol")
     if options.columns:
         raise UsageError("--columns needs --model (the assumed model takes the file's names)")
     m = poly_model_over([q for q, _ in pairs], [v for _, v in pairs])
     return m, [f"no model given: assumed {m.name} over the coordinates "
-               f"{', '.join(m.coordinates)} (pick one with --model)"]
+               f"{', '.join(m.coordinates)} (pick one with --model {_model_beside(source)})"]
+
+
+def _check_same_model(tables: list[tuple[str, Any, Any]]) -> None:
+    """Files whose metadata record different models are not fitted together by default."""
+    def recorded(metadata: Any) -> Any:
+        info = metadata.get("model") if isinstance(metadata, Mapping) else None
+        return (info.get("name"), info.get("energy")) if isinstance(info, Mapping) else None
+
+    first = recorded(tables[0][2])
+    for name, _, metadata in tables[1:]:
+        other = recorded(metadata)
+        if other != first:
+            said = [f"{source}: {'no model' if m is None else repr(m[0])}"
+                    for source, m in ((tables[0][0], first), (name, other))]
+            raise UsageError(f"the files record different models ({'; '.join(said)}); fit "
+                             "them apart, or give the model of all of them with --model")
+
+
+def _model_beside(source: str) -> str:
+    """The model file to suggest for a data file: a .toml beside it whose name begins its
+    name (pendulum.toml for pendulum_encoder.csv), else NAME|FILE.toml."""
+    folder = os.path.dirname(source) or "."
+    try:
+        models = sorted(name for name in os.listdir(folder) if name.endswith(".toml"))
+    except OSError:
+        return "NAME|FILE.toml"
+    stem = os.path.basename(source).split(".")[0]
+    fitting = [name for name in models if stem.startswith(name[:-len(".toml")])]
+    if fitting:
+        return os.path.join(os.path.dirname(source), max(fitting, key=len))
+    if len(models) == 1:
+        return os.path.join(os.path.dirname(source), models[0])
+    return "NAME|FILE.toml"
 
 
 def _model_from_metadata(info: Mapping[str, Any], source: str) -> Model:
@@ -544,7 +581,8 @@ def _derive_velocities(records: Records, model: Model, window: int | None,
     from hamid import measurement
 
     if records.t is None:
-        raise UsageError("--velocity savgol needs a time column")
+        raise UsageError("--velocity savgol needs a time column; name it with --time COL "
+                         "(and its unit with --time-unit)")
     N = len(model.coordinates)
     if window is None:
         period = design.dominant_period(records, N)

@@ -21,7 +21,7 @@ import numpy.typing as npt
 
 from hamid import expr
 from hamid.config import check_keys
-from hamid.errors import ModelError
+from hamid.errors import ModelError, UsageError
 
 __all__ = ["BUILTINS", "DAMPING_KINDS", "Lagrangian", "Model", "builtin_model", "damping_names",
            "model_from_spec"]
@@ -272,13 +272,24 @@ def model_from_expression(name: str, energy: str, coordinates: Sequence[str],
 
 
 @lru_cache(maxsize=32)
+class UnknownModelError(ModelError, UsageError):
+    """A model name that is neither built in nor a file: a usage error (exit status 2)."""
+
+
 def builtin_model(name: str) -> Model:
     """A built-in model by name, or the polynomial family ``poly:N:D``."""
     if name.startswith("poly:"):
         return _poly_model(name)
     if name not in BUILTINS:
-        raise ModelError(f"unknown model {name!r}; built-in models: "
-                         f"{', '.join([*BUILTINS, POLY_HELP])}, or a TOML model file")
+        import difflib
+
+        close = difflib.get_close_matches(name.lower(), list(BUILTINS), n=1, cutoff=0.6)
+        if not close and os.path.isfile(name + ".toml"):
+            close = [name + ".toml"]
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise UnknownModelError(f"unknown model {name!r}; built-in models: "
+                                f"{', '.join([*BUILTINS, POLY_HELP])}, or a TOML model "
+                                f"file{hint}")
     spec = BUILTINS[name]
     return model_from_expression(name, spec["energy"], spec["coordinates"],
                                  spec["velocities"], spec["parameters"],

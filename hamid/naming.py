@@ -291,7 +291,8 @@ def resolve_columns(
         if found is None:
             raise DataError(
                 f"{source}: no column for velocity {velocity!r} of coordinate {coordinate!r} "
-                f"(looked for {', '.join(looked_for)})"
+                f"(looked for {', '.join(looked_for)}); map it with --columns "
+                f"{velocity}=COL, or derive velocities with --velocity savgol"
             )
         resolved[velocity] = found
     owner: dict[str, str] = {}

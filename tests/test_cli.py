@@ -196,9 +196,10 @@ def test_models_of_a_model_file(runner):
     assert "kL*sqrt(x**2 + y**2)" in result.stdout
 
 
-@pytest.mark.parametrize("name", ["nosuch", "poly:x:3"])
-def test_models_unknown(runner, name):
-    assert_fails(invoke(runner, ["models", name]), 1, repr(name))
+@pytest.mark.parametrize(("name", "code"), [("nosuch", 2), ("poly:x:3", 1)])
+def test_models_unknown(runner, name, code):
+    """An unknown name is a usage error (2); a malformed poly name a model error (1)."""
+    assert_fails(invoke(runner, ["models", name]), code, repr(name))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -694,7 +695,7 @@ FIT_ERRORS = {
     "--level not a number": (DUFFING_ROWS, ["--level", "high"], 2, ["--level", "'high'"]),
     "--bootstrap too few": (DUFFING_ROWS, ["--cov", "bootstrap", "--bootstrap", "3"], 2,
                             ["--bootstrap"]),
-    "unknown model": (DUFFING_ROWS, ["--model", "quartic"], 1, ["'quartic'"]),
+    "unknown model": (DUFFING_ROWS, ["--model", "quartic"], 2, ["'quartic'"]),
     "fewer samples than unknowns": ("t,x,v\n0,1,0\n0.1,0.995,-0.1\n", ["--model", "duffing"],
                                     1, ["k, k3", "2 rows"]),
     # z = 0 throughout: kz's term is zero in the energy and in the equations of motion.

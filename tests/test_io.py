@@ -953,7 +953,8 @@ def test_resolve_missing_velocity_lists_what_was_looked_for():
     with pytest.raises(
         DataError,
         match=r"^data.csv: no column for velocity 'v2' of coordinate 'u2' "
-        r"\(looked for v2, vu2, u2_dot, u2dot, du2\)$",
+        r"\(looked for v2, vu2, u2_dot, u2dot, du2\); map it with --columns v2=COL, or "
+        r"derive velocities with --velocity savgol$",
     ):
         naming.resolve_columns(["t", "u1", "u2", "v1"], *PENG, source="data.csv")
 
@@ -961,7 +962,7 @@ def test_resolve_missing_velocity_lists_what_was_looked_for():
 def test_resolve_missing_velocity_of_mapped_coordinate():
     with pytest.raises(
         DataError,
-        match=r"\(looked for v1, vu1, u1_dot, u1dot, du1, vp, p_dot, pdot, dp\)$",
+        match=r"\(looked for v1, vu1, u1_dot, u1dot, du1, vp, p_dot, pdot, dp\); map it",
     ):
         naming.resolve_columns(["p", "u2", "v2"], *PENG, mapping={"u1": "p"}, source="data.csv")
 

@@ -227,3 +227,50 @@ def test_gaps_on_the_command_line(tmp_path, si, hamid_cli):
                               "--gaps", "error"], capture_output=True, text=True, check=False)
     assert refused.returncode == 1
     assert "row 101: missing value" in refused.stderr
+
+
+def _run(hamid_cli, *args, cwd=None):
+    return subprocess.run([*hamid_cli, *map(str, args)], capture_output=True, text=True,
+                          check=False, cwd=cwd)
+
+
+def test_misspelt_model_name_suggests_the_builtin(hamid_cli):
+    done = _run(hamid_cli, "fit", SAMPLE, "--model", "dufing")
+    assert done.returncode == 2
+    assert "did you mean 'duffing'?" in done.stderr
+
+
+def test_no_model_error_names_the_toml_beside_the_data_and_savgol(tmp_path, si, hamid_cli):
+    si[["t", "u1", "u2"]].to_csv(tmp_path / "rig_run3.csv", index=False)
+    (tmp_path / "rig.toml").write_text("")
+    (tmp_path / "other.toml").write_text("")
+    done = _run(hamid_cli, "fit", tmp_path / "rig_run3.csv")
+    assert done.returncode == 1
+    assert f"--model {tmp_path / 'rig.toml'}" in done.stderr
+    assert "--velocity savgol" in done.stderr
+
+
+def test_assumed_model_note_names_the_toml_beside_the_data():
+    result = hamid.fit("sample_data/pendulum_encoder.csv", method="energy")
+    assert any("pick one with --model sample_data/pendulum.toml" in w
+               for w in result.warnings)
+
+
+def test_missing_velocity_error_mentions_savgol(si):
+    with pytest.raises(DataError, match="derive velocities with --velocity savgol"):
+        hamid.fit(si.drop(columns=["v1", "v2"]), "peng-quadratic")
+
+
+def test_savgol_without_time_mentions_time(si):
+    with pytest.raises(UsageError, match="name it with --time COL"):
+        hamid.fit(si.drop(columns="t").rename(columns={"u1": "a"}), "peng-quadratic",
+                  columns={"u1": "a"}, velocity="savgol")
+
+
+def test_files_recording_different_models_are_a_usage_error(hamid_cli):
+    both = ("sample_data/duffing.csv", "sample_data/henon_heiles.csv")
+    done = _run(hamid_cli, "fit", *both)
+    assert done.returncode == 2
+    assert "record different models" in done.stderr and "--model" in done.stderr
+    given = _run(hamid_cli, "fit", *both, "--model", "duffing", "--method", "energy")
+    assert given.returncode == 0, given.stderr
