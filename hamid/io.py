@@ -290,6 +290,8 @@ def _read_text(
     check_unique(stripped, name)
     if table.num_rows == 0:
         raise DataError(f"{name}: has a header but no data rows")
+    if layout.decimal == ",":   # a column left as text (a bad cell) is checked with points
+        table = pa.table([textlayout.points(c) for c in table.columns], names=stripped)
     return table.rename_columns(stripped), layout.metadata
 
 
@@ -337,8 +339,8 @@ def _parse_csv(body: pa.Buffer, layout: textlayout.Layout, name: str) -> pa.Tabl
         if bad_rows:
             row = bad_rows[0]
             raise DataError(
-                f"{name}: row {row.number - 1} has {row.actual_columns} fields where the "
-                f"header has {row.expected_columns}: {_cell(row.text)}"
+                f"{name}: row {row.number - 1 - layout.skip} has {row.actual_columns} fields "
+                f"where the header has {row.expected_columns}: {_cell(row.text)}"
             ) from exc
         if body.size + 1 <= _MAX_BLOCK:
             raise DataError(f"{name}: not valid delimited text ({first_line(exc)})") from exc
@@ -475,7 +477,8 @@ class TableChunks:
         try:
             with _arrow_reading(self.name):
                 for batch in self._batches(names, rows):
-                    yield {name: as_numpy(batch.column(name)) for name in batch.schema.names}
+                    yield {name: as_numpy(self._points(batch.column(name)))
+                           for name in batch.schema.names}
         except DataError:
             if self.format != "parquet":
                 self._name_the_bad_cell(names, rows)
@@ -491,9 +494,13 @@ class TableChunks:
         with _arrow_reading(self.name):
             for batch in self._batches(columns, rows, as_text=True):
                 for name in batch.schema.names:
-                    numeric_values(as_numpy(batch.column(name)), name, self.name,
-                                   first_row=first_row)
+                    numeric_values(as_numpy(self._points(batch.column(name))), name,
+                                   self.name, first_row=first_row)
                 first_row += batch.num_rows
+
+    def _points(self, column: Any) -> Any:
+        """Helper giving text cells of a decimal-comma file with points."""
+        return textlayout.points(column) if self.layout.decimal == "," else column
 
     def _batches(self, columns: list[str], rows: int, as_text: bool = False) -> Iterator[Any]:
         import pyarrow as pa

@@ -23,7 +23,7 @@ from typing import Any
 
 from hamid.errors import DataError, UsageError
 
-__all__ = ["Layout", "TextOptions", "json_kind", "layout", "parse_metadata"]
+__all__ = ["Layout", "TextOptions", "json_kind", "layout", "parse_metadata", "points"]
 
 UTF8_BOM = b"\xef\xbb\xbf"
 _METADATA_LINE = re.compile(rb"#\s*hamid:(.*)")
@@ -106,6 +106,17 @@ def layout(head: bytes, name: str, fmt: str | None,
                  if unit}
         metadata = {**(metadata or {}), "units": units}
     return Layout(start, metadata, delimiter, decimal, int(units_row))
+
+
+def points(column: Any) -> Any:
+    """An Arrow column of text with its decimal commas as points (other columns as they
+    are), for the cells that pyarrow left as text because one of them is not a number."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
+        return pc.replace_substring(column, ",", ".")
+    return column
 
 
 def _lines(data: bytes, start: int) -> list[str]:

@@ -241,3 +241,25 @@ def test_cli_fits_the_issue_units_row_file(tmp_path, plain):
     got = {p["name"]: p["estimate"] for p in json.loads(result.stdout)["parameters"]}
     for name, value in plain.items():
         assert got[name] == pytest.approx(value, rel=1e-12, abs=1e-15)
+
+
+def test_bad_cells_in_a_decimal_comma_file_are_named(tmp_path):
+    """Row numbers count data rows (not the units row); a cell that is not a number is
+    named, not its neighbours written with decimal commas."""
+    path = tmp_path / "daq.csv"
+    path.write_bytes(b"t;x\ns;m\n0;1,5\n1;2,5;7\n")
+    with pytest.raises(DataError, match=rf"^{path}: row 2 has 3 fields where the header "
+                                        r"has 2: '1;2,5;7'$"):
+        hio.read_columns(path)
+    path.write_bytes(b"t;x\ns;m\n0;1,5\n1;abc\n2;3,25\n")
+    columns, _ = hio.read_columns(path)
+    with pytest.raises(DataError, match=rf"^{path}: column 'x', row 2: 'abc' is not a "
+                                        r"number$"):
+        hio.numeric_column(columns, "x", source=str(path))
+    path.write_bytes(b"t;x\ns;m\n0;1,5\n1;2\n2;3,25\n")
+    assert list(hio.read_columns(path)[0]["x"]) == [1.5, 2.0, 3.25]
+    path.write_bytes(b"t;x\ns;m\n0;1,5\n1;abc\n2;3,25\n")
+    chunk = next(hio.TableChunks(path).chunks(["x"], 2))   # a block with text cells
+    with pytest.raises(DataError, match=rf"^{path}: column 'x', row 2: 'abc' is not a "
+                                        r"number$"):
+        hio.numeric_values(chunk["x"], "x", str(path))
