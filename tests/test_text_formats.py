@@ -263,3 +263,23 @@ def test_bad_cells_in_a_decimal_comma_file_are_named(tmp_path):
     with pytest.raises(DataError, match=rf"^{path}: column 'x', row 2: 'abc' is not a "
                                         r"number$"):
         hio.numeric_values(chunk["x"], "x", str(path))
+
+
+def test_a_units_row_in_mm_gives_the_si_estimates(tmp_path):
+    """The detected units row feeds the unit conversion: a ;-separated, decimal-comma file
+    in millimetres fits as the SI file (converted here by hand)."""
+    si = "sample_data/peng_quadratic.csv"
+    columns, _ = hio.read_columns(si)
+    lines = ["trajectory;t;u1;u2;v1;v2", ";s;mm;m;mm/s;m/s"]
+    scale = {"u1": 1e3, "v1": 1e3}
+    for i in range(len(columns["t"])):
+        cells = [repr(float(columns[n][i]) * scale.get(n, 1)).replace(".", ",")
+                 for n in ["t", "u1", "u2", "v1", "v2"]]
+        lines.append(";".join([str(columns["trajectory"][i]), *cells]))
+    path = tmp_path / "daq.csv"
+    path.write_text("\n".join(lines) + "\n")
+    truth = hamid.fit(si, "peng-quadratic").estimates
+    result = hamid.fit(str(path), "peng-quadratic")
+    assert result.to_dict()["data"]["scale"] == {"u1": 1e-3, "v1": 1e-3}
+    for name, value in truth.items():
+        assert result.estimates[name] == pytest.approx(value, rel=1e-10)
