@@ -552,8 +552,11 @@ def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unk
     spread = records.X.std(axis=0)
     ratio = {name: float(s / d) if d > 0 else 0.0
              for name, s, d in zip(m.variables, sigma, spread, strict=True)}
-    if (fit is None or options.bias_correct or not m.is_polynomial
-            or options.velocity == "savgol"
+    # Weak-form windows and window means average the noise before it enters the squares
+    # and cubes; the bias worth its cost (an adjusted fit of every row) is that of the
+    # energy rows of single samples.
+    if (fit is None or rows.windows is not None or options.bias_correct
+            or not m.is_polynomial or options.velocity == "savgol"
             or damping.kinds or max(ratio.values()) < _NOISE_LOOKED_AT):
         return NoiseCheck(ratio)
     names = unknowns.free_names
