@@ -203,7 +203,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                                   refinement)
     labels = source.records.labels
     provenance = summary.Provenance(
-        source.data_info, labels, source.truth, source.notes, noise_info,
+        source.data_info, labels, source.truth,
+        source.notes + tuple(plan.window_warnings(fit_plan, source.durations())), noise_info,
         estimate.noise_check(source, rows, linear if fitted is linear else None, unknowns,
                              damping_forces, opts, sigma))
     return summary.fit_result(

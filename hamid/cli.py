@@ -1,7 +1,8 @@
 """The `hamid` command: a thin layer over the Python API.
 
 The only module that knows exit codes: 0 success, 1 a data, model or numerical error
-(one message naming the file, column, row or term), 2 a usage error, 128 + N after signal N
+(one message naming the file, column, row or term), 2 a usage error, 3 a fit with warnings
+under `fit --strict` (the report is written all the same), 128 + N after signal N
 (130 for Ctrl-C). Data go to standard output; messages, warnings and progress to standard
 error, with the control characters of any text from data shown escaped. Heavy modules are
 imported inside the commands so that `hamid --help` starts fast.
@@ -334,6 +335,8 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--scale", metavar="COL=FACTOR,...",
               help="Multiply file columns by these factors to bring them to SI units "
                    "(default: from unit suffixes such as x1_mm, v1_mm_s).")
+@click.option("--strict", is_flag=True,
+              help="Exit with status 3 when the fit has any warning (the report is written).")
 @click.option("--gaps", default="split", show_default=True,
               type=click.Choice(["split", "error"]),
               help="At a missing value or a time gap, cut the trajectory in two, or refuse.")
@@ -380,7 +383,8 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
                    "skips its trajectory refinement (default for files over 64 MB: chunks "
                    "of 262144 rows, and auto refines holding only the records).")
 def fit(data: tuple[str, ...], model: str | None, columns: str | None,
-        time_column: str | None, time_unit: str | None, scale: str | None, gaps: str,
+        time_column: str | None, time_unit: str | None, scale: str | None, strict: bool,
+        gaps: str,
         trajectory: str | None, format_in: str | None,
         velocity: str, window: int | None, order: int, noise: str | None,
         bias_correct: bool, method: str,
@@ -425,6 +429,9 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         writing.write_table(pd.DataFrame(result.samples), residuals)
 
     _emit(result.to_dict(), fmt, output, also=None if residuals is None else write_residuals)
+    if strict and result.warnings:
+        click.echo(f"error: --strict: the fit has {len(result.warnings)} warning(s)", err=True)
+        raise click.exceptions.Exit(3)
 
 
 @cli.command()

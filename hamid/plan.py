@@ -107,6 +107,19 @@ def decide(options: FitOptions, model: Model,
                    f"({how})", window, scales)
 
 
+def window_warnings(fit_plan: FitPlan, durations: list[float] | None) -> list[str]:
+    """A warning when weak-form windows are longer than some trajectories (which then give
+    no weak-form rows)."""
+    if fit_plan.window is None or not durations:
+        return []
+    short = [d for d in durations if d < fit_plan.window]
+    if not short:
+        return []
+    return [f"{len(short)} of {len(durations)} trajectories are shorter than the weak-form "
+            f"window of {fit_plan.window:.3g} s (the shortest lasts {min(short):.3g} s) and "
+            "give no weak-form rows; give a shorter --weak-window, or check the time unit"]
+
+
 def refinement_obstacle(options: FitOptions, records_bytes: int | None = None) -> str | None:
     """Why an automatic joint fit is not refined by trajectories, or None when it is.
 

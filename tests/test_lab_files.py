@@ -274,3 +274,57 @@ def test_files_recording_different_models_are_a_usage_error(hamid_cli):
     assert "record different models" in done.stderr and "--model" in done.stderr
     given = _run(hamid_cli, "fit", *both, "--model", "duffing", "--method", "energy")
     assert given.returncode == 0, given.stderr
+
+
+def test_velocities_in_other_units_are_warned_with_the_ratio(si):
+    mixed = si.copy()
+    mixed["v1"] *= 1000.0   # mm/s beside positions in m
+    result = hamid.fit(mixed, "peng-quadratic", method="energy")
+    said = [w for w in result.warnings if "'u1' change 0.001 times as fast" in w]
+    assert said and "'v1'" in said[0] and "--scale" in said[0]
+    assert not any("'u2' change" in w for w in result.warnings)
+
+
+def test_time_in_ms_read_as_seconds_is_warned(si):
+    slow = si.copy()
+    slow["t"] *= 1000.0
+    result = hamid.fit(slow, "peng-quadratic", method="energy")
+    assert any("'u1' change 0.001 times as fast" in w and "time unit" in w
+               for w in result.warnings)
+
+
+def test_consistent_noisy_velocities_raise_no_unit_warning(si):
+    from conftest import with_noise
+
+    result = hamid.fit(with_noise(si, 0.03, 0), "peng-quadratic", method="energy")
+    assert not any("times as fast" in w for w in result.warnings)
+
+
+def test_weak_window_longer_than_a_trajectory_is_warned(si):
+    short = si[(si["trajectory"] != 3) | (si["t"] <= 5.0)]
+    result = hamid.fit(short, "peng-quadratic", method="weak", weak_window=10.0)
+    assert any(w.startswith("1 of 3 trajectories are shorter than the weak-form window "
+                            "of 10 s (the shortest lasts 5 s)") for w in result.warnings)
+    longer = hamid.fit(short, "peng-quadratic", method="weak", weak_window=4.0)
+    assert not any("shorter than the weak-form window" in w for w in longer.warnings)
+
+
+def test_strict_turns_warnings_into_exit_3(tmp_path, si, hamid_cli):
+    mixed = si.copy()
+    mixed["v1"] *= 1000.0
+    path = tmp_path / "mixed.csv"
+    mixed.to_csv(path, index=False)
+    plain = _run(hamid_cli, "fit", path, "--model", "peng-quadratic", "--format", "json")
+    assert plain.returncode == 0
+    assert "times as fast" in plain.stderr
+    strict = _run(hamid_cli, "fit", path, "--model", "peng-quadratic", "--format", "json",
+                  "--strict")
+    assert strict.returncode == 3
+    assert json.loads(strict.stdout)["warnings"]   # the report is still written
+    assert "--strict" in strict.stderr
+
+
+def test_strict_without_warnings_is_exit_0(hamid_cli):
+    done = _run(hamid_cli, "fit", SAMPLE, "--strict", "--format", "json")
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["warnings"] == []
