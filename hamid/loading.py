@@ -95,6 +95,7 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
                                          mapping=options.columns, source=source)
         time, trajectory = _special_columns(names, mapping, options, source, notes)
         units = _units(names, mapping, time, options, table_metadata, source)
+        notes.extend(units["notes"])
         reader = Reader(m, mapping, time, trajectory, source,
                         typed=source == _DATA_FRAME or io.is_parquet(source),
                         scales=units["scale"], missing_ok=options.gaps == "split")
@@ -337,6 +338,7 @@ def open_chunks(path: str, model: str | os.PathLike[str] | Model | None,
                                      mapping=options.columns, source=table.name)
     time, trajectory = _special_columns(table.columns, mapping, options, table.name, notes)
     units = _units(table.columns, mapping, time, options, table.metadata, table.name)
+    notes.extend(units["notes"])
     reader = Reader(m, mapping, time, trajectory, table.name,
                     typed=table.format == "parquet", scales=units["scale"])
     return Chunked(m, tuple(notes), _truth(table.metadata, m), table, reader, chunk_rows,
@@ -369,10 +371,14 @@ def _units(names: list[str], mapping: Mapping[str, str], time: str | None,
             raise UsageError(f"--scale: {column!r} is not a column read from {source} "
                              f"(read: {', '.join(read)})")
     scale: dict[str, float] = {}
+    unknown = []
     for column in mapping.values():
         factor, unit = naming.column_scale(column)
         if unit is None and isinstance(recorded.get(column), str):
             factor = naming.COLUMN_UNITS.get(naming.unit_text(recorded[column]), 1.0)
+            if naming.unit_text(recorded[column]) not in naming.COLUMN_UNITS \
+                    and column not in given:
+                unknown.append(f"{column!r} ({recorded[column]!r})")
         scale[column] = given.get(column, factor)
     time_unit = None
     if time is not None:
@@ -387,7 +393,10 @@ def _units(names: list[str], mapping: Mapping[str, str], time: str | None,
     elif options.time_unit is not None:
         raise UsageError(f"--time-unit {options.time_unit}: {source} has no time column; "
                          "name it with --time COL")
-    return {"time": time, "time_unit": time_unit, "scale": scale}
+    notes = [f"{source}: the units of {', '.join(unknown)} are not among those converted "
+             f"({', '.join(naming.COLUMN_UNITS)}): read as SI; give --scale COL=FACTOR"
+             ] if unknown else []
+    return {"time": time, "time_unit": time_unit, "scale": scale, "notes": notes}
 
 
 def _settle_model(model: str | os.PathLike[str] | Model | None,

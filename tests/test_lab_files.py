@@ -328,3 +328,31 @@ def test_strict_without_warnings_is_exit_0(hamid_cli):
     done = _run(hamid_cli, "fit", SAMPLE, "--strict", "--format", "json")
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["warnings"] == []
+
+
+def test_units_row_converts_like_suffixes(tmp_path, si, si_fit, hamid_cli):
+    """A units row under the header (recorded as the table's units) is applied."""
+    frame = si.copy()
+    frame["t"] *= 1000.0
+    frame["u1"] *= 1000.0
+    rows = ["trajectory,t,u1,u2,v1,v2", "-,ms,mm,m,m/s,m/s",
+            *(",".join(map(repr, row)) for row in frame.itertuples(index=False))]
+    path = tmp_path / "units.csv"
+    path.write_text("\n".join(rows) + "\n")
+    done = _run(hamid_cli, "fit", path, "--model", "peng-quadratic", "--format", "json")
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    for p in report["parameters"]:
+        assert p["estimate"] == pytest.approx(si_fit.estimates[p["name"]], rel=1e-8)
+    assert report["data"]["time_unit"] == "ms"
+    assert report["data"]["scale"] == {"u1": 0.001, "t": 0.001}
+
+
+def test_unknown_recorded_unit_is_said(si):
+    frame = si.copy()
+    frame.attrs["hamid"] = {"units": {"u1": "furlong"}}
+    result = hamid.fit(frame, "peng-quadratic", method="energy")
+    assert any("'u1' ('furlong') are not among those converted" in w and "--scale" in w
+               for w in result.warnings)
+    given = hamid.fit(frame, "peng-quadratic", method="energy", scale={"u1": 1.0})
+    assert not any("furlong" in w for w in given.warnings)
