@@ -139,10 +139,14 @@ class Reader:
 
     def __init__(self, model: Model, mapping: Mapping[str, str], time: str | None,
                  trajectory: str | None, source: str, typed: bool,
-                 scales: Mapping[str, float] | None = None, missing_ok: bool = False) -> None:
+                 scales: Mapping[str, float] | None = None, missing_ok: bool = False,
+                 chunked: bool = False) -> None:
         self.model, self.mapping, self.source = model, mapping, source
         # Missing cells read as NaN (for `_split_gaps`), else they are errors.
         self.missing_ok = missing_ok
+        # Read in chunks: time gaps are refused (`_refuse_gaps`), with each trajectory's
+        # median step.
+        self.chunked, self._steps = chunked, {}
         # Column -> factor to SI units (seconds for time), applied as values are read.
         self.scales = dict(scales or {})
         self.time, self.trajectory = time, trajectory
@@ -224,8 +228,28 @@ class Reader:
                     k = int(bad[0])
                     raise DataError(f"{self.source}: column {self.time!r}, row {row + k + 1}: "
                                     f"time does not increase ({before[k]:g} then {t[k]:g})")
+                if self.chunked:
+                    self._refuse_gaps(t - before, same, group, row)
                 last_t = float(t[-1])
             yield Records(X, t, group, ())
+
+    def _refuse_gaps(self, steps: np.ndarray, same: np.ndarray, group: np.ndarray,
+                     row: int) -> None:
+        """A file read in chunks is not cut at time gaps (`_split_gaps` cuts records in
+        memory): a step over `GAP_STEPS` times its trajectory's median step in the first
+        chunk that holds three of its rows is an error, not a different fit."""
+        for j, start, stop in runs(group):
+            if j not in self._steps and stop - start >= 3:
+                self._steps[j] = float(np.median(steps[start + 1:stop]))
+        reference = np.array([self._steps.get(int(j), np.inf) for j in group])
+        gap = np.flatnonzero(same & (steps > GAP_STEPS * reference))
+        if gap.size:
+            k = int(gap[0])
+            raise DataError(f"{self.source}: row {row + k + 1}: a time gap of {steps[k]:g} s "
+                            f"(over {GAP_STEPS:g} times the median step); a file read in "
+                            "chunks is not cut at gaps: read it whole (Python: "
+                            "in_memory=True; the command line: --residuals FILE), or cut it "
+                            "with a trajectory column")
 
     def _keys(self, values: np.ndarray, row: int) -> np.ndarray:
         """The trajectory number of each row of a chunk of the trajectory column."""
@@ -340,7 +364,7 @@ def open_chunks(path: str, model: str | os.PathLike[str] | Model | None,
     units = _units(table.columns, mapping, time, options, table.metadata, table.name)
     notes.extend(units["notes"])
     reader = Reader(m, mapping, time, trajectory, table.name,
-                    typed=table.format == "parquet", scales=units["scale"])
+                    typed=table.format == "parquet", scales=units["scale"], chunked=True)
     return Chunked(m, tuple(notes), _truth(table.metadata, m), table, reader, chunk_rows,
                    progress, units)
 

@@ -356,3 +356,21 @@ def test_unknown_recorded_unit_is_said(si):
                for w in result.warnings)
     given = hamid.fit(frame, "peng-quadratic", method="energy", scale={"u1": 1.0})
     assert not any("furlong" in w for w in given.warnings)
+
+
+def test_a_file_read_in_chunks_refuses_a_time_gap(tmp_path, si):
+    """Chunks are not cut at gaps: an error, never a fit that differs from the whole one."""
+    path = tmp_path / "gapped.csv"
+    si.drop(index=range(200, 260)).to_csv(path, index=False)
+    with pytest.raises(DataError, match=r"row 201: a time gap of 3\.05 s .*read in chunks"):
+        hamid.fit(path, "peng-quadratic", method="energy", chunk_rows=100)
+    whole = hamid.fit(path, "peng-quadratic", method="energy")
+    assert whole.to_dict()["data"]["n_trajectories"] == 4
+
+
+def test_a_file_read_in_chunks_without_gaps_fits_as_whole(tmp_path, si, si_fit):
+    path = tmp_path / "plain.csv"
+    si.to_csv(path, index=False)
+    chunked = hamid.fit(path, "peng-quadratic", method="energy", chunk_rows=100)
+    whole = hamid.fit(path, "peng-quadratic", method="energy")
+    _same_estimates(chunked, whole)
