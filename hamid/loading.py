@@ -174,7 +174,14 @@ class Reader:
             if missing.any():
                 values = values.copy()
                 values[missing] = 0
-        numbers = io.numeric_values(values, column, self.source, first_row=row + 1)
+        try:
+            numbers = io.numeric_values(values, column, self.source, first_row=row + 1)
+        except DataError as exc:
+            if self.chunked and str(exc).endswith("missing value"):
+                raise DataError(f"{exc}; a file read in chunks is not cut at dropouts: read "
+                                "it whole (Python: in_memory=True; the command line: "
+                                "--residuals FILE)") from None
+            raise
         if missing is not None and missing.any():
             numbers[missing] = np.nan
         factor = self.scales.get(column, 1.0)

@@ -374,3 +374,13 @@ def test_a_file_read_in_chunks_without_gaps_fits_as_whole(tmp_path, si, si_fit):
     chunked = hamid.fit(path, "peng-quadratic", method="energy", chunk_rows=100)
     whole = hamid.fit(path, "peng-quadratic", method="energy")
     _same_estimates(chunked, whole)
+
+
+def test_a_file_read_in_chunks_names_the_way_past_a_dropout(tmp_path, si):
+    path = tmp_path / "dropout.csv"
+    _with_dropout(si, 100, "u1", "").to_csv(path, index=False)
+    with pytest.raises(DataError, match=r"row 101: missing value; a file read in chunks is "
+                                        r"not cut at dropouts: read it whole"):
+        hamid.fit(path, "peng-quadratic", method="energy", chunk_rows=100)
+    assert hamid.fit(path, "peng-quadratic", method="energy",
+                     in_memory=True).to_dict()["data"]["n_trajectories"] == 4
