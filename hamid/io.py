@@ -500,7 +500,8 @@ class TableChunks:
 
     def _points(self, column: Any) -> Any:
         """Helper giving text cells of a decimal-comma file with points."""
-        return textlayout.points(column) if self.layout.decimal == "," else column
+        decimal = self.layout.decimal if self.format not in ("parquet", "lab") else "."
+        return textlayout.points(column) if decimal == "," else column
 
     def _batches(self, columns: list[str], rows: int, as_text: bool = False) -> Iterator[Any]:
         import pyarrow as pa
