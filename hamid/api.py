@@ -63,7 +63,9 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         seed: int | None = None, format: str | None = None,
         chunk_rows: int | None = None, in_memory: bool = False,
         progress: Callable[[str], None] | None = None, time_unit: str | None = None,
-        scale: Mapping[str, float] | None = None, gaps: str = "split") -> FitResult:
+        scale: Mapping[str, float] | None = None, gaps: str = "split",
+        delimiter: str | None = None, decimal: str | None = None, skip_rows: int = 0,
+        units_row: bool | None = None) -> FitResult:
     """Fit the energy of recorded free oscillations.
 
     Parameters
@@ -87,6 +89,11 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     gaps : {"split", "error"}
         At a missing value or a time step over 5 times the median, cut the trajectory into
         separate trajectories, each with its own level (said in a warning), or refuse.
+    delimiter, decimal, skip_rows, units_row : optional
+        How delimited text is laid out: the cell delimiter and decimal mark (detected:
+        ';' files with decimal commas are), lines to skip before the header, and whether
+        a units row follows the header (detected: a row without numbers above rows with
+        them; its units convert like name suffixes).
     velocity : {"measured", "savgol"}
         Take the velocities from the file, or derive them from the positions by
         Savitzky-Golay differentiation with an odd `window` (samples; default about a tenth
@@ -146,7 +153,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                       fix=fix or {}, method=method, weak_window=weak_window, damping=damping,
                       cov=cov, level=level, bootstrap=bootstrap, seed=seed, format=format,
                       chunk_rows=chunk_rows, in_memory=in_memory, time_unit=time_unit,
-                      scale=scale, gaps=gaps)
+                      scale=scale, gaps=gaps, delimiter=delimiter, decimal=decimal,
+                      skip_rows=skip_rows, units_row=units_row)
     if isinstance(data, list | tuple) and len(data) == 1:
         data = data[0]
     chunks = opts.chunking(data)

@@ -81,7 +81,8 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
         if not paths:
             raise UsageError("no data given")
         tables = [(os.fspath(p) if os.fspath(p) != "-" else io.STDIN,
-                   *io.read_columns(p, format=options.format)) for p in paths]
+                   *io.read_columns(p, format=options.format, text=options.text))
+                  for p in paths]
     first_name, first_table, metadata = tables[0]
     if model is None:
         _check_same_model(tables)
@@ -363,7 +364,7 @@ def open_chunks(path: str, model: str | os.PathLike[str] | Model | None,
                 progress: Callable[[str], None] | None) -> Chunked:
     """A file to read in chunks of `chunk_rows` rows: its model and columns, settled as
     `load` settles them."""
-    table = io.TableChunks(path, format=options.format)
+    table = io.TableChunks(path, format=options.format, text=options.text)
     m, notes = _settle_model(model, table.metadata, table.columns, table.name, options)
     mapping = naming.resolve_columns(table.columns, m.coordinates, m.velocities,
                                      mapping=options.columns, source=table.name)

@@ -9,9 +9,12 @@ import math
 import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hamid.errors import UsageError
+
+if TYPE_CHECKING:
+    from hamid.textlayout import TextOptions
 
 
 def parse_mapping(text: str, *, option: str) -> dict[str, str]:
@@ -145,8 +148,13 @@ class FitOptions:
     time_unit: str | None = None
     scale: Mapping[str, float] | None = None
     gaps: str = "split"
+    delimiter: str | None = None
+    decimal: str | None = None
+    skip_rows: int = 0
+    units_row: bool | None = None
 
     def __post_init__(self) -> None:
+        _ = self.text   # building it checks the text-layout options
         if self.time_unit is not None:
             _check_choice(self.time_unit, TIME_UNITS, "time_unit")
         _check_choice(self.gaps, GAP_POLICIES, "gaps")
@@ -176,6 +184,13 @@ class FitOptions:
         object.__setattr__(self, "fix", dict(self.fix or {}))
         if self.chunk_rows is not None and self.chunk_rows < 1:
             raise UsageError("--chunk-rows: must be a positive number of rows")
+
+    @property
+    def text(self) -> TextOptions:
+        """How delimited text is read (None fields: detected)."""
+        from hamid.textlayout import TextOptions
+
+        return TextOptions(self.delimiter, self.decimal, self.skip_rows, self.units_row)
 
     @property
     def weighted(self) -> bool:

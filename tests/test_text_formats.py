@@ -283,3 +283,21 @@ def test_a_units_row_in_mm_gives_the_si_estimates(tmp_path):
     assert result.to_dict()["data"]["scale"] == {"u1": 1e-3, "v1": 1e-3}
     for name, value in truth.items():
         assert result.estimates[name] == pytest.approx(value, rel=1e-10)
+
+
+def test_fit_takes_the_text_layout_as_keywords(tmp_path):
+    """A logger's preamble, ';' cells, decimal commas and a units row, all given."""
+    import pandas as pd
+
+    frame = pd.read_csv(SAMPLE, comment="#")
+    body = frame.to_csv(sep=";", decimal=",", index=False).splitlines()
+    units = ";".join(["-", "s", "m", "m/s"][:len(frame.columns)])
+    path = tmp_path / "logger.txt"
+    path.write_text("\n".join(["Logger 7 export", "2026-11-24 06:00", body[0], units,
+                               *body[1:]]) + "\n")
+    found = hamid.fit(path, "duffing", method="energy", format="csv", delimiter=";",
+                      decimal=",", skip_rows=2, units_row=True).estimates
+    expected = hamid.fit(SAMPLE, "duffing", method="energy").estimates
+    assert found == pytest.approx(expected, rel=1e-12)
+    with pytest.raises(UsageError, match="--decimal: 'x' is not"):
+        hamid.fit(path, "duffing", decimal="x")
