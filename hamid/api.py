@@ -158,6 +158,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     if isinstance(data, list | tuple) and len(data) == 1:
         data = data[0]
     chunks = opts.chunking(data)
+    run = summary.run_provenance(data, opts)   # inputs hashed before they are read
     # records: whole, or a file to pass over in chunks
     if chunks is None:
         source = loading.load(data, model, opts)
@@ -208,7 +209,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         provenance = summary.Provenance(source.data_info(linear.sizes, opts), source.labels,
                                         source.truth, source.notes + source.reader.notes)
         return summary.fit_result(m, unknowns, fitted, residuals, fit_plan, opts, provenance,
-                                  refinement)
+                                  refinement, run=run)
     labels = source.records.labels
     provenance = summary.Provenance(
         source.data_info, labels, source.truth,
@@ -220,4 +221,4 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         dissipation=summary.dissipation_summary(m, source.records, damping_forces,
                                                 unknowns.estimates(fitted.theta),
                                                 rows.all_energy, fitted.h),
-        samples=summary.samples(rows, fitted, m, unknowns, fit_plan, labels))
+        samples=summary.samples(rows, fitted, m, unknowns, fit_plan, labels), run=run)

@@ -32,6 +32,7 @@ if TYPE_CHECKING:
 __all__ = [
     "as_numpy",
     "column_values",
+    "file_digest",
     "is_missing",
     "is_parquet",
     "numeric_column",
@@ -716,6 +717,25 @@ def read_bytes(source: str | os.PathLike[str]) -> tuple[bytes, str]:
             return stream.read(), name
         except OSError as exc:
             raise _file_error(exc, source, name) from exc
+
+
+def file_digest(source: str | os.PathLike[str]) -> tuple[int, str]:
+    """A file's size in bytes and SHA-256 (hex), read in one streaming pass of 1 MiB blocks
+    (memory does not grow with the file; a file read in chunks is not held whole)."""
+    import hashlib
+
+    name = os.fsdecode(source)
+    digest, size = hashlib.sha256(), 0
+    block = bytearray(1 << 20)
+    view = memoryview(block)
+    with _opened(source, name) as stream:
+        try:
+            while n := stream.readinto(view):
+                digest.update(view[:n])
+                size += n
+        except OSError as exc:
+            raise _file_error(exc, source, name) from exc
+    return size, digest.hexdigest()
 
 
 def _file_error(exc: OSError, source: str | os.PathLike[str], name: str) -> DataError:

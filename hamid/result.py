@@ -9,21 +9,24 @@ below are the dict parts of a result, as the fit builds them.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, Literal, NotRequired, TypedDict
 
 __all__ = [
     "BlockResiduals",
     "ConditioningInfo",
+    "CovarianceInfo",
     "DataInfo",
     "DissipationInfo",
     "DriftInfo",
     "EnergyLevel",
     "EnergyLost",
     "FitResult",
+    "InputFile",
     "MethodInfo",
     "ModelInfo",
     "ParameterEstimate",
+    "ProvenanceInfo",
     "RefinementInfo",
     "ResidualSummary",
     "SCHEMA",
@@ -139,6 +142,35 @@ class DissipationInfo(TypedDict):
     period: float | None
 
 
+class CovarianceInfo(TypedDict):
+    """The covariance matrix of the free parameters' estimates, in the order of `names`
+    (null for an entry that could not be computed)."""
+
+    names: list[str]
+    matrix: list[list[float | None]]
+
+
+class InputFile(TypedDict):
+    """One input: its name as read, size in bytes and SHA-256 (None for standard input or
+    a DataFrame)."""
+
+    path: str
+    size: int | None
+    sha256: str | None
+
+
+class ProvenanceInfo(TypedDict):
+    """Where the report came from: inputs, when (UTC, ISO 8601), the versions of the
+    libraries that computed it, the bootstrap's seed and the command line (None from
+    Python)."""
+
+    inputs: list[InputFile]
+    utc: str
+    versions: dict[str, str | None]
+    seed: int | None
+    command: str | None
+
+
 @dataclass(frozen=True, slots=True)
 class ParameterEstimate:
     """One parameter; `stderr` is None when it could not be computed (never 0)."""
@@ -177,6 +209,9 @@ class FitResult:
     conditioning: ConditioningInfo
     warnings: tuple[str, ...] = field(default=())
     dissipation: DissipationInfo | None = None
+    # Optional keys of hamid.fit/1, absent from older reports (and then None here).
+    covariance: CovarianceInfo | None = None
+    provenance: ProvenanceInfo | None = None
     # Per-sample energy rows (trajectory, t, energy, residual, weight) for --residuals;
     # bulk data, so not part of the JSON nor of equality.
     samples: dict[str, Any] | None = field(default=None, compare=False, repr=False)
@@ -186,8 +221,17 @@ class FitResult:
         """Parameter name -> estimate."""
         return {p.name: p.estimate for p in self.parameters}
 
+    def with_command(self, command: str | None) -> FitResult:
+        """This result with `provenance.command` set (the CLI's command line)."""
+        if self.provenance is None:
+            return self
+        return replace(self, provenance={**self.provenance, "command": command})
+
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready data (built-in types; non-finite numbers become null)."""
+        extra = {key: value for key, value in (("covariance", self.covariance),
+                                                 ("provenance", self.provenance))
+                 if value is not None}
         return plain_data({
             "schema": SCHEMA,
             "hamid_version": self.hamid_version,
@@ -200,6 +244,7 @@ class FitResult:
             "conditioning": self.conditioning,
             "warnings": list(self.warnings),
             "dissipation": self.dissipation,
+            **extra,
         })
 
     @classmethod
@@ -238,6 +283,8 @@ class FitResult:
             conditioning=data["conditioning"],
             warnings=tuple(data["warnings"]),
             dissipation=data.get("dissipation"),
+            covariance=data.get("covariance"),
+            provenance=data.get("provenance"),
         )
 
 

@@ -4,22 +4,33 @@ what the method did, per-sample rows, dissipation and warnings (docs/output.md).
 from __future__ import annotations
 
 import math
+import os
+import sys
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from hamid import __version__, design, uncertainty
+from hamid import __version__, design, io, uncertainty
 from hamid.design import Block, Damping
+from hamid.errors import DataError
 from hamid.estimate import LinearFit, NoiseCheck, ResidualSums, Rows
 from hamid.model import Model
 from hamid.options import FitOptions
 from hamid.plan import FitPlan
 from hamid.records import Records
-from hamid.result import EnergyLevel, FitResult, ParameterEstimate, percent, plain_data
+from hamid.result import (
+    EnergyLevel,
+    FitResult,
+    InputFile,
+    ParameterEstimate,
+    ProvenanceInfo,
+    percent,
+    plain_data,
+)
 from hamid.unknowns import Unknowns
 
-__all__ = ["Provenance", "dissipation_summary", "fit_result", "samples"]
+__all__ = ["Provenance", "dissipation_summary", "fit_result", "run_provenance", "samples"]
 
 # A drift is reported when the energy changes by more than this fraction over the record
 # and a straight line in time explains this share of the residual variance.
@@ -41,8 +52,10 @@ class Provenance:
 def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: ResidualSums,
                plan: FitPlan, options: FitOptions, provenance: Provenance,
                refinement: dict[str, Any] | None, dissipation: dict[str, Any] | None = None,
-               samples: dict[str, Any] | None = None) -> FitResult:
-    """The fit's report: estimates with bounds, levels, residuals, conditioning, warnings."""
+               samples: dict[str, Any] | None = None,
+               run: ProvenanceInfo | None = None) -> FitResult:
+    """The fit's report: estimates with bounds, levels, residuals, conditioning, warnings,
+    the free parameters' covariance and the run's provenance (`run_provenance`)."""
     stderr = np.sqrt(np.clip(np.diag(fit.covariance), 0, None))
     low, high = uncertainty.confidence_bounds(fit.theta, stderr, fit.df, options.level)
     truth = provenance.truth
@@ -92,8 +105,57 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
         conditioning=plain_data(conditioning),
         warnings=tuple(warnings),
         dissipation=plain_data(dissipation),
+        covariance={"names": [p.name for p in parameters if not p.fixed],
+                    "matrix": plain_data(_symmetric(fit.covariance).tolist())},
+        provenance=run,
         samples=samples,
     )
+
+
+def run_provenance(data: Any, options: FitOptions) -> ProvenanceInfo:
+    """The inputs (size, SHA-256), the time now (UTC), the versions of hamid, numpy, scipy
+    and pyarrow, and the bootstrap's seed; `command` is None (the CLI sets it).
+
+    Each file is hashed in one streaming pass of 1 MiB blocks (`io.file_digest`); a file
+    that cannot be read is listed without size and digest, for the reading to report.
+    """
+    from datetime import UTC, datetime
+
+    items = data if isinstance(data, list | tuple) else [data]
+    return {
+        "inputs": [_input_file(item) for item in items],
+        "utc": datetime.now(UTC).isoformat(timespec="seconds").replace("+00:00", "Z"),
+        "versions": {"hamid": __version__, "numpy": np.__version__,
+                     "scipy": _version("scipy"), "pyarrow": _version("pyarrow")},
+        "seed": options.seed if options.cov == "bootstrap" else None,
+        "command": None,
+    }
+
+
+def _input_file(item: Any) -> InputFile:
+    """Helper: one input's name, size and digest (None for stdin, a DataFrame, an error)."""
+    if not isinstance(item, str | os.PathLike):
+        return {"path": "<DataFrame>", "size": None, "sha256": None}
+    if io.is_stdio(item):
+        return {"path": io.STDIN, "size": None, "sha256": None}
+    try:
+        size, sha256 = io.file_digest(item)
+    except DataError:
+        return {"path": os.fsdecode(item), "size": None, "sha256": None}
+    return {"path": os.fsdecode(item), "size": size, "sha256": sha256}
+
+
+def _version(package: str) -> str | None:
+    """Helper: an installed package's version (of the module loaded, if it is), or None."""
+    module = sys.modules.get(package)
+    if module is not None and isinstance(getattr(module, "__version__", None), str):
+        return str(module.__version__)
+    from importlib import metadata
+
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return None
 
 
 def samples(rows: Rows, fit: LinearFit, model: Model, unknowns: Unknowns, plan: FitPlan,
@@ -106,6 +168,13 @@ def samples(rows: Rows, fit: LinearFit, model: Model, unknowns: Unknowns, plan: 
             "energy": design.fitted_energy(rows.all_energy, model, estimates),
             "residual": energy.A @ fit.theta - energy.b - fit.h[energy.group],
             "weight": design.sample_weights(plan.kind, rows.blocks, energy, rows.windows)}
+
+
+def _symmetric(covariance: Any) -> Any:
+    """Helper: a covariance matrix made exactly symmetric (its rounding-level asymmetry
+    averaged out; the diagonal, and so the standard errors, unchanged)."""
+    matrix = np.asarray(covariance, dtype=float)
+    return (matrix + matrix.T) / 2
 
 
 def _finite_or_none(x: float) -> float | None:

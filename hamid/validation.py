@@ -57,7 +57,7 @@ def check_result(data: object, *, source: str | None = None) -> None:
         ``r.json: not a hamid fit result (key 'method.level' is 5, expected a number
         strictly between 0 and 1)``.
     """
-    problem = _depth_problem(data) or _schema_problem(data)
+    problem = _depth_problem(data) or _schema_problem(data) or _covariance_problem(data)
     if problem:
         prefix = f"{source}: " if source else ""
         raise DataError(f"{prefix}not a hamid fit result ({problem})")
@@ -105,6 +105,23 @@ def _inlined(node: Any, defs: dict[str, Any]) -> Any:
     if "$ref" in node:
         inlined = {**_inlined(defs[node["$ref"].removeprefix("#/$defs/")], defs), **inlined}
     return inlined
+
+
+def _covariance_problem(data: Any) -> str | None:
+    """Helper: what JSON Schema cannot say of `covariance`: a square matrix with a row per
+    name (None when it is, or absent)."""
+    covariance = data.get("covariance")
+    if covariance is None:
+        return None
+    n = len(covariance["names"])
+    matrix = covariance["matrix"]
+    for i, row in enumerate(matrix):
+        if len(row) != n:
+            return (f"key 'covariance.matrix[{i}]' has {len(row)} entries, expected {n} "
+                    "(one per name)")
+    if len(matrix) != n:
+        return f"key 'covariance.matrix' has {len(matrix)} rows, expected {n} (one per name)"
+    return None
 
 
 def _where(error: Any) -> list[str | int]:
