@@ -26,6 +26,10 @@ from hamid.options import COVARIANCE_KINDS, METHODS, VELOCITY_SOURCES
 _debug = False
 # The data files of the running `fit`, named when it runs out of memory.
 _sources: tuple[str, ...] = ()
+# The report formats of `fit` and `report` (hamid.report.FORMATS, not imported for --help),
+# and the output extensions that choose them.
+_REPORT_FORMATS = ("table", "json", "csv", "markdown")
+_REPORT_SUFFIXES = {".json": "json", ".csv": "csv", ".md": "markdown", ".txt": "table"}
 
 
 class _Terminated(BaseException):
@@ -311,6 +315,26 @@ class _status:
             self.line.stop()
 
 
+# Spellings of a tab on the command line, where a literal tab is awkward to type.
+_DELIMITER_NAMES = {"tab": "\t", "\\t": "\t"}
+
+
+def _to_stdout(output: str) -> bool:
+    """Whether an output goes to this process's standard output: '-', or a name that leads
+    to the same open file (/dev/stdout, /dev/fd/1, a symlink to either)."""
+    from hamid import io
+
+    if io.is_stdio(output):
+        return True
+    try:
+        named, ours, null = os.stat(output), os.fstat(1), os.stat(os.devnull)
+    except (OSError, ValueError):
+        return False
+    # /dev/null as standard output: what goes there cannot interleave
+    return (named.st_dev, named.st_ino) == (ours.st_dev, ours.st_ino) != (null.st_dev,
+                                                                           null.st_ino)
+
+
 def _parse_floats(text: str | None, option: str) -> dict[str, float] | None:
     from hamid import options
 
@@ -343,6 +367,17 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--trajectory", metavar="COL", help="Trajectory column (default trajectory).")
 @click.option("--format-in", type=click.Choice(["csv", "tsv", "parquet"]),
               help="Input format, when the file name does not tell it.")
+@click.option("--delimiter", metavar="CHAR",
+              help="Delimiter of text input ('tab' or \\t for a tab; default: tab for .tsv, "
+                   "else ';' when the header has more ';' than ',', else ',').")
+@click.option("--decimal", type=click.Choice([".", ","]),
+              help="Decimal mark of text input (default: ',' when the delimiter is not ',' "
+                   "and the numbers are written so, else '.').")
+@click.option("--skip-rows", default=0, show_default=True, type=click.IntRange(min=0),
+              metavar="N", help="Lines of preamble to skip before the header of text input.")
+@click.option("--units-row/--no-units-row", default=None,
+              help="Whether the row under the header of text input holds units (default: "
+                   "when it has no number and the next row has).")
 @click.option("--velocity", default="measured", show_default=True,
               type=click.Choice(VELOCITY_SOURCES),
               help="Velocities from the file, or derived from the positions (Savitzky-Golay).")
@@ -373,8 +408,9 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--bootstrap", "n_boot", default=200, show_default=True,
               type=click.IntRange(min=10), help="Replicates for --cov bootstrap.")
 @click.option("--seed", type=click.IntRange(min=0), help="Seed for --cov bootstrap.")
-@click.option("--format", "fmt", type=click.Choice(["table", "json", "csv"]),
-              help="Report format (default: from -o's extension, else table).")
+@click.option("--format", "fmt", type=click.Choice(_REPORT_FORMATS),
+              help="Report format (default: from -o's extension: .json, .csv, .md, .txt; "
+                   "table for standard output and special files).")
 @click.option("-o", "--output", default="-", metavar="FILE", help="Write the report here.")
 @click.option("--residuals", metavar="FILE",
               help="Write per-sample residuals (CSV/Parquet); reads the data into memory.")
@@ -385,7 +421,8 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         time_column: str | None, time_unit: str | None, scale: str | None, strict: bool,
         gaps: str,
-        trajectory: str | None, format_in: str | None,
+        trajectory: str | None, format_in: str | None, delimiter: str | None,
+        decimal: str | None, skip_rows: int, units_row: bool | None,
         velocity: str, window: int | None, order: int, noise: str | None,
         bias_correct: bool, method: str,
         weak_window: float | None, damping: str, fix: str | None, cov: str, level: float,
@@ -408,8 +445,12 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         if output != "-" and writing.overwrites(residuals, output):
             raise UsageError(f"-o and --residuals name the same file {output!r}")
         _check_output("--residuals", residuals, inputs, binary=residuals_format == "parquet")
+        if _to_stdout(residuals) and _to_stdout(output):
+            raise UsageError("--residuals and the report would both go to standard output, "
+                             "where they would interleave; write one of them to a file "
+                             "(-o FILE or --residuals FILE)")
     _check_output("-o", output, inputs)
-    fmt = fmt or _format_from_name(output, {".json": "json", ".csv": "csv"}, "table")
+    fmt = fmt or _report_format(output)
     with _status("fitting") as status:
         result = run_fit(list(data), model,
                          columns=None if columns is None else options.parse_mapping(
@@ -421,7 +462,9 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
                          level=level, bootstrap=n_boot, seed=seed, format=format_in,
                          chunk_rows=chunk_rows, in_memory=residuals is not None,
                          progress=status, time_unit=time_unit,
-                         scale=_parse_floats(scale, "--scale"), gaps=gaps)
+                         scale=_parse_floats(scale, "--scale"), gaps=gaps,
+                         delimiter=_DELIMITER_NAMES.get(delimiter or "", delimiter),
+                         decimal=decimal, skip_rows=skip_rows, units_row=units_row)
 
     def write_residuals() -> None:
         import pandas as pd
@@ -436,23 +479,42 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
 
 @cli.command()
 @click.argument("result_file", metavar="RESULT.json")
-@click.option("--format", "fmt", type=click.Choice(["table", "json", "markdown"]),
-              help="Output format (default: from -o's extension, else table).")
+@click.option("--format", "fmt", type=click.Choice(_REPORT_FORMATS),
+              help="Output format (default: from -o's extension: .json, .csv, .md, .txt; "
+                   "table for standard output and special files).")
 @click.option("-o", "--output", default="-", metavar="OUT", help="Write the report here.")
 def report(result_file: str, fmt: str | None, output: str) -> None:
-    """Render a saved fit result (JSON) as a table, JSON or markdown."""
+    """Render a saved fit result (JSON) as a table, JSON, CSV or markdown."""
     from hamid import documents, io
     from hamid.result import FitResult
 
     _check_output("-o", output, [result_file])
+    fmt = fmt or _report_format(output)
     source = io.STDIN if io.is_stdio(result_file) else result_file
     result = FitResult.from_dict(documents.read_json(result_file), source=source)
-    fmt = fmt or _format_from_name(output, {".json": "json", ".md": "markdown"}, "table")
     _emit(result.to_dict(), fmt, output)
 
 
-def _format_from_name(output: str, by_suffix: dict[str, str], default: str) -> str:
-    return by_suffix.get(os.path.splitext(output)[1].lower(), default)
+def _report_format(output: str) -> str:
+    """The report format `-o` implies: its extension's, else table for standard output and
+    special files (devices, FIFOs, /dev/stdout); a UsageError for any other name."""
+    from hamid import io, writing
+
+    suffix = os.path.splitext(output)[1].lower()
+    if suffix in _REPORT_SUFFIXES:
+        return _REPORT_SUFFIXES[suffix]
+    # writing.table_format tells a stream without a table extension (as CSV) and refuses a
+    # regular file without one: the same rule, asked of the module that writes.
+    try:
+        stream = writing.table_format(output) == "csv" and io.format_from_suffix(output) is None
+    except (UsageError, DataError):
+        stream = False
+    if stream:
+        return "table"
+    known = ", ".join(f"{s} ({f})" for s, f in _REPORT_SUFFIXES.items())
+    shown = f"unknown extension {suffix!r}" if suffix else "no extension"
+    raise UsageError(f"-o {output!r}: {shown}; the report's format is told by {known}, "
+                     "or give --format")
 
 
 def _emit(result: dict[str, Any], fmt: str, output: str, *,

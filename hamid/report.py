@@ -315,6 +315,12 @@ def _data_line(data: Mapping[str, Any]) -> str:
     renamed = [f"{name}={col}" for name, col in data["columns"].items() if name != col]
     if renamed:
         text += f"; columns {', '.join(renamed)}"
+    if data.get("time"):
+        unit = data.get("time_unit")
+        text += f"; time {data['time']}" + (f" ({unit})" if unit else "")
+    if data.get("scale"):
+        factors = ", ".join(f"{col} × {_num(factor)}" for col, factor in data["scale"].items())
+        text += f"; scaled {factors}"
     return text
 
 

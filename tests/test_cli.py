@@ -631,7 +631,7 @@ def test_report_bad_input(runner, tmp_path, content, names):
 
 def test_report_bad_format_is_usage_error(runner, saved_result):
     path, _ = saved_result
-    assert_fails(invoke(runner, ["report", path, "--format", "csv"]), 2, "--format")
+    assert_fails(invoke(runner, ["report", path, "--format", "xlsx"]), 2, "--format")
 
 
 # ---------------------------------------------------------------------------------------------
