@@ -138,6 +138,8 @@ def _input_file(item: Any) -> InputFile:
         return {"path": "<DataFrame>", "size": None, "sha256": None}
     if io.is_stdio(item):
         return {"path": io.STDIN, "size": None, "sha256": None}
+    if not os.path.isfile(item):   # a FIFO or device: hashing would use up or never end
+        return {"path": os.fsdecode(item), "size": None, "sha256": None}
     try:
         size, sha256 = io.file_digest(item)
     except DataError:

@@ -193,3 +193,23 @@ def test_file_digest_streams_in_blocks(tmp_path, size):
 def test_file_digest_names_a_missing_file(tmp_path):
     with pytest.raises(DataError, match="no such file"):
         io.file_digest(tmp_path / "missing.csv")
+
+
+def test_a_fifo_as_input_is_read_once_and_not_hashed(tmp_path):
+    """Hashing a FIFO would use up its data before the fit reads it (and /dev/zero would
+    never end): only regular files get a size and digest."""
+    import os
+    import threading
+    from pathlib import Path
+
+    import hamid
+
+    data = (Path(__file__).parent.parent / "sample_data" / "duffing.csv").read_bytes()
+    fifo = tmp_path / "pipe.csv"
+    os.mkfifo(fifo)
+    writer = threading.Thread(target=lambda: fifo.write_bytes(data))
+    writer.start()
+    result = hamid.fit(str(fifo), method="energy")
+    writer.join()
+    assert result.provenance["inputs"] == [{"path": str(fifo), "size": None, "sha256": None}]
+    assert result.data["n_samples"] == 1202
