@@ -315,12 +315,14 @@ def _data_line(data: Mapping[str, Any]) -> str:
     renamed = [f"{name}={col}" for name, col in data["columns"].items() if name != col]
     if renamed:
         text += f"; columns {', '.join(renamed)}"
-    if data.get("time"):
-        unit = data.get("time_unit")
-        text += f"; time {data['time']}" + (f" ({unit})" if unit else "")
-    if data.get("scale"):
-        factors = ", ".join(f"{col} × {_num(factor)}" for col, factor in data["scale"].items())
-        text += f"; scaled {factors}"
+    time, unit = data.get("time"), data.get("time_unit")
+    if time:
+        text += f"; time {time}" + (f" ({unit})" if unit else "")
+    # the time column's factor is the unit just shown
+    factors = [f"{col} × {_num(factor)}" for col, factor in (data.get("scale") or {}).items()
+               if not (col == time and unit)]
+    if factors:
+        text += f"; scaled {', '.join(factors)}"
     return text
 
 
