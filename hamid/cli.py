@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import shlex
 import sys
 import warnings
 from collections.abc import Callable, Sequence
@@ -465,6 +466,7 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
                          scale=_parse_floats(scale, "--scale"), gaps=gaps,
                          delimiter=_DELIMITER_NAMES.get(delimiter or "", delimiter),
                          decimal=decimal, skip_rows=skip_rows, units_row=units_row)
+    result = result.with_command(shlex.join(["hamid", *sys.argv[1:]]))
 
     def write_residuals() -> None:
         import pandas as pd

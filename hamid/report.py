@@ -316,7 +316,8 @@ def _data_line(data: Mapping[str, Any]) -> str:
     if renamed:
         text += f"; columns {', '.join(renamed)}"
     time, unit = data.get("time"), data.get("time_unit")
-    if time:
+    if time and (time.lower() not in ("t", "time") or unit not in (None, "s")):
+        # the usual t in seconds goes without saying
         text += f"; time {time}" + (f" ({unit})" if unit else "")
     # the time column's factor is the unit just shown
     factors = [f"{col} × {_num(factor)}" for col, factor in (data.get("scale") or {}).items()

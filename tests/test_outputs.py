@@ -343,12 +343,16 @@ def test_data_line_without_time_or_scale(daq_result, fmt):
     line = _data_line(render(result, fmt, width=400))
     assert "time" not in line.split("; velocities")[1]
     assert "scaled" not in line
-    result["data"].update(time="t", time_unit=None, scale={})
-    line = _data_line(render(result, fmt, width=400))
-    assert line.endswith("; time t") and "scaled" not in line
+    # the usual t in seconds goes without saying; another name or unit is said
+    for unit in (None, "s"):
+        result["data"].update(time="t", time_unit=unit, scale={})
+        line = _data_line(render(result, fmt, width=400))
+        assert "; time" not in line and "scaled" not in line
+    result["data"].update(time="Zeit", time_unit=None, scale={})
+    assert _data_line(render(result, fmt, width=400)).endswith("; time Zeit")
     # a scaled time column without a unit recorded: its factor is shown
     result["data"].update(time="t", time_unit=None, scale={"t": 0.001})
-    assert _data_line(render(result, fmt, width=400)).endswith("; time t; scaled t × 0.001")
+    assert _data_line(render(result, fmt, width=400)).endswith("; scaled t × 0.001")
 
 
 def test_report_command_shows_time_and_scale(hamid_cli, daq_result, tmp_path):
@@ -358,3 +362,11 @@ def test_report_command_shows_time_and_scale(hamid_cli, daq_result, tmp_path):
     assert done.returncode == 0, done.stderr
     line = _data_line(done.stdout)
     assert "time time_ms (ms)" in line and "x_mm × 0.001" in line
+
+
+def test_the_command_line_is_in_the_report(hamid_cli, tmp_path):
+    done = subprocess.run([*hamid_cli, "fit", str(DUFFING_CSV), "--method", "energy",
+                           "--format", "json"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    command = json.loads(done.stdout)["provenance"]["command"]
+    assert command.startswith("hamid fit ") and "--method energy" in command
