@@ -380,6 +380,10 @@ def windows_at(records: Records, first: npt.NDArray[np.int64], last: npt.NDArray
     indptr = np.concatenate([[0], np.cumsum(sizes)]).astype(index)
     col = np.empty(indptr[-1], dtype=index)
     values_psi, values_dpsi = np.empty(indptr[-1]), np.empty(indptr[-1])
+    # once for all windows: per block of windows these passes over every sample made the
+    # build quadratic in the record's length
+    step = np.diff(t_all)
+    uneven = _uneven_windows(step, first, last)
     for lo in range(0, len(first), _WINDOW_BLOCK):
         hi = min(lo + _WINDOW_BLOCK, len(first))
         a, b = indptr[lo], indptr[hi]
@@ -390,7 +394,8 @@ def windows_at(records: Records, first: npt.NDArray[np.int64], last: npt.NDArray
         half = ((hi_t - lo_t) / 2)[row]
         s = (t_all[col[a:b]] - ((lo_t + hi_t) / 2)[row]) / half
         base = np.clip(1 - s**2, 0.0, None)  # rounding can put s a hair past 1
-        weights = _window_weights(t_all, block_first, block_last, row, col[a:b])
+        weights = _window_weights(t_all, step, block_first, block_last, row, col[a:b],
+                                  uneven[lo:hi])
         lower = weights.copy()   # base^(order - 1) * weights: serves psi and its derivative
         for _ in range(order - 1):   # products: numpy's power is ten times slower
             lower *= base
@@ -406,14 +411,14 @@ def windows_at(records: Records, first: npt.NDArray[np.int64], last: npt.NDArray
 _WINDOW_BLOCK = 4096   # windows built at once: their temporaries stay small
 
 
-def _window_weights(t: np.ndarray, first: np.ndarray, last: np.ndarray, row: np.ndarray,
-                    col: np.ndarray) -> np.ndarray:
-    """Trapezoid weights of every window's nodes; Simpson where a window is unevenly sampled."""
-    step = np.diff(t)
+def _window_weights(t: np.ndarray, step: np.ndarray, first: np.ndarray, last: np.ndarray,
+                    row: np.ndarray, col: np.ndarray, uneven: np.ndarray) -> np.ndarray:
+    """Trapezoid weights of every window's nodes; Simpson where a window is unevenly sampled
+    (`uneven`); `step` holds the time steps of all of `t`."""
     left = np.where(col > first[row], step[np.maximum(col - 1, 0)], 0.0)
     right = np.where(col < last[row], step[np.minimum(col, max(len(step) - 1, 0))], 0.0)
     weights = (left + right) / 2
-    for w in np.flatnonzero(_uneven_windows(step, first, last)):
+    for w in np.flatnonzero(uneven):
         weights[row == w] = _quadrature_weights(t[int(first[w]):int(last[w]) + 1])
     return weights
 
