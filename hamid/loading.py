@@ -634,21 +634,20 @@ def _split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int],
     short = sizes < SHORTEST_PIECE
     keep_rows = ~short[piece] if len(piece) else np.zeros(0, bool)
     kept, piece = kept[keep_rows], piece[keep_rows]
-    first_of = {}
-    for p, row in zip(piece.tolist(), kept.tolist(), strict=True):
-        first_of.setdefault(p, row)
-    owner = {p: int(group[row]) for p, row in first_of.items()}
-    count: dict[int, int] = {}
-    for p in first_of:
-        count[owner[p]] = count.get(owner[p], 0) + 1
-    labels, seen, number = [], {}, {}
-    for p in first_of:
-        j = owner[p]
+    if not len(kept):
+        raise DataError(f"{', '.join(source for source, _ in row_sources)}: no piece of "
+                        f"{SHORTEST_PIECE} samples or more is left once the trajectories are "
+                        "cut at missing values and time gaps; give --gaps error to see where")
+    # pieces in order of appearance, each numbered as a trajectory of its own
+    pieces, first = np.unique(piece, return_index=True)
+    owner = group[kept[first]].tolist()
+    count = np.bincount(owner)
+    labels, seen = [], {}
+    for j in owner:
         seen[j] = seen.get(j, 0) + 1
         label = records.labels[j]
         labels.append(label if count[j] == 1 else f"{label}/{seen[j]}")
-        number[p] = len(number)
-    new_group = np.array([number[p] for p in piece.tolist()], dtype=np.int64)
+    new_group = np.searchsorted(pieces, piece).astype(np.int64)
     notes.append(f"{n_dropouts + n_gaps} cut(s) in the trajectories ({n_dropouts} at missing "
                  f"values, {n_gaps} at time gaps over {GAP_STEPS:g} times the median step): "
                  f"{len(labels)} trajectories fitted, each with its own energy level; "

@@ -88,6 +88,8 @@ def layout(head: bytes, name: str, fmt: str | None,
     if start >= len(head):
         raise DataError(f"{name}: has comment lines but no header line")
     lines = _lines(head, start)
+    if not lines:   # only blank lines (str.strip counts separators such as \x1c as blank)
+        raise DataError(f"{name}: has no header line, only blank lines")
     delimiter = options.delimiter or ("\t" if fmt == "tsv"
                                       else _sniff_delimiter(lines[0], tabs=fmt is None))
     rows = [_cells(line, delimiter) for line in lines[1:]]

@@ -196,8 +196,12 @@ DATA_ERRORS = {
                  ["data.csv", "column 'x'", "row 3", "infinite"]),
     "-inf cell": ("data.csv", _write_csv(DUFFING_ROWS.replace("-0.3", "-inf")), [], 1,
                   ["data.csv", "column 'v'", "row 4", "infinite"]),
-    "NaN in a time column": ("data.csv", _write_csv(DUFFING_ROWS.replace("0.2,", "NaN,")), [],
-                             1, ["data.csv", "column 't'", "row 3", "missing"]),
+    "NaN in a time column": ("data.csv", _write_csv(DUFFING_ROWS.replace("0.2,", "NaN,")),
+                             ["--gaps", "error"], 1,
+                             ["data.csv", "column 't'", "row 3", "missing"]),
+    "NaN cutting what is left too short": (
+        "data.csv", _write_csv(DUFFING_ROWS.replace("0.2,", "NaN,")), [], 1,
+        ["data.csv", "no piece of 3 samples or more", "--gaps error"]),
     "duplicated column, CSV": ("data.csv", _write_csv("t,x,v,x\n0,1,0,1\n0.1,1,0,1\n"), [], 1,
                                ["data.csv", "duplicated column", "'x'"]),
     "duplicated column, Parquet": ("data.parquet", _write_bytes(_duplicated_parquet), [], 1,
@@ -306,11 +310,14 @@ def test_bad_model(runner, tmp_path, monkeypatch, energy, names):
 
 @pytest.mark.parametrize("name", ["quartic", "poly:0:3", "poly:1:1", "Duffing", ""])
 def test_unknown_model_name_in_fit_and_system_file(runner, tmp_path, name):
+    """A name that is not a model is a usage error (with a 'did you mean' where one is
+    close); a poly name out of range is a model error."""
+    code = 1 if name.startswith("poly") else 2
     fit = invoke(runner, ["fit", DUFFING_CSV, "--model", name])
-    assert_fails(fit, 1, repr(name))
+    assert_fails(fit, code, repr(name))
     config = tmp_path / "system.toml"
     config.write_text(system_text(replace=[('builtin = "duffing"', f"builtin = {name!r}")]))
-    assert_fails(invoke(runner, ["simulate", "--config", config]), 1, repr(name))
+    assert_fails(invoke(runner, ["simulate", "--config", config]), code, repr(name))
 
 
 HOSTILE = {
