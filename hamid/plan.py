@@ -112,12 +112,21 @@ def window_warnings(fit_plan: FitPlan, durations: list[float] | None) -> list[st
     no weak-form rows)."""
     if fit_plan.window is None or not durations:
         return []
-    short = [d for d in durations if d < fit_plan.window]
-    if not short:
-        return []
-    return [f"{len(short)} of {len(durations)} trajectories are shorter than the weak-form "
-            f"window of {fit_plan.window:.3g} s (the shortest lasts {min(short):.3g} s) and "
-            "give no weak-form rows; give a shorter --weak-window, or check the time unit"]
+    window, step = fit_plan.window, fit_plan.window * design.WINDOW_STEP
+    notes = []
+    short = [d for d in durations if d < window]
+    if short:
+        notes.append(f"{len(short)} of {len(durations)} trajectories are shorter than the "
+                     f"weak-form window of {window:.3g} s (the shortest lasts "
+                     f"{min(short):.3g} s) and give no weak-form rows; give a shorter "
+                     "--weak-window, or check the time unit")
+    # windows start every `step` and end within the trajectory: what they reach of it
+    covered = sum(np.floor((d - window) / step) * step + window for d in durations
+                  if d >= window)
+    if sum(durations) > 0 and covered < 0.5 * sum(durations):
+        notes.append(f"the weak-form windows cover only {covered / sum(durations):.0%} of "
+                     "the record; give a shorter --weak-window, or check the time unit")
+    return notes
 
 
 def refinement_obstacle(options: FitOptions, records_bytes: int | None = None) -> str | None:

@@ -384,3 +384,21 @@ def test_a_file_read_in_chunks_names_the_way_past_a_dropout(tmp_path, si):
         hamid.fit(path, "peng-quadratic", method="energy", chunk_rows=100)
     assert hamid.fit(path, "peng-quadratic", method="energy",
                      in_memory=True).to_dict()["data"]["n_trajectories"] == 4
+
+
+def test_windows_covering_less_than_half_the_record_are_warned(si):
+    """Windows start every quarter window and end inside their trajectory: what they reach
+    of the record, counted by hand for windows of 30 s."""
+    result = hamid.fit(si, "peng-quadratic", method="weak", weak_window=4.0)
+    assert not any("cover only" in w for w in result.warnings)
+    from hamid.plan import FitPlan, window_warnings
+
+    plan = FitPlan("weak", "", 30.0, None)
+    # 40 s: windows start at 0 and 7.5 s, and reach 37.5 s (94%)
+    assert not window_warnings(plan, [40.0])
+    # 20 s and 100 s: the short one gets none; 7.5 s steps reach 97.5 of 100: 81%
+    assert [w for w in window_warnings(plan, [20.0, 100.0]) if "cover only" in w] == []
+    # 29 s four times and 35 s once: only the last has windows, 30 of 151 s: 20%
+    found = [w for w in window_warnings(plan, [29.0] * 4 + [35.0]) if "cover only" in w]
+    assert found == ["the weak-form windows cover only 20% of the record; give a shorter "
+                     "--weak-window, or check the time unit"]
