@@ -22,7 +22,13 @@ import click
 
 from hamid import __version__
 from hamid.errors import DataError, HamidError, UsageError
-from hamid.options import COVARIANCE_KINDS, METHODS, VELOCITY_SOURCES
+from hamid.options import (
+    COVARIANCE_KINDS,
+    GAP_POLICIES,
+    METHODS,
+    TIME_UNITS,
+    VELOCITY_SOURCES,
+)
 
 _debug = False
 # The data files of the running `fit`, named when it runs out of memory.
@@ -355,7 +361,7 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--time", "time_column", metavar="COL",
               help="Time column (default t or time in any case, with a unit: time_ms, "
                    "Time [s]).")
-@click.option("--time-unit", type=click.Choice(["s", "ms", "us", "ns"]),
+@click.option("--time-unit", type=click.Choice(TIME_UNITS),
               help="Unit of the time column (default: its name's suffix, else s).")
 @click.option("--scale", metavar="COL=FACTOR,...",
               help="Multiply file columns by these factors to bring them to SI units "
@@ -363,7 +369,7 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--strict", is_flag=True,
               help="Exit with status 3 when the fit has any warning (the report is written).")
 @click.option("--gaps", default="split", show_default=True,
-              type=click.Choice(["split", "error"]),
+              type=click.Choice(GAP_POLICIES),
               help="At a missing value or a time gap, cut the trajectory in two, or refuse.")
 @click.option("--trajectory", metavar="COL", help="Trajectory column (default trajectory).")
 @click.option("--format-in", type=click.Choice(["csv", "tsv", "parquet"]),

@@ -95,3 +95,10 @@ def test_no_private_name_is_taken_from_another_module(name):
 def test_modules_stay_small(name):
     lines = len(MODULES[name].read_text().splitlines())
     assert lines <= (250 if name == "api" else 800), f"{name}.py has {lines} lines"
+
+
+def test_the_time_units_the_options_offer_are_those_the_reader_converts():
+    """options.py lists them without importing naming.py (the CLI imports options)."""
+    from hamid import naming, options
+
+    assert tuple(naming.TIME_UNITS) == options.TIME_UNITS
