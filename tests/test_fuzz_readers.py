@@ -17,9 +17,8 @@ from hamid.simulation import parse_system
 GOLDEN = json.loads((Path(__file__).parent / "golden" / "duffing_csv-auto.json").read_text())
 
 # What TOML can hold: scalars of every kind (huge integers too), arrays and tables.
-scalars = (st.none().filter(lambda _: False) | st.booleans() | st.integers()
-           | st.integers(min_value=10**300, max_value=10**400) | st.floats(allow_nan=True)
-           | st.text(max_size=20))
+scalars = (st.booleans() | st.integers() | st.integers(min_value=10**300, max_value=10**400)
+           | st.floats(allow_nan=True) | st.text(max_size=20))   # TOML has no null
 values = st.recursive(scalars, lambda inner: st.lists(inner, max_size=4)
                       | st.dictionaries(st.text(max_size=8), inner, max_size=4), max_leaves=12)
 names = st.sampled_from(["model", "parameters", "initial", "simulate", "noise", "damping",
