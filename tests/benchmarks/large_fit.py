@@ -28,23 +28,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
-import sys
 import tempfile
 import time
 
-# The peak resident memory of this process alone. Linux's ru_maxrss also counts the peak
-# of the process that started it (kept across fork and exec), which here is the
-# benchmark itself with the simulated data; VmHWM belongs to the process's own memory.
-PEAK = r"""
-import resource
-def peak_kb():
-    try:
-        with open("/proc/self/status") as status:
-            return next(int(line.split()[1]) for line in status if line.startswith("VmHWM:"))
-    except OSError:
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-"""
+from processes import PEAK, run
 
 BASELINE = PEAK + r"""
 import json, sys, time
@@ -100,16 +87,6 @@ def make_data(path: str, rows_per_trajectory: int) -> None:
     from hamid import writing
 
     writing.write_table(frame, path, metadata=frame.attrs["hamid"])
-
-
-def run(code: str, *args: str) -> dict:
-    """One case in a fresh process; its wall time includes start-up and imports."""
-    start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
-                          check=True)
-    result = json.loads(done.stdout.strip().splitlines()[-1])
-    result["seconds"] = time.perf_counter() - start
-    return result
 
 
 def main() -> None:

@@ -22,20 +22,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
-import sys
 import tempfile
 import time
 
-PEAK = r"""
-import resource
-def peak_kb():
-    try:
-        with open("/proc/self/status") as status:
-            return next(int(line.split()[1]) for line in status if line.startswith("VmHWM:"))
-    except OSError:
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-"""
+from processes import PEAK, run
 
 BASELINE = PEAK + r"""
 import json, sys, time
@@ -81,16 +71,6 @@ def make_data(path: str, n_trajectories: int) -> None:
               "noise": {"relative": 0.01}}
     frame = hamid.simulate(system)
     writing.write_table(frame, path, metadata=frame.attrs["hamid"])
-
-
-def run(code: str, *args: str) -> dict:
-    """One case in a fresh process; its wall time includes start-up and imports."""
-    start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
-                          check=True)
-    result = json.loads(done.stdout.strip().splitlines()[-1])
-    result["seconds"] = time.perf_counter() - start
-    return result
 
 
 def main() -> None:
