@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import pytest
+from helpers import hamid_command
 
 import hamid
 
@@ -120,11 +121,5 @@ def finite_difference_fit(frame: pd.DataFrame, model: Any) -> np.ndarray:
 
 @pytest.fixture(scope="session")
 def hamid_cli() -> list[str]:
-    """The command that runs hamid's CLI in a subprocess: the installed script, else the
-    module through this interpreter."""
-    import shutil
-    import sys
-
-    found = shutil.which("hamid")
-    return [found] if found is not None else [sys.executable, "-c",
-                                              "from hamid.cli import main; main()"]
+    """The command that runs hamid's CLI in a subprocess (`helpers.hamid_command`)."""
+    return hamid_command()

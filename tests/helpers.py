@@ -20,3 +20,21 @@ def wait_until_integrating(process, timeout: float = 30.0) -> None:
             time.sleep(0.5)
             return
         time.sleep(0.05)
+
+
+def hamid_command() -> list[str]:
+    """The command that runs hamid's CLI in a subprocess: the installed script, else the
+    module through this interpreter."""
+    import shutil
+    import sys
+
+    found = shutil.which("hamid")
+    return [found] if found is not None else [sys.executable, "-c",
+                                              "from hamid.cli import main; main()"]
+
+
+def duffing_system(*, k: str = "1.0", k3: str = "0.5", x: str = "1.0", v: str = "0.0",
+                   t_end: str = "2.0", dt: str = "0.1") -> str:
+    """A one-trajectory Duffing system file, each value written as given."""
+    return (f'[model]\nbuiltin = "duffing"\n\n[parameters]\nk = {k}\nk3 = {k3}\n\n'
+            f'[[initial]]\nx = {x}\nv = {v}\n\n[simulate]\nt_end = {t_end}\ndt = {dt}\n')

@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from click.testing import CliRunner
+from helpers import hamid_command
 from scipy import stats
 
 from hamid import __version__
@@ -777,13 +778,6 @@ def test_internal_error_with_debug_propagates(runner, broken_fit):
 # real processes
 
 
-def _hamid_command():
-    found = shutil.which("hamid")
-    if found is not None:
-        return [found]
-    return [sys.executable, "-c", "from hamid.cli import main; main()"]
-
-
 def _quote(args):
     import shlex
 
@@ -791,7 +785,7 @@ def _quote(args):
 
 
 def test_subprocess_pipeline(tmp_path):
-    hamid = _quote(_hamid_command())
+    hamid = _quote(hamid_command())
     command = (f"set -o pipefail; {hamid} simulate --config {_quote([DUFFING_TOML])} -o - "
                f"--format csv | {hamid} fit - --format json")
     done = subprocess.run(["bash", "-c", command], capture_output=True, text=True,
@@ -805,7 +799,7 @@ def test_subprocess_pipeline(tmp_path):
 
 
 def test_subprocess_error_exit_code(tmp_path):
-    done = subprocess.run([*_hamid_command(), "fit", "nosuch.csv"], capture_output=True,
+    done = subprocess.run([*hamid_command(), "fit", "nosuch.csv"], capture_output=True,
                           text=True, timeout=60, cwd=tmp_path)
     assert done.returncode == 1
     assert done.stdout == ""
@@ -814,7 +808,7 @@ def test_subprocess_error_exit_code(tmp_path):
 
 @pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash for pipefail")
 def test_closed_pipe_ends_quietly():
-    hamid = _quote(_hamid_command())
+    hamid = _quote(hamid_command())
     command = (f"set -o pipefail; {hamid} simulate --config {_quote([PENG_TOML])} -o - "
                "--format csv | head -n 1")
     done = subprocess.run(command, shell=True, executable="bash", capture_output=True,
@@ -842,7 +836,7 @@ def test_reader_gone_before_the_first_write(tmp_path, args):
     read_end, write_end = os.pipe()
     os.close(read_end)
     try:
-        done = subprocess.run([*_hamid_command(), *args], stdout=write_end,
+        done = subprocess.run([*hamid_command(), *args], stdout=write_end,
                               stderr=subprocess.PIPE, text=True, timeout=60)
     finally:
         os.close(write_end)

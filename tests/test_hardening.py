@@ -18,7 +18,6 @@ import cmath
 import io
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -36,7 +35,7 @@ import pytest
 import rich.console  # noqa: F401
 import sympy
 from click.testing import CliRunner
-from helpers import wait_until_integrating
+from helpers import duffing_system, hamid_command, wait_until_integrating
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from sympy.parsing.sympy_parser import parse_expr, standard_transformations
@@ -52,22 +51,7 @@ DUFFING_TOML = str(SAMPLES / "duffing.toml")
 # A handled failure prints at most the usage line, the help hint, a blank line and the error.
 MAX_MESSAGE_LINES = 4
 
-SYSTEM = """\
-[model]
-builtin = "duffing"
-
-[parameters]
-k = 1.0
-k3 = 0.5
-
-[[initial]]
-x = 1.0
-v = 0.0
-
-[simulate]
-t_end = 2.0
-dt = 0.1
-"""
+SYSTEM = duffing_system()
 
 EXPRESSION_MODEL = """\
 [model]
@@ -116,13 +100,6 @@ def system_text(*, replace=(), extra=""):
         assert old in text, old
         text = text.replace(old, new)
     return text + extra
-
-
-def hamid_command():
-    found = shutil.which("hamid")
-    if found is not None:
-        return [found]
-    return [sys.executable, "-c", "from hamid.cli import main; main()"]
 
 
 DUFFING_ROWS = "t,x,v\n0,1,0\n0.1,0.995,-0.1\n0.2,0.98,-0.2\n0.3,0.955,-0.3\n0.4,0.92,-0.4\n"

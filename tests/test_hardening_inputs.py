@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from helpers import duffing_system
 
 ROOT = Path(__file__).parent.parent
 DUFFING = ROOT / "sample_data" / "duffing.csv"
@@ -162,18 +163,16 @@ def test_kinks_of_an_energy(energy, kinks):
 
 
 def _system(**changes) -> str:
-    """A Duffing system file, with some lines replaced or added."""
-    lines = {"k": "1.0", "k3": "0.5", "x": "1.0", "v": "0.0", "t_end": "10", "dt": "0.01"}
-    lines.update({k: v for k, v in changes.items() if k in lines})
-    extra = {k: v for k, v in changes.items() if k not in lines}
-    text = (f'[model]\nbuiltin = "duffing"\n[parameters]\nk = {lines["k"]}\n'
-            f'k3 = {lines["k3"]}\n[[initial]]\nx = {lines["x"]}\nv = {lines["v"]}\n'
-            f'[simulate]\nt_end = {lines["t_end"]}\ndt = {lines["dt"]}\n')
-    for key, value in extra.items():
-        table, name = key.split("__")
-        text += f"[{table}]\n{name} = {value}\n" if table != "simulate" else ""
-        if table == "simulate":
-            text = text.replace("[simulate]\n", f"[simulate]\n{name} = {value}\n")
+    """A Duffing system file (`helpers.duffing_system`, 10 s at 0.01 s), some values
+    replaced and some tables or keys added (`table__key`)."""
+    values = {"t_end": "10", "dt": "0.01"}
+    values.update({k: v for k, v in changes.items() if "__" not in k})
+    text = duffing_system(**values)
+    for key, value in changes.items():
+        if "__" in key:
+            table, name = key.split("__")
+            text = (text.replace("[simulate]\n", f"[simulate]\n{name} = {value}\n")
+                    if table == "simulate" else text + f"[{table}]\n{name} = {value}\n")
     return text
 
 

@@ -129,17 +129,23 @@ def test_pairing_rules(columns, pairs):
     assert naming.find_coordinates(columns, exclude={time} if time else set()) == pairs
 
 
-def test_daq_header_fits_in_one_command(tmp_path, si, si_fit, hamid_cli):
-    """`time_ms,x1_mm,x2_mm,v1,v2` fits with the model and the column names only."""
-    path = tmp_path / "daq.csv"
-    _daq(si, "time_ms", 1e3).to_csv(path, index=False)
-    done = subprocess.run([*hamid_cli, "fit", str(path), "--model", "peng-quadratic",
-                           "--columns", "u1=x1_mm,u2=x2_mm", "--format", "json"],
-                          capture_output=True, text=True, check=False)
+def _si_report(hamid_cli, si_fit, path, *args) -> dict:
+    """The JSON report of a peng-quadratic fit of `path` through the CLI, checked to give
+    the estimates of the file in SI units."""
+    done = subprocess.run([*hamid_cli, "fit", str(path), "--model", "peng-quadratic", *args,
+                           "--format", "json"], capture_output=True, text=True, check=False)
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout)
     for p in report["parameters"]:
         assert p["estimate"] == pytest.approx(si_fit.estimates[p["name"]], rel=1e-8)
+    return report
+
+
+def test_daq_header_fits_in_one_command(tmp_path, si, si_fit, hamid_cli):
+    """`time_ms,x1_mm,x2_mm,v1,v2` fits with the model and the column names only."""
+    path = tmp_path / "daq.csv"
+    _daq(si, "time_ms", 1e3).to_csv(path, index=False)
+    report = _si_report(hamid_cli, si_fit, path, "--columns", "u1=x1_mm,u2=x2_mm")
     assert report["data"]["time_unit"] == "ms"
 
 
@@ -147,14 +153,8 @@ def test_time_unit_and_scale_on_the_command_line(tmp_path, si, si_fit, hamid_cli
     frame = _daq(si, "clock", 1e3).rename(columns={"x1_mm": "a", "x2_mm": "b"})
     path = tmp_path / "plain.csv"
     frame.to_csv(path, index=False)
-    done = subprocess.run([*hamid_cli, "fit", str(path), "--model", "peng-quadratic",
-                           "--columns", "u1=a,u2=b", "--time", "clock", "--time-unit", "ms",
-                           "--scale", "a=0.001,b=0.001", "--format", "json"],
-                          capture_output=True, text=True, check=False)
-    assert done.returncode == 0, done.stderr
-    report = json.loads(done.stdout)
-    for p in report["parameters"]:
-        assert p["estimate"] == pytest.approx(si_fit.estimates[p["name"]], rel=1e-8)
+    report = _si_report(hamid_cli, si_fit, path, "--columns", "u1=a,u2=b", "--time", "clock",
+                        "--time-unit", "ms", "--scale", "a=0.001,b=0.001")
     assert report["data"]["scale"] == {"a": 0.001, "b": 0.001, "clock": 0.001}
 
 

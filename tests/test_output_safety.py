@@ -35,7 +35,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
-from helpers import wait_until_integrating
+from helpers import duffing_system, wait_until_integrating
 
 from hamid import io, writing
 from hamid.cli import cli
@@ -49,22 +49,7 @@ PRECIOUS = b"precious,bytes\n1,2\n"
 IS_ROOT = os.geteuid() == 0
 NOBODY = 65534
 
-SYSTEM = """\
-[model]
-builtin = "duffing"
-
-[parameters]
-k = 1.0
-k3 = 0.5
-
-[[initial]]
-x = 1.0
-v = 0.0
-
-[simulate]
-t_end = 20.0
-dt = 0.01
-"""
+SYSTEM = duffing_system(t_end="20.0", dt="0.01")
 
 # The child process: optional warm-up run (as root, so that every module is loaded while
 # root may still read it), commands whose work must not start, then the command line,
