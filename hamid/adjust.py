@@ -102,7 +102,7 @@ def check_adjustable(model: Model, derived_velocities: bool, damping: Any) -> No
     if derived_velocities:
         raise UsageError("--bias-correct needs measured velocities: derived velocities mix "
                          "the noise of neighbouring samples")
-    if damping.kinds:
+    if damping:
         raise UsageError("--bias-correct does not yet handle --damping (the dissipated work "
                          "mixes the noise of many samples)")
 

@@ -7,7 +7,7 @@ import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
-from hamid import __version__, design, estimate, loading, plan, refine, summary
+from hamid import __version__, estimate, loading, plan, refine, summary
 from hamid.design import Block
 from hamid.errors import UsageError
 from hamid.model import Model, load_model
@@ -157,20 +157,20 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                       skip_rows=skip_rows, units_row=units_row)
     if isinstance(data, list | tuple) and len(data) == 1:
         data = data[0]
-    chunks = opts.chunking(data)
+    chunks = opts.chunking(data, loading.dissipative(model))
     run = summary.run_provenance(data, opts)   # inputs hashed before they are read
     # records: whole, or a file to pass over in chunks
     if chunks is None:
         source = loading.load(data, model, opts)
         sigma, noise_info = loading.noise_levels(source, opts.noise)
-        if opts.damping and source.records.t is None:
-            raise UsageError("--damping needs a time column (the dissipated work is an "
+        if (opts.damping or source.model.dissipation) and source.records.t is None:
+            raise UsageError("damping needs a time column (the dissipated work is an "
                              "integral over time); name it with --time COL")
     else:
         source = loading.open_chunks(data, model, opts, chunks, progress)
         sigma, noise_info = None, None
     m = source.model
-    damping_forces = design.Damping(opts.damping, m.coordinates)
+    damping_forces = m.dissipative(opts.damping)
     unknowns = Unknowns.of(m.parameters, damping_forces.names, opts.fix)
     # plan, then the linear estimate
     fit_plan = plan.decide(opts, m, source.scales() if opts.method != "energy" else None)

@@ -16,11 +16,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from hamid import quadrature
+from hamid.dissipation import Dissipation
 from hamid.errors import DataError
-from hamid.model import DAMPING_KINDS, Model
+from hamid.expr import Func
+from hamid.model import Model
 from hamid.records import Records
 
-__all__ = ["Block", "Damping", "dominant_period", "energy_block", "median_period",
+__all__ = ["Block", "dominant_period", "energy_block", "median_period",
            "trajectory_scales", "weak_block", "window_means", "windows"]
 
 
@@ -41,122 +44,40 @@ class Block:
         return len(self.b)
 
 
-@dataclass(frozen=True)
-class Damping:
-    """Dissipative forces F_i = -coefficient * law(v_i), one unknown per kind and coordinate."""
+def _dissipated_work(records: Records, dissipation: Dissipation) -> npt.NDArray[np.float64]:
+    """Work done against each dissipative term since the start of its trajectory.
 
-    kinds: tuple[str, ...]
-    coordinates: tuple[str, ...]
-
-    @property
-    def terms(self) -> list[tuple[str, int, Any]]:
-        """(parameter name, coordinate index, law) of every damping unknown."""
-        return [(f"{DAMPING_KINDS[kind][0]}_{q}", i, DAMPING_KINDS[kind][1])
-                for kind in self.kinds for i, q in enumerate(self.coordinates)]
-
-    @property
-    def names(self) -> list[str]:
-        return [name for name, _, _ in self.terms]
-
-
-_GAUSS_POINTS, _GAUSS_WEIGHTS = np.polynomial.legendre.leggauss(5)
-_STENCIL = 6  # samples of the local interpolant: quintic, O(dt^6) like the trapezoid rule
-
-
-@dataclass(frozen=True)
-class _Points:
-    """Quadrature points of every sample interval for a function of one velocity.
-
-    Each interval [t_k, t_k+1] gets Gauss-Legendre points on the local quintic through the
-    six nearest samples, split where it changes sign: the damping laws sign(v)
-    and |v| have a kink at v = 0, which would cost the sample-based rules their order.
+    Column k is integral_0^t sum_i v_i dR_k/dv_i dt, the power of coefficient k, integrated
+    between the samples and split at the term's kinks (`hamid.quadrature`).
     """
-
-    interval: npt.NDArray[np.int64]   # left sample (row index) of each point's interval
-    t: npt.NDArray[np.float64]
-    v: npt.NDArray[np.float64]
-    weight: npt.NDArray[np.float64]
-
-
-def _velocity_points(records: Records, v: npt.NDArray[np.float64]) -> _Points:
-    assert records.t is not None
-    parts = [_points_of_trajectory(records.t[a:b], v[a:b], a) for a, b in records.bounds()
-             if b - a >= 2]
-    empty = (np.zeros(0, np.int64), *(np.zeros(0) for _ in range(3)))
-    return _Points(*(np.concatenate([empty[k], *(p[k] for p in parts)]) for k in range(4)))
-
-
-def _points_of_trajectory(t: np.ndarray, v: np.ndarray, offset: int) -> tuple[np.ndarray, ...]:
-    n = len(t)
-    left = np.arange(n - 1)
-    width = min(_STENCIL, n)
-    stencil = np.clip(left - (width // 2 - 1), 0, n - width)[:, None] + np.arange(width)
-    nodes, values = t[stencil], v[stencil]
-
-    def interpolant(x: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """The local interpolant of the intervals `rows` at x (one point per row or grid)."""
-        total = np.zeros_like(x)
-        for m in range(nodes.shape[1]):
-            basis = np.ones_like(x)
-            for k in range(nodes.shape[1]):
-                if k != m:
-                    basis = basis * (x - nodes[rows, k][..., None]) / (
-                        nodes[rows, m] - nodes[rows, k])[..., None]
-            total = total + basis * values[rows, m][..., None]
-        return total
-
-    a, b = t[:-1], t[1:]
-    crossing = np.flatnonzero(np.sign(v[:-1]) * np.sign(v[1:]) < 0)
-    root = (a[crossing] + b[crossing]) / 2
-    lo, hi = a[crossing].copy(), b[crossing].copy()
-    sign_lo = np.sign(v[crossing])
-    for _ in range(60):  # bisection: the bracket is known and halves to rounding
-        value = interpolant(root[:, None], crossing)[:, 0]
-        right = np.sign(value) == sign_lo
-        lo = np.where(right, root, lo)
-        hi = np.where(right, hi, root)
-        root = (lo + hi) / 2
-    starts = np.concatenate([a, root])
-    ends = np.concatenate([b, b[crossing]])
-    ends[crossing] = root
-    rows = np.concatenate([left, crossing])
-    half = (ends - starts) / 2
-    x = (starts + ends)[:, None] / 2 + half[:, None] * _GAUSS_POINTS
-    w = half[:, None] * _GAUSS_WEIGHTS
-    order = np.argsort(rows, kind="stable")
-    x, w, rows = x[order], w[order], rows[order]
-    return (np.repeat(rows + offset, len(_GAUSS_POINTS)), x.ravel(),
-            interpolant(x, rows).ravel(), w.ravel())
-
-
-def _dissipated_work(records: Records, damping: Damping) -> npt.NDArray[np.float64]:
-    """Work done against each damping term since the start of its trajectory.
-
-    Column k is integral_0^t law_k(v_i) v_i dt (v_i^2, |v_i|, |v_i|^3), integrated on the
-    local quintic of v_i between samples and split where v_i changes sign (`_Points`).
-    """
-    n_coordinates = len(damping.coordinates)
-    work = np.zeros((len(records.group), len(damping.terms)))
-    points = {i: _velocity_points(records, records.X[:, n_coordinates + i])
-              for i in {i for _, i, _ in damping.terms}}
-    for k, (_, i, law) in enumerate(damping.terms):
-        p = points[i]
-        per_interval = np.bincount(p.interval, weights=p.weight * law(p.v) * p.v,
-                                   minlength=len(records.group))
-        for start, stop in records.bounds():
-            work[start + 1:stop, k] = np.cumsum(per_interval[start:stop - 1])
+    work = np.zeros((len(records.group), len(dissipation)))
+    for kinks, terms in _by_kinks(dissipation).items():
+        points = quadrature.state_points(records, kinks)
+        power = dissipation.power_parts(points.X)
+        for k in terms:
+            work[:, k] = points.cumulative(power[:, k], records)
     return work
 
 
-def energy_block(model: Model, records: Records, damping: Damping | None = None) -> Block:
+def _by_kinks(dissipation: Dissipation) -> dict[tuple[Func, ...], list[int]]:
+    """The terms that share their kinks (and so their quadrature points)."""
+    groups: dict[tuple[str, ...], tuple[tuple[Func, ...], list[int]]] = {}
+    for k, kinks in enumerate(dissipation.kinks):
+        key = tuple(str(getattr(f, "expression", f)) for f in kinks)
+        groups.setdefault(key, (kinks, []))[1].append(k)
+    return dict(groups.values())
+
+
+def energy_block(model: Model, records: Records,
+                 dissipation: Dissipation | None = None) -> Block:
     """The energy rows: E0(x_i) + sum_k theta_k phi_k(x_i) - h_j = r_i, one per sample.
 
-    With `damping`, the energy balance: the work dissipated since the start of the
-    trajectory is added, one column per damping coefficient.
+    With a `dissipation`, the energy balance: the work dissipated since the start of the
+    trajectory is added, one column per dissipative coefficient.
     """
     E0, Phi = model.energy_basis(records.X)
-    if damping is not None and damping.kinds:
-        Phi = np.hstack([Phi, _dissipated_work(records, damping)])
+    if dissipation:
+        Phi = np.hstack([Phi, _dissipated_work(records, dissipation)])
     time = records.t if records.t is not None else _sample_index(records)
     return Block("energy", Phi, -E0, records.group, time, np.ones(len(E0)), has_level=True)
 
@@ -434,12 +355,13 @@ def _uneven_windows(step: np.ndarray, first: np.ndarray, last: np.ndarray) -> np
 
 
 def weak_block(model: Model, records: Records, windows: Windows,
-               damping: Damping | None = None) -> Block:
+               dissipation: Dissipation | None = None) -> Block:
     """Weak-form rows of Lagrange's equations: one per window and coordinate.
 
     Row (w, i):  integral( psi_w' dL/dv_i + psi_w dL/dq_i + psi_w F_i ) dt = r,  split
-    into the parameter-free part (moved to b) and one column per parameter; the damping
-    force F_i = -c law(v_i) gives the column -integral(psi_w law(v_i)) in the rows of i.
+    into the parameter-free part (moved to b) and one column per parameter; the dissipative
+    force F_i = -sum_k c_k dR_k/dv_i gives the column -integral(psi_w dR_k/dv_i) of c_k in
+    the rows of i.
     """
     n, N = len(records.X), len(model.coordinates)
     parts = 1 + len(model.parameters)
@@ -455,13 +377,16 @@ def weak_block(model: Model, records: Records, windows: Windows,
                                  + windows.Q_psi[w_lo:w_hi, a:b] @ dLdq.reshape(b - a, -1))
     integrals = integrals.reshape(rows, parts)   # rows (window, coordinate)
     A = integrals[:, 1:]
-    if damping is not None and damping.kinds:
-        forces = np.zeros((rows, len(damping.terms)))
+    if dissipation:
+        forces = np.zeros((rows, len(dissipation)))
         assert records.t is not None
-        for k, (_, i, law) in enumerate(damping.terms):
-            p = _velocity_points(records, records.X[:, N + i])
-            forces[i::N, k] = -(windows.psi_at(p.t, p.interval, p.weight, records.t)
-                                @ law(p.v))
+        for kinks, terms in _by_kinks(dissipation).items():
+            p = quadrature.state_points(records, kinks)
+            psi = windows.psi_at(p.t, p.interval, p.weight, records.t)
+            parts = dissipation.force_parts(p.X)
+            for k in terms:
+                for i in range(N):
+                    forces[i::N, k] = -(psi @ parts[:, i, k])
         A = np.hstack([A, forces])
     return Block("weak", A, -integrals[:, 0], np.repeat(windows.group, N),
                  np.repeat(windows.centre, N), np.ones(rows), has_level=False)
@@ -470,27 +395,20 @@ def weak_block(model: Model, records: Records, windows: Windows,
 _GRADIENT_ROWS = 1 << 16   # samples whose gradients are held at once
 
 
-_LAW_SLOPES = {"viscous": lambda v: np.ones_like(v), "coulomb": np.zeros_like,
-               "quadratic": lambda v: 2 * np.abs(v)}
-
-
 def _weak_sensitivities(model: Model, records: Records, theta: npt.NDArray[np.float64],
-                        damping: Damping | None) -> tuple[np.ndarray, np.ndarray]:
+                        dissipation: Dissipation | None) -> tuple[np.ndarray, np.ndarray]:
     """d(dL/dv_i)/dx_c and d(dL/dq_i + F_i)/dx_c at every sample: how a weak row's
     integrands move with the noise of each measured variable (shape (n, N, 2N))."""
     n_energy = len(model.parameters)
     d_dv, d_dq = model.lagrangian.second_derivatives(records.X, theta[:n_energy])
-    N = len(model.coordinates)
-    if damping is not None:
-        for k, (_, i, _) in enumerate(damping.terms):
-            slope = _LAW_SLOPES[damping.kinds[k // N]](records.X[:, N + i])
-            d_dq[:, i, N + i] -= theta[n_energy + k] * slope
+    if dissipation:
+        d_dq = d_dq - dissipation.force_slopes(records.X, theta[n_energy:])
     return d_dv, d_dq
 
 
 def row_variance(block: Block, model: Model, records: Records, theta: npt.NDArray[np.float64],
                  sigma: npt.NDArray[np.float64], windows: Windows | None = None,
-                 damping: Damping | None = None) -> npt.NDArray[np.float64]:
+                 dissipation: Dissipation | None = None) -> npt.NDArray[np.float64]:
     """Variance that white measurement noise of std `sigma` (per variable) puts into each row.
 
     First order in the noise: an energy row's residual moves by dE/dx_c e_c, a weak row's
@@ -505,7 +423,7 @@ def row_variance(block: Block, model: Model, records: Records, theta: npt.NDArra
             return g
         return windows.means.multiply(windows.means) @ g
     assert windows is not None
-    d_dv, d_dq = _weak_sensitivities(model, records, theta, damping)
+    d_dv, d_dq = _weak_sensitivities(model, records, theta, dissipation)
     N = len(model.coordinates)
     dd, dp = windows.Q_dpsi, windows.Q_psi
     dd2, cross, dp2 = dd.multiply(dd), dd.multiply(dp), dp.multiply(dp)
@@ -517,14 +435,10 @@ def row_variance(block: Block, model: Model, records: Records, theta: npt.NDArra
     return variance.ravel()
 
 
-_POWER_SLOPES = {"viscous": lambda v: 2 * v, "coulomb": np.sign,
-                 "quadratic": lambda v: 3 * np.abs(v) * v}
-
-
 def propagated_covariance(blocks: list[Block], G: npt.NDArray[np.float64], model: Model,
                           records: Records, theta: npt.NDArray[np.float64],
                           sigma: npt.NDArray[np.float64], windows: Windows | None,
-                          damping: Damping | None) -> npt.NDArray[np.float64]:
+                          dissipation: Dissipation | None) -> npt.NDArray[np.float64]:
     """Covariance of the free parameters that white measurement noise alone would cause.
 
     To first order theta_hat - theta = sum_s sum_c g_sc e_sc over the samples s and the
@@ -547,11 +461,11 @@ def propagated_covariance(blocks: list[Block], G: npt.NDArray[np.float64], model
             spread = G_block if windows is None else windows.means.T @ G_block
             gradient = model.energy_gradient(records.X, theta[:n_energy])
             g += gradient[:, :, None] * spread[:, None, :]
-            if damping is not None and damping.kinds:
-                _add_work_sensitivity(g, spread, records, theta, damping, n_energy, N)
+            if dissipation:
+                _add_work_sensitivity(g, spread, records, theta[n_energy:], dissipation)
         else:
             assert windows is not None
-            d_dv, d_dq = _weak_sensitivities(model, records, theta, damping)
+            d_dv, d_dq = _weak_sensitivities(model, records, theta, dissipation)
             for i in range(N):
                 rows = G_block[i::N]
                 via_dpsi = windows.Q_dpsi.T @ rows     # (n, p)
@@ -564,18 +478,17 @@ def propagated_covariance(blocks: list[Block], G: npt.NDArray[np.float64], model
 
 
 def _add_work_sensitivity(g: np.ndarray, spread: np.ndarray, records: Records,
-                          theta: np.ndarray, damping: Damping, n_energy: int,
-                          N: int) -> None:
-    """The noise of v_u at sample u enters the work of every later sample of its trajectory."""
+                          coefficients: np.ndarray, dissipation: Dissipation) -> None:
+    """The noise of the state at sample u enters the work of every later sample of its
+    trajectory, through the slope of the dissipated power there."""
     assert records.t is not None
     for start, stop in records.bounds():
         t = records.t[start:stop]
         weight = np.gradient(t) if stop - start > 1 else np.zeros(1)
         # sum over later samples s > u of spread_s: a reversed cumulative sum
         later = np.cumsum(spread[start:stop][::-1], axis=0)[::-1] - spread[start:stop]
-        for k, (_, i, _) in enumerate(damping.terms):
-            slope = _POWER_SLOPES[damping.kinds[k // N]](records.X[start:stop, N + i])
-            g[start:stop, N + i, :] += (theta[n_energy + k] * (slope * weight))[:, None] * later
+        slopes = dissipation.power_slopes(records.X[start:stop], coefficients)
+        g[start:stop] += (slopes * weight[:, None])[:, :, None] * later[:, None, :]
 
 
 def check_weak_rows(block: Block, labels: tuple[str | int, ...]) -> None:

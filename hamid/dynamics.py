@@ -2,7 +2,8 @@
 
 A natural energy E = T + V (T quadratic in the velocities) gives L = T - V, split like the
 energy into L = L0 + sum_k theta_k L_k (`Model.lagrangian`). With the dissipative forces
-F_i = -coefficient * law(v_i) of `hamid.model.DAMPING_KINDS`, the motion follows
+F_i = -sum_k c_k dR_k/dv_i of a Rayleigh dissipation function (`hamid.dissipation`), the
+motion follows
 
     M(q) a = dL/dq - (d/dq dL/dv) v + F,      M = d2L/dv2
 
@@ -10,8 +11,8 @@ F_i = -coefficient * law(v_i) of `hamid.model.DAMPING_KINDS`, the motion follows
 here from the energy and never written per model. Because T is quadratic in v, M depends
 on q only, and (d/dq dL/dv) v = ((dM/dq) v) v vanishes when M is constant.
 
-`Dynamics` holds a model and its damping terms; `Dynamics.at` fixes the weights
-w = (1, theta, damping coefficients) and returns a `Motion`: the accelerations of many
+`Dynamics` holds a model and its dissipation; `Dynamics.at` fixes the weights
+w = (1, theta, dissipation coefficients) and returns a `Motion`: the accelerations of many
 states at once, and solve_ivp's right-hand side. The weights are either
 
 - one vector shared by every state (the simulator): the parts are combined into one
@@ -26,13 +27,13 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cached_property, partial
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from hamid.dissipation import Dissipation
 from hamid.expr import Func
-from hamid.model import DAMPING_KINDS, Model, damping_names
+from hamid.model import Model
 
 __all__ = ["Dynamics", "Motion"]
 
@@ -87,40 +88,35 @@ class _Terms:
 
 
 class Dynamics:
-    """The equations of motion of a model with some damping terms.
+    """The equations of motion of a model with a dissipation function.
 
     Parameters
     ----------
     model : Model
         A model with a natural energy (`Model.lagrangian`).
-    damping : sequence of str
-        Damping coefficient names (``c_x``, ``mu_y``, ``d_x``: `hamid.model.damping_names`);
-        their coefficients follow theta in the weights, in this order.
+    dissipation : Dissipation, optional
+        Rayleigh's R over the model's state; its coefficients follow theta in the weights,
+        in the order of `Dissipation.names`. None: a conservative system.
     """
 
-    def __init__(self, model: Model, damping: Sequence[str] = ()):
+    def __init__(self, model: Model, dissipation: Dissipation | None = None):
         lagrangian = model.lagrangian
         self.coordinates, self.velocities = lagrangian.coordinates, lagrangian.velocities
         self.n = len(self.coordinates)
         self._parts = (lagrangian.L0, *lagrangian.L)
-        names = damping_names(self.coordinates)
-        unknown = [name for name in damping if name not in names]
-        if unknown:
-            raise ValueError(f"not damping coefficients of this model: {', '.join(unknown)}")
-        self.damping = tuple(damping)
-        self._laws = [(DAMPING_KINDS[kind][1], i) for kind, i in (names[d] for d in damping)]
+        self.dissipation = dissipation if dissipation else None
 
     @property
     def n_weights(self) -> int:
-        """Length of a weight vector: 1, the parameters, the damping coefficients."""
-        return len(self._parts) + len(self._laws)
+        """Length of a weight vector: 1, the parameters, the dissipation coefficients."""
+        return len(self._parts) + (len(self.dissipation) if self.dissipation else 0)
 
     @cached_property
     def _per_part(self) -> _Terms:
         return _Terms.derive(self._parts, self.coordinates, self.velocities)
 
     def at(self, weights: npt.ArrayLike, *, drained: bool = False) -> Motion:
-        """The equations at weights (1, theta, damping coefficients).
+        """The equations at weights (1, theta, dissipation coefficients).
 
         `weights` has shape (n_weights,), shared by every state, or (n_weights, n_states),
         one column per state (the states passed to the `Motion` must then number n_states).
@@ -132,12 +128,24 @@ class Dynamics:
         if w.ndim not in (1, 2) or len(w) != self.n_weights:
             raise ValueError(f"weights of shape {w.shape}: expected ({self.n_weights},) or "
                              f"({self.n_weights}, n_states)")
-        laws = [(law, i, c) for (law, i), c in zip(self._laws, w[P:], strict=True)]
+        forces = None if self.dissipation is None else _Forces(self.dissipation, w[P:])
         if w.ndim == 1:
             lagrangian = Func.combine(self._parts, [float(x) for x in w[:P]])
             terms = _Terms.derive([lagrangian], self.coordinates, self.velocities)
-            return Motion(terms, None, [(law, i, float(c)) for law, i, c in laws], drained)
-        return Motion(self._per_part, w[:P], laws, drained)
+            return Motion(terms, None, forces, drained)
+        return Motion(self._per_part, w[:P], forces, drained)
+
+
+@dataclass(frozen=True)
+class _Forces:
+    """The dissipative forces at fixed coefficients (one vector, or a column per state)."""
+
+    dissipation: Dissipation
+    coefficients: Array
+
+    def __call__(self, Y: Array) -> Array:
+        """F (N, n) at the states Y (2N, n)."""
+        return self.dissipation.forces_at(Y, self.coefficients)
 
 
 class Motion:
@@ -159,13 +167,13 @@ class Motion:
       batched LU costs far more) or LU.
     """
 
-    def __init__(self, terms: _Terms, weights: Array | None,
-                 damping: list[tuple[Callable[[Array], Array], int, Any]], drained: bool):
+    def __init__(self, terms: _Terms, weights: Array | None, forces: _Forces | None,
+                 drained: bool):
         self.n = N = terms.n
         self.rows = 2 * N + bool(drained)
         self.drained = drained
         self.constant_mass = terms.constant_mass
-        self._terms, self._weights, self._damping = terms, weights, damping
+        self._terms, self._weights, self._forces = terms, weights, forces
         self._folded = False
         self._inverse: Array | None = None   # (N, N) folded, or (N, N, n) per state
         self._mass: Array | None = None      # constant mass entries of one coordinate, (1, n)
@@ -211,18 +219,11 @@ class Motion:
         """M at states Y, shape (2N, ...) -> (..., N, N)."""
         return _assemble(self._weighted(self._terms.mass_stack, Y), self._terms.upper, self.n)
 
-    def dissipative_forces(self, V: Array) -> Array:
-        """The damping forces F (N, n) at the velocities V (N, n)."""
-        forces = np.zeros_like(V)
-        for law, i, coefficient in self._damping:
-            forces[i] -= coefficient * law(V[i])
-        return forces
-
     def accelerations(self, Y: Array) -> Array:
         """a (N, n) at states Y (2N, n)."""
         N = self.n
         out = np.empty((N, Y.shape[1]))
-        forces = self.dissipative_forces(Y[N:2 * N]) if self._damping else None
+        forces = self._forces(Y[:2 * N]) if self._forces else None
         self._accelerations(Y[:2 * N], forces, out)
         return out
 
@@ -263,7 +264,7 @@ class Motion:
         N = self.n
         Y = y.reshape(self.rows, -1)
         V = Y[N:2 * N]
-        forces = self.dissipative_forces(V) if self._damping else None
+        forces = self._forces(Y[:2 * N]) if self._forces else None
         out = np.empty_like(Y)
         out[:N] = V
         if self._folded and forces is None:   # the values are the accelerations: no call more

@@ -17,7 +17,8 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid import design, solve, uncertainty
-from hamid.design import Block, Damping, Windows
+from hamid.design import Block, Windows
+from hamid.dissipation import Dissipation
 from hamid.errors import DataError, FitError
 from hamid.loading import Loaded
 from hamid.model import Model
@@ -288,7 +289,7 @@ def level_variance(c: Any, Abar: Any) -> Any:
             + np.einsum("jp,pq,jq->j", Abar, c.theta, Abar))
 
 
-def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Damping, plan: FitPlan,
+def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: FitPlan,
              options: FitOptions, sigma: Any) -> tuple[LinearFit, FitPlan, Rows]:
     """The linear fit of records in memory: rows, balance or noise weights, solution and
     covariance; the plan falls back to the energy rows when `auto` finds too few windows."""
@@ -329,7 +330,7 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Damping, plan: FitPlan
     else:
         c = covariance(options.cov, fit, blocks, window_group)
         theta_cov, text, df = c.theta, c.description, c.df
-        if damping.kinds:
+        if damping:
             theta_cov, text = _with_propagated_noise(theta_cov, text, fit, blocks, m, records,
                                                      sigma, unknowns, spans, damping)
         h_var = level_variance(c, fit.centred.level_means_A)
@@ -389,7 +390,7 @@ def _bootstrap_covariance(blocks: list[Block], names: list[str], J: int, kind: s
 
 def _with_propagated_noise(theta_cov: Any, text: str, fit: Solved, blocks: list[Block],
                            model: Model, records: Records, sigma: Any, unknowns: Unknowns,
-                           spans: Windows | None, damping: Damping) -> tuple[Any, str]:
+                           spans: Windows | None, damping: Dissipation) -> tuple[Any, str]:
     """Damped fits: no parameter's variance below what the measurement noise alone causes.
 
     The energy balance's cumulative work carries each sample's noise into every later
@@ -411,7 +412,7 @@ def _with_propagated_noise(theta_cov: Any, text: str, fit: Solved, blocks: list[
 
 
 def _noise_weighted(blocks: list[Block], model: Model, records: Records,
-                    spans: Windows | None, damping: Damping, sigma: Any, unknowns: Unknowns,
+                    spans: Windows | None, damping: Dissipation, sigma: Any, unknowns: Unknowns,
                     J: int) -> tuple[list[Block], dict[str, float] | None, int]:
     """Weight every row by the inverse of the variance the noise puts into it, iterated.
 
@@ -535,7 +536,7 @@ _NOISE_LOOKED_AT = 5e-3
 
 
 def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unknowns,
-                damping: Damping, options: FitOptions, sigma: Any) -> NoiseCheck | None:
+                damping: Dissipation, options: FitOptions, sigma: Any) -> NoiseCheck | None:
     """The noise against the motion, and the errors-in-variables bias of the linear fit
     `fit` of `rows` (None: a refined fit, which has none to look for): least squares
     against adjusted least squares (`hamid.adjust`), which is unbiased for polynomial
@@ -557,7 +558,7 @@ def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unk
     # energy rows of single samples.
     if (fit is None or rows.windows is not None or options.bias_correct
             or not m.is_polynomial or options.velocity == "savgol"
-            or damping.kinds or max(ratio.values()) < _NOISE_LOOKED_AT):
+            or damping or max(ratio.values()) < _NOISE_LOOKED_AT):
         return NoiseCheck(ratio)
     names = unknowns.free_names
     moments = [adjust.adjusted_moments(b, m, records, sigma, rows.windows, names,

@@ -504,10 +504,13 @@ class Symbolic(Func):
         return np.broadcast_to(value.astype(np.float64), X.shape[:-1]).copy()
 
     def diff(self, name: str) -> Symbolic:
+        """The derivative almost everywhere: that of sign(x), a Dirac delta at x = 0 (a
+        set of measure zero that no sample lands on), is left out."""
         import sympy
 
-        return Symbolic(self.variables, sympy.diff(self.expression,
-                                                   sympy.Symbol(name, real=True)))
+        derivative = sympy.diff(self.expression, sympy.Symbol(name, real=True))
+        return Symbolic(self.variables, derivative.replace(sympy.DiracDelta,
+                                                           lambda *args: sympy.Integer(0)))
 
     def velocity_degrees(self, velocities: Sequence[str]) -> dict[int, Func] | None:
         import sympy
@@ -586,27 +589,32 @@ class Symbolic(Func):
 # --- linear split -----------------------------------------------------------------------
 
 def split_linear(tree: ast.expr, variables: Sequence[str], parameters: Sequence[str], *,
-                 where: str = "energy") -> tuple[Func, tuple[Func, ...]]:
+                 where: str = "energy", what: str = "energy") -> tuple[Func, tuple[Func, ...]]:
     """Split an energy into its parameter-free part E0 and one basis function per parameter.
 
     Returns ``(E0, (phi_1, ..., phi_p))`` with E = E0 + sum_k theta_k phi_k. Raises a
-    ModelError naming the offending term when E is not linear in the parameters or has
-    no parameter-free part.
+    ModelError naming the offending term when E is not linear in the parameters, or has
+    no parameter-free part. With ``what="dissipation"`` (Rayleigh's dissipation function,
+    `hamid.dissipation`) the parameter-free part must instead be zero: every dissipative
+    term carries a coefficient to fit.
     """
     names = [*variables, *parameters]
     _check_size(tree, where)
     try:
         terms = _to_terms(tree, {n: i for i, n in enumerate(names)})
     except _NotPolynomial:
-        E0, phi = _split_symbolic(tree, variables, parameters, where)
+        E0, phi = _split_symbolic(tree, variables, parameters, where, what)
     else:
-        E0, phi = _split_polynomial(terms, variables, parameters, where)
-    if E0.is_zero():
+        E0, phi = _split_polynomial(terms, variables, parameters, where, what)
+    if what == "energy" and E0.is_zero():
         raise ModelError(f"{where}: the energy has no parameter-free part (such as the "
                          "kinetic energy), so its scale is undetermined")
+    if what != "energy" and not E0.is_zero():
+        raise ModelError(f"{where}: every term of the {what} needs one of its parameters "
+                         "as a factor (it has a parameter-free part)")
     for name, f in zip(parameters, phi, strict=True):
         if f.is_zero():
-            raise ModelError(f"{where}: parameter {name!r} does not appear in the energy")
+            raise ModelError(f"{where}: parameter {name!r} does not appear in the {what}")
     return E0, phi
 
 
@@ -640,7 +648,7 @@ def _check_size(tree: ast.expr, where: str) -> None:
 
 
 def _split_polynomial(terms: _Terms, variables: Sequence[str], parameters: Sequence[str],
-                      where: str) -> tuple[Func, tuple[Func, ...]]:
+                      where: str, what: str) -> tuple[Func, tuple[Func, ...]]:
     n_vars = len(variables)
     parts: list[_Terms] = [{} for _ in range(len(parameters) + 1)]
     for key, coefficient in terms.items():
@@ -648,7 +656,7 @@ def _split_polynomial(terms: _Terms, variables: Sequence[str], parameters: Seque
         if sum(powers) > 1:
             involved = [p for p, e in zip(parameters, powers, strict=True) if e]
             term = _terms_text({key: coefficient}, [*variables, *parameters])
-            raise ModelError(f"{where}: energy term {term!r} is not linear in the parameters "
+            raise ModelError(f"{where}: {what} term {term!r} is not linear in the parameters "
                              f"({', '.join(involved)})")
         slot = powers.index(1) + 1 if sum(powers) else 0
         parts[slot][key[:n_vars]] = coefficient
@@ -657,7 +665,7 @@ def _split_polynomial(terms: _Terms, variables: Sequence[str], parameters: Seque
 
 
 def _split_symbolic(tree: ast.expr, variables: Sequence[str], parameters: Sequence[str],
-                    where: str) -> tuple[Func, tuple[Func, ...]]:
+                    where: str, what: str) -> tuple[Func, tuple[Func, ...]]:
     import sympy
 
     expression = to_sympy(tree)
@@ -665,10 +673,10 @@ def _split_symbolic(tree: ast.expr, variables: Sequence[str], parameters: Sequen
     parts = [sympy.Integer(0) for _ in range(len(parameters) + 1)]
     for term in sympy.Add.make_args(sympy.expand(expression)):
         if term.has(sympy.zoo, sympy.oo, -sympy.oo, sympy.nan):
-            raise ModelError(f"{where}: energy term {str(term)!r} is not finite "
+            raise ModelError(f"{where}: {what} term {str(term)!r} is not finite "
                              "(a division by zero?)")
         if term.has(sympy.I):
-            raise ModelError(f"{where}: energy term {str(term)!r} is not real "
+            raise ModelError(f"{where}: {what} term {str(term)!r} is not real "
                              "(the square root or logarithm of a negative number?)")
         involved = [p for p in params if term.has(p)]
         if not involved:
@@ -676,7 +684,7 @@ def _split_symbolic(tree: ast.expr, variables: Sequence[str], parameters: Sequen
             continue
         factor = term / involved[0] if len(involved) == 1 else None
         if factor is None or factor.has(involved[0]):
-            raise ModelError(f"{where}: energy term {str(term)!r} is not linear in the "
+            raise ModelError(f"{where}: {what} term {str(term)!r} is not linear in the "
                              f"parameters ({', '.join(str(p) for p in involved)})")
         parts[params.index(involved[0]) + 1] += factor
     funcs = [Symbolic(tuple(variables), p) for p in parts]
@@ -719,13 +727,13 @@ def to_sympy(tree: ast.expr) -> sympy.Expr:
     return build(tree)
 
 
-def kinks(tree: ast.expr, variables: Sequence[str]) -> list[Symbolic]:
-    """Where an energy is not smooth: the arguments of abs and sign, and the bases of
+def kinks(expression: sympy.Expr, variables: Sequence[str]) -> list[Symbolic]:
+    """Where a function is not smooth: the arguments of abs and sign, and the bases of
     fractional powers, each a function whose zero is a kink (or a singular force)."""
     import sympy
 
     found = []
-    for node in sympy.preorder_traversal(to_sympy(tree)):
+    for node in sympy.preorder_traversal(expression):
         if isinstance(node, sympy.Abs | sympy.sign):
             found.append(node.args[0])
         elif (isinstance(node, sympy.Pow) and node.exp.is_number

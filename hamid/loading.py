@@ -18,12 +18,13 @@ from typing import Any
 import numpy as np
 
 from hamid import design, io, naming
+from hamid.dissipation import shorthand_names
 from hamid.errors import DataError, UsageError
 from hamid.model import (
     BUILTINS,
     Model,
     builtin_model,
-    damping_names,
+    damping_table,
     load_model,
     model_from_expression,
     poly_model_over,
@@ -366,6 +367,10 @@ def open_chunks(path: str, model: str | os.PathLike[str] | Model | None,
     `load` settles them."""
     table = io.TableChunks(path, format=options.format, text=options.text)
     m, notes = _settle_model(model, table.metadata, table.columns, table.name, options)
+    if m.dissipation:
+        raise UsageError(f"{table.name}: the model's dissipation function needs the data in "
+                         "memory (its work is integrated along each whole trajectory); "
+                         "give the model file with --model")
     mapping = naming.resolve_columns(table.columns, m.coordinates, m.velocities,
                                      mapping=options.columns, source=table.name)
     time, trajectory = _special_columns(table.columns, mapping, options, table.name, notes)
@@ -431,6 +436,14 @@ def _units(names: list[str], mapping: Mapping[str, str], time: str | None,
     return {"time": time, "time_unit": time_unit, "scale": scale, "notes": notes}
 
 
+def dissipative(model: str | os.PathLike[str] | Model | None) -> bool:
+    """Whether a model given to a fit has its own dissipation function (and so needs the
+    data in memory)."""
+    if isinstance(model, str | os.PathLike) and os.fspath(model).endswith(".toml"):
+        model = load_model(model)
+    return isinstance(model, Model) and model.dissipation is not None
+
+
 def _settle_model(model: str | os.PathLike[str] | Model | None,
                   metadata: Mapping[str, Any] | None, names: list[str], source: str,
                   options: FitOptions) -> tuple[Model, list[str]]:
@@ -492,16 +505,23 @@ def _model_beside(source: str) -> str:
 
 
 def _model_from_metadata(info: Mapping[str, Any], source: str) -> Model:
-    """The model a simulated file records (built-in by name, else from its energy)."""
+    """The model a simulated file records (built-in by name, else from its energy), with
+    its dissipation function."""
     name = info.get("name")
-    if isinstance(name, str) and (name in BUILTINS or name.startswith("poly:")):
+    own = info.get("dissipation")
+    if isinstance(name, str) and (name in BUILTINS or name.startswith("poly:")) and not own:
         candidate = builtin_model(name)
         if candidate.energy == info.get("energy"):
             return candidate
+    where = f"{source}: metadata model"
     try:
-        return model_from_expression(str(name or "custom"), info["energy"],
-                                     info["coordinates"], info["velocities"],
-                                     info.get("parameters"), where=f"{source}: metadata model")
+        model = model_from_expression(str(name or "custom"), info["energy"],
+                                      info["coordinates"], info["velocities"],
+                                      info.get("parameters"), where=where)
+        if own:
+            model = damping_table(model, {"dissipation": own["function"],
+                                          "parameters": own["parameters"]}, where=where)[0]
+        return model
     except (KeyError, TypeError) as exc:
         raise DataError(f"{source}: the hamid metadata has no usable model ({exc}); "
                         "give one with --model") from exc
@@ -535,7 +555,7 @@ def _truth(metadata: Mapping[str, Any] | None, m: Model) -> dict[str, float]:
             and metadata["model"].get("energy") == m.energy):
         return {}
     # A simulated record had no damping but what its [damping] table lists.
-    undamped = dict.fromkeys(damping_names(m.coordinates), 0.0) \
+    undamped = dict.fromkeys(shorthand_names(m.coordinates), 0.0) \
         if isinstance(metadata.get("damping"), Mapping) else {}
     values = {**undamped, **(metadata.get("parameters") or {}),
               **(metadata.get("damping") or {})}

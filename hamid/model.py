@@ -7,6 +7,7 @@ one expression, never written by hand per model.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import keyword
 import math
@@ -20,10 +21,11 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid import expr
-from hamid.config import check_keys
+from hamid.config import check_keys, number, table
+from hamid.dissipation import Dissipation, shorthand_names
 from hamid.errors import ModelError, UsageError
 
-__all__ = ["BUILTINS", "DAMPING_KINDS", "Lagrangian", "Model", "builtin_model", "damping_names",
+__all__ = ["BUILTINS", "Lagrangian", "Model", "builtin_model", "damping_table",
            "model_from_spec"]
 
 BUILTINS: dict[str, dict[str, Any]] = {
@@ -52,19 +54,6 @@ BUILTINS: dict[str, dict[str, Any]] = {
 }
 POLY_HELP = "poly:N:D"
 
-# Dissipative force on coordinate i of each kind (docs/method.md, "Damping: the energy
-# balance"): F_i = -coefficient * law(v_i); the coefficient is named <prefix>_<coordinate>.
-DAMPING_KINDS: dict[str, tuple[str, Any]] = {
-    "viscous": ("c", lambda v: v),
-    "coulomb": ("mu", np.sign),
-    "quadratic": ("d", lambda v: np.abs(v) * v),
-}
-
-
-def damping_names(coordinates: Sequence[str]) -> dict[str, tuple[str, int]]:
-    """Every damping coefficient name a model allows -> (kind, coordinate index)."""
-    return {f"{prefix}_{q}": (kind, i) for kind, (prefix, _) in DAMPING_KINDS.items()
-            for i, q in enumerate(coordinates)}
 _POLY_LIMIT = 200  # monomials; beyond this a fit would need more data than anyone records
 
 
@@ -138,10 +127,17 @@ class Model:
     E0: expr.Func
     phi: tuple[expr.Func, ...]
     description: str = ""
+    dissipation: Dissipation | None = None   # the model file's [damping] function
 
     @property
     def variables(self) -> tuple[str, ...]:
         return self.coordinates + self.velocities
+
+    def dissipative(self, kinds: Sequence[str] = ()) -> Dissipation:
+        """The dissipation a fit takes: the model's own function plus the shorthand terms
+        of `kinds` (``--damping``)."""
+        own = self.dissipation or Dissipation(self.coordinates, self.velocities)
+        return own.with_kinds(kinds)
 
     @property
     def is_polynomial(self) -> bool:
@@ -206,7 +202,7 @@ class Model:
         fractional powers); none for a polynomial."""
         if self.is_polynomial:
             return ()
-        return tuple(expr.kinks(expr.parse(self.energy, None), self.variables))
+        return tuple(expr.kinks(expr.to_sympy(expr.parse(self.energy, None)), self.variables))
 
     @property
     def is_natural(self) -> bool:
@@ -222,8 +218,11 @@ class Model:
 
     def info(self) -> dict[str, Any]:
         """The plain description stored in result files and data provenance."""
+        own = self.dissipation
         return {"name": self.name, "energy": self.energy, "coordinates": list(self.coordinates),
-                "velocities": list(self.velocities), "parameters": list(self.parameters)}
+                "velocities": list(self.velocities), "parameters": list(self.parameters),
+                "dissipation": None if own is None else
+                {"function": own.function, "parameters": list(own.parameters)}}
 
 
 def _check_names(coordinates: Sequence[str], velocities: Sequence[str],
@@ -411,4 +410,42 @@ def load_model(name_or_path: str | os.PathLike[str]) -> Model:
     check_keys(document, _MODEL_FILE_KEYS, where=text)
     if "model" not in document:
         raise ModelError(f"{text}: no [model] table")
-    return model_from_spec(document["model"], where=f"{text}: [model]")
+    model = model_from_spec(document["model"], where=f"{text}: [model]")
+    return damping_table(model, document.get("damping", {}), where=f"{text}: [damping]")[0]
+
+
+def damping_table(model: Model, value: Any, *,
+                  where: str = "[damping]") -> tuple[Model, dict[str, float]]:
+    """The model with the dissipation function of a ``[damping]`` table, and the table's
+    coefficient values (a simulation's; a fit ignores them).
+
+    The table may hold ``dissipation`` (Rayleigh's R, `hamid.dissipation`) with its
+    ``parameters`` (default: every symbol that is not a state variable), and a value for
+    any coefficient: those of R, and the shorthand ``c_<q>``, ``mu_<q>``, ``d_<q>``.
+    """
+    entries = table(value, where=where)
+    dissipation = None
+    if "dissipation" in entries:
+        function = entries["dissipation"]
+        if not isinstance(function, str):
+            raise ModelError(f"{where}: 'dissipation' must be a string")
+        names = entries.get("parameters")
+        if names is None:
+            names = [s for s in expr.symbols_in_order(expr.parse(function, None,
+                                                                 where=f"{where}: dissipation"))
+                     if s not in model.variables]
+        if not (isinstance(names, list) and names and all(isinstance(n, str) for n in names)):
+            raise ModelError(f"{where}: 'parameters' must be a list of names")
+        _check_names(model.coordinates, model.velocities, [*model.parameters, *names], where)
+        dissipation = Dissipation.build(model.coordinates, model.velocities, function=function,
+                                        parameters=names, where=where)
+    elif "parameters" in entries:
+        raise ModelError(f"{where}: 'parameters' without a 'dissipation' function")
+    own = dissipation.names if dissipation is not None else ()
+    check_keys(entries, ("dissipation", "parameters", *own, *shorthand_names(model.coordinates)),
+               where=where)
+    values = {k: number(v, where=f"{where} {k}", non_negative=True)
+              for k, v in entries.items() if k not in ("dissipation", "parameters")}
+    if dissipation is None:
+        return model, values
+    return dataclasses.replace(model, dissipation=dissipation), values

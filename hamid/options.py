@@ -106,6 +106,8 @@ COVARIANCE_KINDS = ("hac", "classical", "hc", "bootstrap")
 VELOCITY_SOURCES = ("measured", "savgol")
 TIME_UNITS = ("s", "ms", "us", "ns")   # naming.TIME_UNITS, without importing it
 GAP_POLICIES = ("split", "error")
+# hamid.dissipation.SHORTHAND, without importing numpy at the CLI's start
+DAMPING_KINDS = ("viscous", "coulomb", "quadratic")
 SAVGOL_ORDER = 5
 
 # Files larger than this are read in chunks when the options allow it: the chunked fit is
@@ -197,13 +199,15 @@ class FitOptions:
         """Whether rows are weighted by the measurement noise (--noise)."""
         return self.noise not in (None, "none")
 
-    def chunking(self, data: Any) -> int | None:
+    def chunking(self, data: Any, dissipative: bool = False) -> int | None:
         """The rows per chunk when `data` is read in chunks, or None to read it whole.
 
         A file over `STREAM_BYTES` is read in chunks when the options allow it;
-        `chunk_rows` asks for chunks, which is an error when they are not possible.
+        `chunk_rows` asks for chunks, which is an error when they are not possible. A model
+        with its own dissipation function (`dissipative`) needs the data in memory.
         """
-        obstacle = self._needs_memory(data)
+        obstacle = self._needs_memory(data) or (
+            "the model's dissipation function needs the data in memory" if dissipative else "")
         if self.chunk_rows is not None and (obstacle or self.in_memory):
             raise UsageError(f"--chunk-rows: "
                              f"{obstacle or 'in_memory asks for the data in memory'}")
@@ -236,8 +240,6 @@ def _check_choice(value: str, choices: tuple[str, ...], option: str) -> None:
 
 def parse_damping(damping: str | Sequence[str]) -> tuple[str, ...]:
     """Damping kinds from "none", "viscous,coulomb" or a list; unknown kinds are errors."""
-    from hamid.model import DAMPING_KINDS  # numpy: not at import, which the CLI shares
-
     items = damping.split(",") if isinstance(damping, str) else list(damping)
     kinds = [item.strip() for item in items if item.strip()]
     if not kinds:

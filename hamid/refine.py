@@ -12,7 +12,7 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid import design, measurement
-from hamid.design import Damping
+from hamid.dissipation import Dissipation
 from hamid.estimate import LinearFit, ResidualSums
 from hamid.model import Model
 from hamid.plan import FitPlan
@@ -22,7 +22,7 @@ from hamid.unknowns import Unknowns
 __all__ = ["level_errors", "refine"]
 
 
-def refine(linear: LinearFit, model: Model, records: Records, damping: Damping,
+def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipation,
            unknowns: Unknowns, plan: FitPlan, sigma: npt.NDArray[np.float64] | None,
            derived_velocities: bool,
            progress: Callable[[str], None] | None) -> tuple[LinearFit | None, dict[str, Any]]:

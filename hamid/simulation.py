@@ -25,7 +25,7 @@ from hamid.config import check_keys, number, table
 from hamid.dynamics import Dynamics, Motion
 from hamid.errors import ModelError
 from hamid.expr import Func
-from hamid.model import Model, damping_names, model_from_spec
+from hamid.model import Model, damping_table, model_from_spec
 
 __all__ = ["INTEGRATORS", "System", "parse_system", "run"]
 
@@ -119,10 +119,12 @@ def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:
     relative = number(noise_table.get("relative", 0.0), where=f"{where}: [noise] relative",
                       non_negative=True)
 
-    damping_table = table(system.get("damping", {}), where=f"{where}: [damping]")
-    check_keys(damping_table, damping_names(model.coordinates), where=f"{where}: [damping]")
-    damping = {k: number(v, where=f"{where}: [damping] {k}", non_negative=True)
-               for k, v in damping_table.items()}
+    model, damping = damping_table(model, system.get("damping", {}),
+                                   where=f"{where}: [damping]")
+    missing = [name for name in model.dissipative().names if name not in damping]
+    if missing:
+        raise ModelError(f"{where}: [damping] has no value for {', '.join(missing)} of its "
+                         "dissipation function")
 
     return System(model, theta, tuple(initial), t_end, dt, method.lower(), rtol, atol, seed,
                   noise, relative, damping, max_samples)
@@ -175,9 +177,12 @@ def run(system: System, *, seed: int | None = None,
     times = sample_times(system.t_end, system.dt)
     # only the damping terms present; a conservative run carries no drained-energy row: a
     # fifth less to interpolate and store at every sample of a 2-DOF run
-    damping = {name: value for name, value in system.damping.items() if value}
-    motion = Dynamics(model, list(damping)).at([1.0, *theta, *damping.values()],
-                                               drained=bool(damping))
+    own = model.dissipative()
+    dissipation = own.with_shorthand([name for name, value in system.damping.items()
+                                      if value and name not in own.names])
+    coefficients = [system.damping[name] for name in dissipation.names]
+    motion = Dynamics(model, dissipation).at([1.0, *theta, *coefficients],
+                                             drained=any(coefficients))
     start = np.zeros((n_traj, motion.rows))
     start[:, :2 * n] = [[s[v] for v in model.variables] for s in system.initial]
     _check_mass(motion, start[:, :2 * n].T, "initial state of trajectory")

@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 
 from hamid import __version__, design, io, uncertainty
-from hamid.design import Block, Damping
+from hamid.design import Block
+from hamid.dissipation import Dissipation
 from hamid.errors import DataError
 from hamid.estimate import LinearFit, NoiseCheck, ResidualSums, Rows
 from hamid.model import Model
@@ -92,7 +93,8 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
                    for label, level, error, size in zip(provenance.labels, fit.h, fit.h_stderr,
                                                         fit.sizes, strict=True))
     warnings = [*provenance.notes,
-                *_warnings(parameters, stats, cond, fit.df, options, plan.kind, refinement),
+                *_warnings(parameters, stats, cond, fit.df, options, plan.kind, refinement,
+                           [*options.damping, *(["Rayleigh"] if model.dissipation else [])]),
                 *_noise_warnings(provenance.noise_check)]
     return FitResult(
         hamid_version=__version__,
@@ -184,7 +186,7 @@ def _finite_or_none(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def dissipation_summary(model: Model, records: Records, damping: Damping,
+def dissipation_summary(model: Model, records: Records, damping: Dissipation,
                         estimates: dict[str, float], energy_rows: Block,
                         h: Any) -> dict[str, Any] | None:
     """Energy lost per trajectory and, for one viscous coordinate, the damping ratio.
@@ -192,7 +194,7 @@ def dissipation_summary(model: Model, records: Records, damping: Damping,
     The energy lost is the fitted dissipated work over the record divided by the energy
     above the lowest potential energy seen on the trajectory.
     """
-    if not damping.kinds:
+    if not damping:
         return None
     n_energy = len(model.parameters)
     coefficients = np.array([estimates[name] for name in damping.names])
@@ -210,21 +212,22 @@ def dissipation_summary(model: Model, records: Records, damping: Damping,
                              if available > 0 else None})
     period = design.dominant_period(records, len(model.coordinates))
     ratio = None
-    if len(model.coordinates) == 1 and "viscous" in damping.kinds and period and \
+    viscous = f"c_{model.coordinates[0]}"
+    if len(model.coordinates) == 1 and viscous in damping.names and period and \
             model.is_natural:
         moving = at_rest.copy()
         moving[:, 1] = 1.0
         mass = float(np.mean(model.total_energy(moving, theta) - potential)) * 2
-        ratio = estimates[f"c_{model.coordinates[0]}"] * period / (4 * np.pi * mass)
+        ratio = estimates[viscous] * period / (4 * np.pi * mass)
     return {"trajectories": trajectories, "equivalent_damping_ratio": ratio,
             "period": period}
 
 
 def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: Any,
               df: int, options: FitOptions, kind: str,
-              refinement: dict[str, Any] | None) -> list[str]:
-    """Plain-words warnings about the fit."""
-    level, cov, damping = options.level, options.cov, options.damping
+              refinement: dict[str, Any] | None, damping: list[str]) -> list[str]:
+    """Plain-words warnings about the fit; `damping` names its kinds of dissipation."""
+    level, cov = options.level, options.cov
     notes = []
     for d in stats["drift"]:
         change = d["relative_change"]

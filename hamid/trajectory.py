@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.integrate import solve_ivp
 
-from hamid.design import Damping
+from hamid.dissipation import Dissipation
 from hamid.dynamics import Dynamics, Motion
 from hamid.model import Model
 from hamid.records import Records
@@ -90,7 +90,7 @@ def _segments(records: Records, t: npt.NDArray[np.float64],
     return pieces
 
 
-def refine(model: Model, records: Records, damping: Damping, theta_all: npt.ArrayLike,
+def refine(model: Model, records: Records, damping: Dissipation, theta_all: npt.ArrayLike,
            free: list[int], period: float, weight: npt.NDArray[np.float64],
            progress: Callable[[str], None] | None = None) -> Refinement:
     """Parameters whose integrated segments fit the recording best (module docstring).
@@ -124,7 +124,7 @@ class _SegmentFitFailed(Exception):
     """One segment length did not give a fit; the reason is the text."""
 
 
-def _fit_segments(model: Model, records: Records, damping: Damping,
+def _fit_segments(model: Model, records: Records, damping: Dissipation,
                   theta_all: npt.NDArray[np.float64], free: list[int], length: float,
                   weight: npt.NDArray[np.float64],
                   progress: Callable[[str], None] | None) -> Refinement:
@@ -135,7 +135,7 @@ def _fit_segments(model: Model, records: Records, damping: Damping,
     if not pieces:
         raise _SegmentFitFailed(f"no trajectory holds {MIN_SEGMENT_SAMPLES} samples")
     X = records.X
-    dynamics = Dynamics(model, damping.names)
+    dynamics = Dynamics(model, damping)
     n_states, p = X.shape[1], len(free)
     tau = [t[a:b] - t[a] for a, b in pieces]
     # t[i] - t[a] carries the rounding of both times: segments sampled alike then differ in

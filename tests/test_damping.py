@@ -109,7 +109,7 @@ def test_bad_damping(clean_records, damping, message):
 
 
 def test_damping_needs_time(clean_records):
-    with pytest.raises(UsageError, match="--damping needs a time column"):
+    with pytest.raises(UsageError, match="damping needs a time column"):
         hamid.fit(clean_records["duffing"].drop(columns="t"), damping="viscous")
 
 

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from hamid.dynamics import Dynamics
+from hamid.errors import ModelError
 from hamid.model import builtin_model, model_from_expression
 
 MODES = ("shared", "per-state")
@@ -21,7 +22,7 @@ MODES = ("shared", "per-state")
 
 def accelerations(model, damping, W, Y, mode):
     """a (N, n) at states Y (2N, n), column j with the weights W[:, j]."""
-    dynamics = Dynamics(model, damping)
+    dynamics = Dynamics(model, model.dissipative().with_shorthand(damping))
     if mode == "per-state":
         return dynamics.at(W).accelerations(Y)
     return np.column_stack([dynamics.at(W[:, j]).accelerations(Y[:, j:j + 1])
@@ -218,7 +219,8 @@ def test_right_hand_side_carries_velocities_accelerations_and_drained_power():
     -F v = c v^2 + d |v|^3 for viscous and quadratic damping."""
     model = builtin_model("duffing")
     k, k3, c, d = 1.5, 0.5, 0.3, 0.2
-    motion = Dynamics(model, ("c_x", "d_x")).at([1.0, k, k3, c, d], drained=True)
+    motion = Dynamics(model, model.dissipative().with_shorthand(("c_x", "d_x"))).at(
+        [1.0, k, k3, c, d], drained=True)
     assert motion.rows == 3
     x, v = np.array([0.5, -1.0, 2.0]), np.array([1.0, -0.5, 0.0])
     Y = np.vstack([x, v, [7.0, 8.0, 9.0]])   # the drained energy itself does not matter
@@ -260,7 +262,7 @@ def test_a_singular_mass_is_left_to_the_callers_check():
 
 def test_weights_and_damping_names_are_checked():
     model = builtin_model("duffing")
-    with pytest.raises(ValueError, match="c_y"):
-        Dynamics(model, ("c_y",))
+    with pytest.raises(ModelError, match="c_y"):
+        model.dissipative().with_shorthand(("c_y",))
     with pytest.raises(ValueError, match="expected"):
-        Dynamics(model, ("c_x",)).at([1.0, 1.0, 1.0])
+        Dynamics(model, model.dissipative().with_shorthand(("c_x",))).at([1.0, 1.0, 1.0])

@@ -57,7 +57,7 @@ def test_builtin_names_match_spec(name):
     assert model.is_polynomial
     assert model.info() == {"name": name, "energy": BUILTINS[name]["energy"],
                             "coordinates": list(coordinates), "velocities": list(velocities),
-                            "parameters": list(parameters)}
+                            "parameters": list(parameters), "dissipation": None}
 
 
 @pytest.mark.parametrize("name", sorted(BUILTIN_TABLE))

@@ -509,7 +509,7 @@ def test_provenance_records_model_truth_and_settings():
         assert key in info, key
     assert info["model"] == {"name": "two-masses", "energy": TWO_MASSES["energy"],
                              "coordinates": ["x1", "x2"], "velocities": ["v1", "v2"],
-                             "parameters": ["m", "k1", "k2", "k3"]}
+                             "parameters": ["m", "k1", "k2", "k3"], "dissipation": None}
     assert info["parameters"] == parameters
     assert info["damping"] == {"c_x1": 0.01}
     assert info["initial"] == initial
