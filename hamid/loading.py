@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from hamid import design, io, naming
+from hamid import design, io, measurement, naming
 from hamid.dissipation import shorthand_names
 from hamid.errors import DataError, UsageError
 from hamid.model import (
@@ -119,7 +119,7 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
     records, file_rows = _split_gaps(records, options.gaps, row_sources, notes)
     labels = list(records.labels)
     if not derived and records.t is not None:
-        notes.extend(velocity_check(records, m, mapping))
+        notes.extend(measurement.velocity_check(records, m.coordinates, m.velocities, mapping))
     derivation = None
     if derived:
         records, derivation = _derive_velocities(records, m, options.window, options.order)
@@ -560,44 +560,6 @@ def _truth(metadata: Mapping[str, Any] | None, m: Model) -> dict[str, float]:
     values = {**undamped, **(metadata.get("parameters") or {}),
               **(metadata.get("damping") or {})}
     return {k: float(v) for k, v in values.items() if isinstance(v, int | float)}
-
-
-VELOCITY_RATIO = 1.25   # measured velocities this far from the positions' rate are said
-VELOCITY_SPAN = 8       # samples over which the positions' change is compared
-
-
-def velocity_check(records: Records, model: Model, mapping: Mapping[str, str]) -> list[str]:
-    """Warnings when the measured velocities disagree with the rate of change of the
-    positions: a column in other units (mm with m/s) or a wrong time unit.
-
-    Over spans of `VELOCITY_SPAN` samples, the change of each coordinate is regressed on
-    the integral of its velocity (trapezoids, through zero); a slope beyond `VELOCITY_RATIO`
-    either way is said, with the slope. Integrals rather than differences keep the
-    position noise from being amplified.
-    """
-    N = len(model.coordinates)
-    warnings = []
-    for k, (q, v) in enumerate(zip(model.coordinates, model.velocities, strict=True)):
-        num = den = 0.0
-        for start, stop in records.bounds():
-            t, x = records.t[start:stop], records.X[start:stop, k]
-            rate = records.X[start:stop, N + k]
-            span = min(VELOCITY_SPAN, len(t) - 1)
-            if span < 1:
-                continue
-            integral = np.concatenate([[0.0], np.cumsum(np.diff(t) * (rate[1:] + rate[:-1])
-                                                        / 2)])
-            a, b = x[span:] - x[:-span], integral[span:] - integral[:-span]
-            num, den = num + float(a @ b), den + float(b @ b)
-        if den <= 0 or not np.isfinite(num / den):
-            continue
-        ratio = num / den
-        if not 1 / VELOCITY_RATIO <= ratio <= VELOCITY_RATIO:
-            warnings.append(
-                f"the positions {mapping.get(q, q)!r} change {ratio:.3g} times as fast as the "
-                f"velocities {mapping.get(v, v)!r} say: are the units mixed (mm with m/s) or "
-                "the time unit wrong? Give --time-unit, or --scale COL=FACTOR")
-    return warnings
 
 
 GAP_STEPS = 5.0   # a time step over this many times the median step is a gap

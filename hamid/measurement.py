@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import numpy.typing as npt
 
+from hamid.design import dominant_period
 from hamid.errors import DataError, UsageError
+from hamid.records import Records
 
-__all__ = ["DIFFERENCE_ORDER", "estimate_noise", "savgol_velocities"]
+__all__ = ["DIFFERENCE_ORDER", "estimate_noise", "savgol_velocities", "velocity_check"]
 
 # Differences of this order remove a smooth signal (its k-th difference is ~ (w dt)^k) and
 # keep white noise, scaled by sqrt(C(2k, k)).
@@ -98,3 +100,67 @@ def default_savgol_window(period_samples: float | None, order: int) -> int:
     target = 11 if period_samples is None else int(round(period_samples / 10))
     window = max(target, order + 2)
     return window if window % 2 else window + 1
+
+
+VELOCITY_RATIO = 1.25   # measured velocities this far from the positions' rate are said
+VELOCITY_SPAN = 8       # samples over which the positions' change is compared
+# A lag of the velocities behind the positions acts like a viscous force of damping ratio
+# about pi * lag / period (v(t - lag) = v - lag a, and a = -w^2 q for an oscillation); one
+# that would add more than this to the damping ratio is said.
+LAG_DAMPING_RATIO = 5e-4
+
+
+def velocity_check(records: Records, coordinates: Sequence[str], velocities: Sequence[str],
+                   mapping: Mapping[str, str]) -> list[str]:
+    """Warnings when the measured velocities disagree with the rate of change of the
+    positions: a column in other units (mm with m/s), a wrong time unit, or a lag (a
+    velocity channel filtered after the fact).
+
+    Over spans of `VELOCITY_SPAN` samples, the change of each coordinate is regressed on
+    the integral of its velocity and on the change of the velocity: x(t+s) - x(t) =
+    ratio * integral(v) + lag * (v(t+s) - v(t)) to first order in a lag. A ratio beyond
+    `VELOCITY_RATIO` either way is said, and so is a lag that acts like damping of ratio
+    over `LAG_DAMPING_RATIO` at the dominant period. Integrals rather than differences keep
+    the position noise from being amplified.
+    """
+    assert records.t is not None
+    N = len(coordinates)
+    period = dominant_period(records, N)
+    warnings = []
+    for k, (q, v) in enumerate(zip(coordinates, velocities, strict=True)):
+        normal, right = np.zeros((2, 2)), np.zeros(2)
+        for start, stop in records.bounds():
+            t, x = records.t[start:stop], records.X[start:stop, k]
+            rate = records.X[start:stop, N + k]
+            span = min(VELOCITY_SPAN, len(t) - 1)
+            if span < 1:
+                continue
+            integral = np.concatenate([[0.0], np.cumsum(np.diff(t) * (rate[1:] + rate[:-1])
+                                                        / 2)])
+            a = x[span:] - x[:-span]
+            B = np.column_stack([integral[span:] - integral[:-span], rate[span:] - rate[:-span]])
+            normal += B.T @ B
+            right += B.T @ a
+        if normal[0, 0] <= 0 or not np.all(np.isfinite(normal)):
+            continue
+        with np.errstate(all="ignore"):
+            ratio = right[0] / normal[0, 0]
+            fit = np.linalg.lstsq(normal, right, rcond=1e-12)[0]
+        if not np.isfinite(ratio):
+            continue
+        name_q, name_v = mapping.get(q, q), mapping.get(v, v)
+        if not 1 / VELOCITY_RATIO <= ratio <= VELOCITY_RATIO:
+            warnings.append(
+                f"the positions {name_q!r} change {ratio:.3g} times as fast as the "
+                f"velocities {name_v!r} say: are the units mixed (mm with m/s) or "
+                "the time unit wrong? Give --time-unit, or --scale COL=FACTOR")
+            continue
+        lag = float(fit[1] / fit[0])
+        if period and np.isfinite(lag) and math.pi * abs(lag) / period > LAG_DAMPING_RATIO:
+            warnings.append(
+                f"the velocities {name_v!r} {'lag behind' if lag > 0 else 'run ahead of'} "
+                f"the positions {name_q!r} by {abs(lag):.3g} s ({abs(lag) / period:.2g} of a "
+                "period; a filtered channel?): that acts like a damping ratio of "
+                f"{'+' if lag < 0 else '-'}{math.pi * abs(lag) / period:.2g} and biases "
+                "damping estimates; derive the velocities with --velocity savgol")
+    return warnings

@@ -5,7 +5,7 @@ work; docs/method.md, "The trajectory refinement")."""
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -14,6 +14,7 @@ import numpy.typing as npt
 from hamid import design, measurement
 from hamid.dissipation import Dissipation
 from hamid.estimate import LinearFit, ResidualSums
+from hamid.expr import Func
 from hamid.model import Model
 from hamid.plan import FitPlan
 from hamid.records import Records
@@ -32,12 +33,14 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipati
     The refined fit's levels are the mean energies at its parameters; their standard
     errors need a pass over the energy residuals there (`level_errors`) and are NaN here.
     """
-    kink = _crossed_kink(model, records)
-    if kink is not None:
-        return None, {"applied": False, "reason": (
-            f"the energy is not smooth where {kink} = 0 (abs, sign or a fractional power), "
-            "and the motion reaches it; integrating its force there takes tiny steps "
-            "without end")}
+    for what, kinks in (("energy", model.kinks),
+                        ("dissipation", [k for part in damping.kinks for k in part])):
+        kink = _crossed_kink(kinks, records)
+        if kink is not None:
+            return None, {"applied": False, "reason": (
+                f"the {what} is not smooth where {kink} = 0 (abs, sign or a fractional "
+                "power), and the motion reaches it; integrating its force there takes tiny "
+                "steps without end")}
     from hamid import trajectory  # scipy.integrate: only when a fit is refined
 
     N = len(model.coordinates)
@@ -79,10 +82,10 @@ def level_errors(fit: LinearFit, residuals: ResidualSums) -> npt.NDArray[np.floa
     return np.sqrt(np.einsum("jk,kl,jl->j", means_A, fit.covariance, means_A) + mean_noise)
 
 
-def _crossed_kink(model: Model, records: Records) -> str | None:
-    """The first place where the energy is not smooth that the records reach (change sign
+def _crossed_kink(kinks: Sequence[Func], records: Records) -> str | None:
+    """The first place where a function is not smooth that the records reach (change sign
     across, or come within a thousandth of their largest distance from), or None."""
-    for kink in model.kinks:
+    for kink in kinks:
         values = kink(records.X)
         values = values[np.isfinite(values)]
         if values.size and (np.min(values) <= 0 <= np.max(values)
