@@ -7,7 +7,7 @@ import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
-from hamid import __version__, design, estimate, loading, plan, refine, summary
+from hamid import design, estimate, loading, plan, refine, summary
 from hamid.design import Block
 from hamid.errors import UsageError
 from hamid.model import Model, load_model
@@ -30,11 +30,7 @@ def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | 
     velocities; ``frame.attrs["hamid"]`` holds its provenance (model, true parameters,
     initial states, energy drift, noise, seed, integrator, version).
     """
-    import dataclasses
-
-    import pandas as pd
-
-    from hamid.simulation import parse_system, run
+    from hamid import simulation
 
     if isinstance(system, Mapping):
         document, where = system, "system"
@@ -43,13 +39,8 @@ def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | 
 
         where = os.fspath(system)
         document = documents.read_toml(where)
-    parsed = parse_system(document, where=where)
-    if max_samples is not None:
-        parsed = dataclasses.replace(parsed, max_samples=max_samples)
-    columns, provenance = run(parsed, seed=seed, progress=progress)
-    frame = pd.DataFrame(columns)
-    frame.attrs["hamid"] = {**provenance, "hamid_version": __version__}
-    return frame
+    return simulation.sampled(document, where=where, seed=seed, max_samples=max_samples,
+                              progress=progress)
 
 
 def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
@@ -70,8 +61,9 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
 
     Parameters
     ----------
-    data : path, list of paths, or pandas.DataFrame
-        Recorded positions and velocities (CSV, TSV, Parquet, or ``"-"`` for stdin).
+    data : path, list of paths, pandas.DataFrame, dict of arrays or structured array
+        Recorded positions and velocities (CSV, TSV, Parquet, or ``"-"`` for stdin; in
+        memory, columns by name as in a file).
     model : str, path or Model, optional
         A built-in name, a TOML model file or a Model; by default the model recorded in
         the data's metadata, else ``poly:N:3`` over the coordinates found.

@@ -12,6 +12,8 @@ import math
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, Literal, NotRequired, TypedDict
 
+from hamid.validation import SCHEMA
+
 __all__ = [
     "BlockResiduals",
     "ConditioningInfo",
@@ -30,11 +32,9 @@ __all__ = [
     "RefinementInfo",
     "ResidualSummary",
     "SCHEMA",
-    "percent",
     "plain_data",
 ]
 
-SCHEMA = "hamid.fit/1"
 
 
 class ModelInfo(TypedDict):
@@ -309,13 +309,3 @@ def plain_data(value: Any) -> Any:
         return value if math.isfinite(value) else None
     return value
 
-
-def percent(level: float) -> str:
-    """A confidence level as a percentage, e.g. 95%, never rounded to 100%.
-
-    Decimal arithmetic on the level's shortest repr: 100 * 0.9 is 90.00000000000001 in
-    binary, and 6 digits would turn 0.9999999999999999 into "100%".
-    """
-    from decimal import Decimal
-
-    return f"{(Decimal(repr(float(level))) * 100).normalize():f}%"
