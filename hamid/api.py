@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 from hamid import design, estimate, loading, plan, refine, summary
 from hamid.design import Block
 from hamid.errors import UsageError
+from hamid.fitted import Recording
 from hamid.model import Model, load_model
 from hamid.options import SAVGOL_ORDER, FitOptions
 from hamid.result import FitResult
@@ -208,9 +209,10 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         source.notes + tuple(plan.window_warnings(fit_plan, source.durations())), noise_info,
         estimate.noise_check(source, rows, linear if fitted is linear else None, unknowns,
                              damping_forces, opts, sigma))
-    return summary.fit_result(
+    result = summary.fit_result(
         m, unknowns, fitted, residuals, fit_plan, opts, provenance, refinement,
         dissipation=summary.dissipation_summary(m, source.records, damping_forces,
                                                 unknowns.estimates(fitted.theta),
                                                 rows.all_energy, fitted.h),
         samples=summary.samples(rows, fitted, m, unknowns, fit_plan, labels), run=run)
+    return dataclasses.replace(result, recording=Recording(m, source.records))  # for plot()
