@@ -82,38 +82,41 @@ def parse_panels(panels: str | int | Sequence[str | int] | None) -> tuple[str, .
 
 def _obstacle(panel: str, report: Mapping[str, Any],
               recording: fitted.Recording | None) -> str | None:
-    """Why a panel cannot be drawn, or None."""
+    """What a panel needs that is missing, or None."""
     if panel in PANELS[:4] and recording is None:
-        return ("needs the data the fit read: hamid plot RESULT.json DATA..., or a fit in "
-                "memory")
+        return ("the data the fit read (hamid plot RESULT.json DATA..., or a fit in "
+                "memory)")
     refinement = report["method"].get("refinement") or {}
     if panel == "motion" and not refinement.get("applied"):
-        return "needs the trajectory refinement, which " + (
+        return "the trajectory refinement, which " + (
             f"did not run ({refinement['reason']})" if refinement.get("reason")
             else f"method {report['method']['kind']} does not make")
     covariance = report.get("covariance") or {}
     if panel == "correlation" and len(covariance.get("names", [])) < 2:
-        return "needs the covariance of at least two free parameters"
+        return "the covariance of at least two free parameters"
     return None
 
 
 def choose(report: Mapping[str, Any], recording: fitted.Recording | None,
            panels: str | int | Sequence[str | int] | None = None
            ) -> tuple[tuple[str, ...], list[str]]:
-    """The panels to draw and a note on each one left out: by default all that apply; a
-    panel asked for that cannot be drawn is an error."""
+    """The panels to draw, and a note on those left out (one per reason): by default all
+    that apply; a panel asked for that cannot be drawn is an error."""
     asked = parse_panels(panels)
-    drawn, notes = [], []
+    drawn, left_out = [], {}
     for k, panel in enumerate(PANELS, 1):
-        obstacle = _obstacle(panel, report, recording)
         if asked is not None and panel not in asked:
             continue
+        obstacle = _obstacle(panel, report, recording)
         if obstacle is None:
             drawn.append(panel)
         elif asked is not None:
-            raise UsageError(f"panel {k} ({panel}) {obstacle}")
+            raise UsageError(f"panel {k} ({panel}) needs {obstacle}")
         else:
-            notes.append(f"left out panel {k} ({panel}): it {obstacle}")
+            left_out.setdefault(obstacle, []).append(f"{k} {panel}")
+    notes = [f"left out panel{'s' if len(names) > 1 else ''} {', '.join(names)}: "
+             f"{'they need' if len(names) > 1 else 'it needs'} {obstacle}"
+             for obstacle, names in left_out.items()]
     return tuple(drawn), notes
 
 
@@ -143,6 +146,10 @@ class _Context:
         """Said in a caption when trajectories were left out."""
         n = len(self.labels)
         return f"; the first {MAX_SHOWN} of {n} trajectories shown" if n > MAX_SHOWN else ""
+
+    @property
+    def damped(self) -> bool:
+        return bool(self.report["method"]["damping"])
 
     @property
     def time_label(self) -> str:
@@ -178,7 +185,7 @@ def _ticks(n: int) -> Any:
     """A locator of at most n ticks at round numbers."""
     from matplotlib.ticker import MaxNLocator
 
-    return MaxNLocator(n)
+    return MaxNLocator(n, steps=[1, 2, 2.5, 5, 10])
 
 
 def _thin(n: int) -> slice:
@@ -198,7 +205,6 @@ def _legend_above(ax: Axes, columns: int) -> None:
 
 def _draw_energy(fig: Figure | SubFigure, ctx: _Context) -> str:
     e = ctx.energies
-    damped = bool(ctx.report["method"]["damping"])
     axes = fig.subplots(len(ctx.shown), 1, sharex=True, squeeze=False)[:, 0]
     for ax, j in zip(axes, ctx.shown, strict=True):
         rows = ctx.rows(j)
@@ -209,7 +215,7 @@ def _draw_energy(fig: Figure | SubFigure, ctx: _Context) -> str:
         ax.plot(t, e.energy[rows][step], color=OKABE_ITO[0], linewidth=0.9,
                 label="E(q, v; θ) at the fitted θ")
         ax.plot(t, level, color="black", linestyle="--", linewidth=1.2,
-                label="h − dissipated work" if damped else "fitted level h")
+                label="h − dissipated work" if ctx.damped else "fitted level h")
         ax.set_ylabel(f"E, trajectory {ctx.labels[j]}")
     axes[-1].set_xlabel(ctx.time_label)
     _legend_above(axes[0], 3)
@@ -263,8 +269,8 @@ def _draw_residuals(fig: Figure | SubFigure, ctx: _Context) -> str:
     correlation.set(xlabel="lag [samples]", ylabel="autocorrelation", title="autocorrelation")
     series.ticklabel_format(axis="y", style="sci", scilimits=(-2, 3))
     histogram.xaxis.set_major_locator(_ticks(3))
-    return ("r = E(q, v; θ) − h (+ the dissipated work); autocorrelation over pairs within "
-            "trajectories, grey: the 95% band of white noise"
+    return (f"r = E(q, v; θ) − h{' + the dissipated work' if ctx.damped else ''}; "
+            "autocorrelation over pairs within trajectories, grey: the 95% band of white noise"
             f"{ctx.shown_note}")
 
 
@@ -291,11 +297,11 @@ def _draw_phase(fig: Figure | SubFigure, ctx: _Context) -> str:
             step = _thin(rows.stop - rows.start)
             points = ax.scatter(records.X[rows, i][step], records.X[rows, N + i][step],
                                 c=e.residual[rows][step], cmap=_RESIDUAL_MAP, norm=norm,
-                                s=4, linewidths=0)
+                                s=4, linewidths=0, zorder=2)
             lowest = fitted.lowest_energy(ctx.report, ctx.recording,  # type: ignore[arg-type]
                                           i, j, grid_q, grid_v)
             ax.contour(grid_q, grid_v, lowest, levels=[h[j]], colors=[_colour(j)],
-                       linewidths=1.3)
+                       linewidths=1.0, zorder=1)
             ax.plot([], [], color=_colour(j), label=f"E = h, trajectory {ctx.labels[j]}")
         ax.set(xlabel=ctx.label(model.coordinates[i]), ylabel=ctx.label(model.velocities[i]))
     for ax in axes[N:]:
@@ -307,6 +313,7 @@ def _draw_phase(fig: Figure | SubFigure, ctx: _Context) -> str:
             + ("E = h of each trajectory" if N == 1 else
                "where E reaches each trajectory's level h, the other coordinates as recorded "
                "and their velocities at rest (the bound of the motion at that level)")
+            + ("; with damping, h is the energy at the start" if ctx.damped else "")
             + ctx.shown_note)
 
 
@@ -365,6 +372,7 @@ def _draw_parameters(fig: Figure | SubFigure, ctx: _Context) -> str:
         ax.set_title(text, fontsize="medium", loc="left")
         ax.ticklabel_format(axis="x", useOffset=False, style="plain")
         ax.xaxis.set_major_locator(_ticks(7))
+    axes[-1].set_xlabel("estimate")
     truth = ", dashed: the truth" if any(p["truth"] is not None for p in parameters) else ""
     return f"bars: {100 * level:g}% confidence intervals{truth}; each row on its own scale"
 
@@ -482,7 +490,8 @@ def output_paths(path: str, names: Sequence[str]) -> list[str]:
 def save(report: Mapping[str, Any], recording: fitted.Recording | None, path: str,
          panels: str | int | Sequence[str | int] | None = None) -> list[str]:
     """Draw the panels and write them: a PDF of a page per panel, or a PNG or SVG file per
-    panel (`output_paths`), all or none of them; returns the notes on panels left out."""
+    panel (`output_paths`), each atomically (inside `writing.all_or_nothing` all or none of
+    them); returns the notes on panels left out."""
     import io
 
     from hamid import writing
@@ -506,8 +515,6 @@ def save(report: Mapping[str, Any], recording: fitted.Recording | None, path: st
             buffer = io.BytesIO()
             fig.savefig(buffer, format=extension[1:], metadata=metadata)
             buffers.append(buffer.getvalue())
-    with writing.all_or_nothing():
-        for data, target in zip(buffers, output_paths(path, [n for n, _ in drawn]),
-                                strict=True):
-            writing.write_bytes(data, target)
+    for data, target in zip(buffers, output_paths(path, [n for n, _ in drawn]), strict=True):
+        writing.write_bytes(data, target)
     return notes
