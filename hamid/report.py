@@ -15,6 +15,7 @@ import json
 import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from decimal import Decimal
 from typing import Any, Literal
 
 from hamid.errors import UsageError
@@ -97,15 +98,15 @@ def _num(value: float | None, spec: str = ".6g") -> str:
     return _NULL if value is None else format(value, spec)
 
 
-def percent(level: float) -> str:
+def percent(level: float | Decimal) -> str:
     """A confidence level as a percentage, e.g. 95%, never rounded to 100%.
 
     Decimal arithmetic on the level's shortest repr: 100 * 0.9 is 90.00000000000001 in
     binary, and 6 digits would turn 0.9999999999999999 into "100%".
     """
-    from decimal import Decimal
-
-    return f"{(Decimal(repr(float(level))) * 100).normalize():f}%"
+    if not isinstance(level, Decimal):
+        level = Decimal(repr(float(level)))
+    return f"{(level * 100).normalize():f}%"
 
 
 def _percent(value: float | None) -> str:
@@ -564,9 +565,15 @@ def _render_summary(result: Mapping[str, Any], *, color: bool, width: int | None
     title = printable(f"hamid fit — {result['model']['name']}")
     lines = [title.center(width).rstrip(), "=" * width]
     lines += ["  ".join(cells[i:i + 2]) for i in range(0, len(cells), 2)]
+    # statsmodels' short headers: the bounds as quantiles, [2.5% 97.5%]
+    level = Decimal(repr(float(method["level"])))
+    short = {"std. error": "std err", "rel. error": "rel err",
+             f"{percent(level)} CI low": f"[{percent((1 - level) / 2)}",
+             f"{percent(level)} CI high": f"{percent((1 + level) / 2)}]"}
     shown = {"Parameters", "Energy levels", "Dissipation"}
     for section in view.sections:
         for table in section.tables if section.heading in shown else ():
+            table = replace(table, header=tuple(short.get(h, h) for h in table.header))
             lines += ["=" * width, *_text_table(table, width)]
     lines.append("=" * width)
     notes = [f"method {method['kind']}: {method['kind_reason']}",
