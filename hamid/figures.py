@@ -3,8 +3,8 @@
 1. ``energy``: the fitted energy over time per trajectory, against its level h (h minus
    the work dissipated so far, with damping) and the band the measurement noise puts
    around it;
-2. ``residuals``: the energy residuals over time, their histogram against the normal
-   density, and their autocorrelation;
+2. ``residuals``: the energy residuals over time, their histogram in units of the noise
+   band against the standard normal density, and their autocorrelation;
 3. ``phase``: the phase portrait of each coordinate, coloured by residual, inside the
    fitted energy's contour at each trajectory's level;
 4. ``motion``: recorded against fitted motion over one refinement segment per trajectory;
@@ -171,7 +171,7 @@ class _Context:
     def title(self, panel: str) -> str:
         """The panel's title: what it shows, the files and the method."""
         report = self.report
-        sources = [os.path.basename(s) for s in report["data"]["sources"]]
+        sources = [os.path.basename(s).strip("<>") for s in report["data"]["sources"]]
         files = ", ".join(sources[:2]) + (f" and {len(sources) - 2} more"
                                           if len(sources) > 2 else "")
         method = report["method"]
@@ -186,6 +186,11 @@ def _ticks(n: int) -> Any:
     from matplotlib.ticker import MaxNLocator
 
     return MaxNLocator(n, steps=[1, 2, 2.5, 5, 10])
+
+
+def _middle(fig: Figure | SubFigure) -> Any:
+    """The middle of three columns of a panel: room for a square plot and its colour bar."""
+    return fig.add_gridspec(1, 3, width_ratios=(1, 1.6, 1))[0, 1]
 
 
 def _thin(n: int) -> slice:
@@ -248,14 +253,14 @@ def _draw_residuals(fig: Figure | SubFigure, ctx: _Context) -> str:
     series.set(xlabel=ctx.time_label, ylabel="energy residual r")
     _legend_above(series, min(3, len(ctx.shown)))
     r = e.residual
-    spread = float(r.std())
-    histogram.hist(r, bins=min(60, max(10, int(np.sqrt(len(r))))), density=True,
-                   color=OKABE_ITO[0], alpha=0.6, label="residuals")
-    if spread > 0:
-        x = np.linspace(r.min(), r.max(), 200)
-        density = np.exp(-0.5 * ((x - r.mean()) / spread) ** 2) / (spread * np.sqrt(2 * np.pi))
-        histogram.plot(x, density, color=OKABE_ITO[3], linewidth=1.5, label="normal density")
-    histogram.set(xlabel="energy residual r", ylabel="density", title="histogram")
+    # in units of the noise band: N(0, 1) when the model is right and the noise is white
+    z = r[e.noise > 0] / e.noise[e.noise > 0]
+    histogram.hist(z, bins=min(60, max(10, int(np.sqrt(len(z))))), density=True,
+                   color=OKABE_ITO[0], alpha=0.6, label="r / σ")
+    x = np.linspace(min(z.min(initial=0.0), -4), max(z.max(initial=0.0), 4), 200)
+    histogram.plot(x, np.exp(-x**2 / 2) / np.sqrt(2 * np.pi), color=OKABE_ITO[3],
+                   linewidth=1.5, label="standard normal")
+    histogram.set(xlabel="r / σ", ylabel="density", title="histogram")
     histogram.legend(fontsize="small", loc="upper left")
     histogram.set_ylim(top=1.35 * histogram.get_ylim()[1])   # room for the legend
     bounds = ctx.recording.records.bounds()  # type: ignore[union-attr]
@@ -269,7 +274,8 @@ def _draw_residuals(fig: Figure | SubFigure, ctx: _Context) -> str:
     correlation.set(xlabel="lag [samples]", ylabel="autocorrelation", title="autocorrelation")
     series.ticklabel_format(axis="y", style="sci", scilimits=(-2, 3))
     histogram.xaxis.set_major_locator(_ticks(3))
-    return (f"r = E(q, v; θ) − h{' + the dissipated work' if ctx.damped else ''}; "
+    return (f"r = E(q, v; θ) − h{' + the dissipated work' if ctx.damped else ''}; σ: the "
+            "standard deviation the measurement noise puts into E (the energy panel's band); "
             "autocorrelation over pairs within trajectories, grey: the 95% band of white noise"
             f"{ctx.shown_note}")
 
@@ -281,7 +287,10 @@ def _draw_phase(fig: Figure | SubFigure, ctx: _Context) -> str:
     e = ctx.energies
     N = len(model.coordinates)
     columns = min(N, 3)
-    axes = fig.subplots(-(-N // columns), columns, squeeze=False).ravel()
+    if N == 1:   # alone it would stretch across the page: the middle, its colour bar beside
+        axes = np.array([fig.add_subplot(_middle(fig))])
+    else:
+        axes = fig.subplots(-(-N // columns), columns, squeeze=False).ravel()
     shown = np.concatenate([np.arange(ctx.rows(j).start, ctx.rows(j).stop) for j in ctx.shown])
     scale = float(np.quantile(np.abs(e.residual[shown]), 0.99)) or 1.0
     norm = Normalize(-scale, scale)
@@ -385,8 +394,7 @@ def _draw_correlation(fig: Figure | SubFigure, ctx: _Context) -> str:
     sd = np.sqrt(np.diag(matrix))
     with np.errstate(invalid="ignore", divide="ignore"):
         correlation = matrix / np.outer(sd, sd)
-    # a square map in the middle third, its colour bar beside it
-    ax = fig.add_subplot(fig.add_gridspec(1, 3, width_ratios=(1, 1.6, 1))[0, 1])
+    ax = fig.add_subplot(_middle(fig))
     image = ax.imshow(correlation, cmap=_CORRELATION_MAP, vmin=-1, vmax=1)
     ax.set_xticks(range(len(names)), names, rotation=45 if len(names) > 6 else 0)
     ax.set_yticks(range(len(names)), names)

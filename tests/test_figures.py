@@ -121,6 +121,9 @@ def test_residuals_panel(fit, table):
     (bars,) = histogram.containers
     assert len(bars) == int(np.sqrt(len(table)))        # 40 bins for 1602 samples
     assert sum(b.get_height() * b.get_width() for b in bars) == pytest.approx(1.0)
+    (normal,) = histogram.get_lines()
+    x, density = normal.get_xydata().T
+    np.testing.assert_allclose(density, np.exp(-x**2 / 2) / np.sqrt(2 * np.pi))
     (lags,) = correlation.containers
     assert len(lags) == 40 and lags[0].get_x() + lags[0].get_width() / 2 == pytest.approx(1)
     assert lags[0].get_height() == pytest.approx(fit.residuals["lag1_autocorrelation"],
