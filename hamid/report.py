@@ -19,9 +19,10 @@ from decimal import Decimal
 from typing import Any, Literal
 
 from hamid.errors import UsageError
+from hamid.options import percent
 from hamid.validation import SCHEMA
 
-__all__ = ["FORMATS", "SCHEMA", "percent", "printable", "render"]
+__all__ = ["FORMATS", "SCHEMA", "printable", "render"]
 
 ReportFormat = Literal["table", "json", "markdown", "csv", "summary", "html"]
 
@@ -96,17 +97,6 @@ def _escape_control(match: re.Match[str]) -> str:
 def _num(value: float | None, spec: str = ".6g") -> str:
     """Helper: a number in the given format, null as an em dash."""
     return _NULL if value is None else format(value, spec)
-
-
-def percent(level: float | Decimal) -> str:
-    """A confidence level as a percentage, e.g. 95%, never rounded to 100%.
-
-    Decimal arithmetic on the level's shortest repr: 100 * 0.9 is 90.00000000000001 in
-    binary, and 6 digits would turn 0.9999999999999999 into "100%".
-    """
-    if not isinstance(level, Decimal):
-        level = Decimal(repr(float(level)))
-    return f"{(level * 100).normalize():f}%"
 
 
 def _percent(value: float | None) -> str:

@@ -16,10 +16,9 @@ from hamid.design import Block, Damping
 from hamid.errors import DataError
 from hamid.estimate import LinearFit, NoiseCheck, ResidualSums, Rows
 from hamid.model import Model
-from hamid.options import FitOptions
+from hamid.options import FitOptions, percent
 from hamid.plan import FitPlan
 from hamid.records import Records
-from hamid.report import percent
 from hamid.result import (
     EnergyLevel,
     FitResult,
