@@ -309,8 +309,9 @@ def _draw_phase(fig: Figure | SubFigure, ctx: _Context) -> str:
                                 s=4, linewidths=0, zorder=2)
             lowest = fitted.lowest_energy(ctx.report, ctx.recording,  # type: ignore[arg-type]
                                           i, j, grid_q, grid_v)
+            # solid whatever the sign: matplotlib dashes the contours of negative levels
             ax.contour(grid_q, grid_v, lowest, levels=[h[j]], colors=[_colour(j)],
-                       linewidths=1.0, zorder=1)
+                       linewidths=1.0, linestyles="solid", zorder=1)
             ax.plot([], [], color=_colour(j), label=f"E = h, trajectory {ctx.labels[j]}")
         ax.set(xlabel=ctx.label(model.coordinates[i]), ylabel=ctx.label(model.velocities[i]))
     for ax in axes[N:]:

@@ -155,6 +155,17 @@ def test_phase_contour_of_one_degree_of_freedom_is_the_orbit(clean_records):
     assert x.max() == pytest.approx(1.0, abs=2e-3) and x.min() == pytest.approx(-1.0, abs=2e-3)
 
 
+def test_contours_are_solid_at_negative_levels(clean_records):
+    """A pendulum's levels are negative (E = ω²/2 − K cos θ), which matplotlib would dash;
+    its contour is still the orbit: at rest at θ = 1.2, E = −9 cos 1.2."""
+    result = hamid.fit(clean_records["pendulum"])
+    figure = figures.figure(result.to_dict(), result.recording, "phase")
+    contour = next(c for c in _data_axes(figure)[0].collections if isinstance(c, ContourSet))
+    assert contour.get_linestyle() == [(0, None)]     # solid
+    theta, omega = contour.get_paths()[0].vertices.T
+    np.testing.assert_allclose(omega**2 / 2 - 9 * np.cos(theta), -9 * np.cos(1.2), rtol=2e-3)
+
+
 def test_motion_panel_fits_the_recording_to_its_noise(fit, table, noise):
     figure = _page(fit, "motion")
     _check_picture(figure)
