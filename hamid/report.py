@@ -611,11 +611,12 @@ _RENDERERS: dict[str, Callable[..., str]] = {
     "json": _render_json,
     "markdown": _render_markdown,
     "csv": _render_csv,
-    "summary": _render_summary,
-    "html": _render_html,
 }
 
-FORMATS: tuple[str, ...] = tuple(_RENDERERS)
+FORMATS: tuple[str, ...] = tuple(_RENDERERS)   # those of `hamid fit` and `hamid report`
+# Python's own: `FitResult.summary()` and a notebook's display of a result
+_PYTHON_RENDERERS: dict[str, Callable[..., str]] = {"summary": _render_summary,
+                                                    "html": _render_html}
 
 
 def render(
@@ -650,10 +651,8 @@ def render(
     --------
     >>> text = render(result, "markdown")  # doctest: +SKIP
     """
-    try:
-        renderer = _RENDERERS[format]
-    except KeyError:
-        raise UsageError(
-            f"unknown report format {format!r} (choose from {', '.join(FORMATS)})"
-        ) from None
+    renderer = _RENDERERS.get(format) or _PYTHON_RENDERERS.get(format)
+    if renderer is None:
+        raise UsageError(f"unknown report format {format!r} (choose from "
+                         f"{', '.join([*FORMATS, *_PYTHON_RENDERERS])})")
     return renderer(result, color=color, width=width)
