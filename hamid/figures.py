@@ -220,7 +220,9 @@ def _draw_energy(fig: Figure | SubFigure, ctx: _Context) -> str:
         ax.plot(t, e.energy[rows][step], color=OKABE_ITO[0], linewidth=0.9,
                 label="E(q, v; θ) at the fitted θ")
         ax.plot(t, level, color="black", linestyle="--", linewidth=1.2,
-                label="h − dissipated work" if ctx.damped else "fitted level h")
+                label="h − dissipated work" if ctx.damped else
+                "mean energy (weak rows fit no level)" if ctx.report["method"]["kind"] == "weak"
+                else "fitted level h")
         ax.set_ylabel(f"E, trajectory {ctx.labels[j]}")
     axes[-1].set_xlabel(ctx.time_label)
     _legend_above(axes[0], 3)
