@@ -16,7 +16,9 @@ import numpy as np
 import pandas as pd
 import pytest
 from click.testing import CliRunner
+from conftest import DUFFING
 from helpers import hamid_command
+from scipy.integrate import cumulative_trapezoid
 
 import hamid
 from hamid import figures, fitted
@@ -98,6 +100,23 @@ def test_energy_panel_draws_each_trajectorys_energy_and_level(fit, table):
         h = next(lv.h for lv in fit.energy_levels if lv.trajectory == label)
         np.testing.assert_allclose(level.get_ydata(), h)
         assert sum(isinstance(c, PolyCollection) for c in ax.collections) == 1  # the band
+
+
+def test_energy_panel_of_a_damped_fit_draws_h_minus_the_dissipated_work():
+    """Viscous damping c v: the level line is h - c * integral of v² dt (trapezoid rule
+    here), and the fitted energy follows it."""
+    frame = hamid.simulate({**DUFFING, "damping": {"c_x": 0.05}})
+    result = hamid.fit(frame, damping="viscous")
+    figure = figures.figure(result.to_dict(), result.recording, "energy")
+    first = frame[frame.trajectory == 1]
+    drawn, level = _data_axes(figure)[0].get_lines()
+    c, h = result.estimates["c_x"], result.energy_levels[0].h
+    work = c * cumulative_trapezoid(first["v"] ** 2, first["t"], initial=0)
+    np.testing.assert_allclose(level.get_ydata(), h - work, atol=2e-4 * h)
+    assert level.get_label() == "h − dissipated work"
+    energy = first["v"] ** 2 / 2 + first["x"] ** 2 / 2 + first["x"] ** 4 / 8
+    np.testing.assert_allclose(drawn.get_ydata(), energy, rtol=1e-6)
+    assert np.ptp(drawn.get_ydata()) > 0.1 * h      # it loses energy: the test sees it
 
 
 def test_noise_band_holds_the_energys_scatter(fit):
