@@ -7,9 +7,10 @@ import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
-from hamid import __version__, estimate, loading, plan, refine, summary
+from hamid import estimate, loading, plan, refine, summary
 from hamid.design import Block
 from hamid.errors import UsageError
+from hamid.fitted import Recording
 from hamid.model import Model, load_model
 from hamid.options import SAVGOL_ORDER, FitOptions
 from hamid.result import FitResult
@@ -30,11 +31,7 @@ def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | 
     velocities; ``frame.attrs["hamid"]`` holds its provenance (model, true parameters,
     initial states, energy drift, noise, seed, integrator, version).
     """
-    import dataclasses
-
-    import pandas as pd
-
-    from hamid.simulation import parse_system, run
+    from hamid import simulation
 
     if isinstance(system, Mapping):
         document, where = system, "system"
@@ -43,13 +40,8 @@ def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | 
 
         where = os.fspath(system)
         document = documents.read_toml(where)
-    parsed = parse_system(document, where=where)
-    if max_samples is not None:
-        parsed = dataclasses.replace(parsed, max_samples=max_samples)
-    columns, provenance = run(parsed, seed=seed, progress=progress)
-    frame = pd.DataFrame(columns)
-    frame.attrs["hamid"] = {**provenance, "hamid_version": __version__}
-    return frame
+    return simulation.sampled(document, where=where, seed=seed, max_samples=max_samples,
+                              progress=progress)
 
 
 def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
@@ -70,8 +62,9 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
 
     Parameters
     ----------
-    data : path, list of paths, or pandas.DataFrame
-        Recorded positions and velocities (CSV, TSV, Parquet, or ``"-"`` for stdin).
+    data : path, list of paths, pandas.DataFrame, dict of arrays or structured array
+        Recorded positions and velocities (CSV, TSV, Parquet, or ``"-"`` for stdin; in
+        memory, columns by name as in a file).
     model : str, path or Model, optional
         A built-in name, a TOML model file or a Model; by default the model recorded in
         the data's metadata, else ``poly:N:3`` over the coordinates found.
@@ -216,9 +209,10 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         source.notes + tuple(plan.window_warnings(fit_plan, source.durations())), noise_info,
         estimate.noise_check(source, rows, linear if fitted is linear else None, unknowns,
                              damping_forces, opts, sigma))
-    return summary.fit_result(
+    result = summary.fit_result(
         m, unknowns, fitted, residuals, fit_plan, opts, provenance, refinement,
         dissipation=summary.dissipation_summary(m, source.records, damping_forces,
                                                 unknowns.estimates(fitted.theta),
                                                 rows.all_energy, fitted.h),
         samples=summary.samples(rows, fitted, m, unknowns, fit_plan, labels), run=run)
+    return dataclasses.replace(result, recording=Recording(m, source.records))  # for plot()

@@ -425,6 +425,9 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
               help="Read the file in chunks of ROWS rows, in bounded memory; auto then "
                    "skips its trajectory refinement (default for files over 64 MB: chunks "
                    "of 262144 rows, and auto refines holding only the records).")
+@click.option("--plot", "figure", metavar="FIG",
+              help="Also draw the fit (hamid plot): FIG.png or .svg, a file per panel, or "
+                   ".pdf, a page per panel.")
 def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         time_column: str | None, time_unit: str | None, scale: str | None, strict: bool,
         gaps: str,
@@ -435,7 +438,7 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         weak_window: float | None, damping: str, fix: str | None, cov: str, level: float,
         n_boot: int,
         seed: int | None, fmt: str | None, output: str, residuals: str | None,
-        chunk_rows: int | None) -> None:
+        chunk_rows: int | None, figure: str | None) -> None:
     """Fit the energy of the recorded motion in DATA (CSV, TSV, Parquet; '-' for stdin)."""
     from hamid import options, writing
     from hamid.api import fit as run_fit
@@ -457,6 +460,8 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
                              "where they would interleave; write one of them to a file "
                              "(-o FILE or --residuals FILE)")
     _check_output("-o", output, inputs)
+    if figure is not None:
+        _check_figure("--plot", figure, inputs)
     fmt = fmt or _report_format(output)
     with _status("fitting") as status:
         result = run_fit(list(data), model,
@@ -474,12 +479,21 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
                          decimal=decimal, skip_rows=skip_rows, units_row=units_row)
     result = result.with_command(shlex.join(["hamid", *sys.argv[1:]]))
 
-    def write_residuals() -> None:
-        import pandas as pd
+    notes: list[str] = []
 
-        writing.write_table(pd.DataFrame(result.samples), residuals)
+    def write_files() -> None:
+        if residuals is not None:
+            import pandas as pd
 
-    _emit(result.to_dict(), fmt, output, also=None if residuals is None else write_residuals)
+            writing.write_table(pd.DataFrame(result.samples), residuals)
+        if figure is not None:
+            from hamid import figures
+
+            notes.extend(figures.save(result.to_dict(), result.recording, figure))
+
+    _emit(result.to_dict(), fmt, output, also=write_files)
+    for note in notes:
+        click.echo(_printable(note), err=True)
     if strict and result.warnings:
         click.echo(f"error: --strict: the fit has {len(result.warnings)} warning(s)", err=True)
         raise click.exceptions.Exit(3)
@@ -501,6 +515,41 @@ def report(result_file: str, fmt: str | None, output: str) -> None:
     source = io.STDIN if io.is_stdio(result_file) else result_file
     result = FitResult.from_dict(documents.read_json(result_file), source=source)
     _emit(result.to_dict(), fmt, output)
+
+
+@cli.command()
+@click.argument("result_file", metavar="RESULT.json")
+@click.argument("data", nargs=-1)
+@click.option("-o", "--output", required=True, metavar="FIG",
+              help="Figure file: .png or .svg, a file per panel (FIG-1-energy.png, ...), or "
+                   ".pdf, a page per panel.")
+@click.option("--panels", metavar="LIST",
+              help="Panels by number or name: 1 energy, 2 residuals, 3 phase, 4 motion, "
+                   "5 parameters, 6 correlation (default: all that apply).")
+def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | None) -> None:
+    """Draw a saved fit result (JSON); panels 1-4 need the DATA it was fitted to."""
+    from hamid import documents, figures, fitted, io, writing
+    from hamid.result import FitResult
+
+    _check_figure("-o", output, [result_file, *data])
+    source = io.STDIN if io.is_stdio(result_file) else result_file
+    report = FitResult.from_dict(documents.read_json(result_file), source=source).to_dict()
+    recording = fitted.read_recording(report, data) if data else None
+    with writing.all_or_nothing():
+        notes = figures.save(report, recording, output, panels)
+    for note in notes:
+        click.echo(_printable(note), err=True)
+
+
+def _check_figure(option: str, figure: str, inputs: Sequence[str]) -> None:
+    """Before any work: a figure's format (its extension), matplotlib, the destination."""
+    from hamid import figures
+
+    try:
+        figures.check_output(figure)
+    except UsageError as exc:
+        raise UsageError(f"{option} {exc}") from None
+    _check_output(option, figure, inputs, binary=True)
 
 
 def _report_format(output: str) -> str:

@@ -24,19 +24,19 @@ from hamid.model import (
     BUILTINS,
     Model,
     builtin_model,
-    damping_table,
     load_model,
-    model_from_expression,
+    model_from_info,
     poly_model_over,
 )
 from hamid.options import FitOptions
 from hamid.records import Records, runs
 
-__all__ = ["Chunked", "Loaded", "load", "open_chunks", "trajectory_label"]
+__all__ = ["Chunked", "Loaded", "in_memory_name", "in_memory_table", "load", "open_chunks",
+           "trajectory_label"]
 
 # Times beyond this overflow in the sums of squares the residual summary takes.
 _LARGEST_TIME = 1e150
-_DATA_FRAME = "<DataFrame>"   # the name of a DataFrame given as data, in messages
+_IN_MEMORY = ("<DataFrame>", "<dict>", "<array>")   # `in_memory_name`
 
 
 @dataclass(frozen=True)
@@ -75,8 +75,9 @@ class Loaded:
 def load(data: Any, model: str | os.PathLike[str] | Model | None,
          options: FitOptions) -> Loaded:
     """Read the sources whole, settle the model and arrange the rows by trajectory."""
-    if _is_data_frame(data):
-        tables = [(_DATA_FRAME, data, data.attrs.get("hamid"))]
+    table = in_memory_table(data)
+    if table is not None:
+        tables = [table]
     else:
         paths = [data] if isinstance(data, str | os.PathLike) else list(data)
         if not paths:
@@ -99,7 +100,7 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
         units = _units(names, mapping, time, options, table_metadata, source)
         notes.extend(units["notes"])
         reader = Reader(m, mapping, time, trajectory, source,
-                        typed=source == _DATA_FRAME or io.is_parquet(source),
+                        typed=source in _IN_MEMORY or io.is_parquet(source),
                         scales=units["scale"], missing_ok=options.gaps == "split")
         piece = next(reader.read([(frame, 0)]))
         notes.extend(reader.notes)
@@ -513,15 +514,8 @@ def _model_from_metadata(info: Mapping[str, Any], source: str) -> Model:
         candidate = builtin_model(name)
         if candidate.energy == info.get("energy"):
             return candidate
-    where = f"{source}: metadata model"
     try:
-        model = model_from_expression(str(name or "custom"), info["energy"],
-                                      info["coordinates"], info["velocities"],
-                                      info.get("parameters"), where=where)
-        if own:
-            model = damping_table(model, {"dissipation": own["function"],
-                                          "parameters": own["parameters"]}, where=where)[0]
-        return model
+        return model_from_info(info, where=f"{source}: metadata model")
     except (KeyError, TypeError) as exc:
         raise DataError(f"{source}: the hamid metadata has no usable model ({exc}); "
                         "give one with --model") from exc
@@ -710,7 +704,35 @@ def trajectory_label(value: Any) -> Any:
     return int(value) if isinstance(value, float) and value.is_integer() else value
 
 
-def _is_data_frame(data: Any) -> bool:
-    """Whether `data` is a pandas DataFrame, without importing pandas when it cannot be."""
-    pandas = sys.modules.get("pandas")
-    return pandas is not None and isinstance(data, pandas.DataFrame)
+def in_memory_name(data: Any) -> str | None:
+    """The name of data given in memory, in messages and the report's sources:
+    ``<DataFrame>`` (pandas), ``<array>`` (a NumPy structured array) or ``<dict>`` (a
+    mapping of column name to array); None for files."""
+    pandas = sys.modules.get("pandas")   # no import: a DataFrame needs pandas loaded
+    if pandas is not None and isinstance(data, pandas.DataFrame):
+        return "<DataFrame>"
+    if isinstance(data, np.ndarray) and data.dtype.names:
+        return "<array>"
+    return "<dict>" if isinstance(data, Mapping) else None
+
+
+def in_memory_table(data: Any) -> tuple[str, Mapping[str, Any], Any] | None:
+    """Data given in memory as a table, read as a file's columns would be: its name
+    (`in_memory_name`), its columns and its metadata (a DataFrame's ``attrs["hamid"]``);
+    None for files."""
+    name = in_memory_name(data)
+    if name == "<DataFrame>":
+        return name, data, data.attrs.get("hamid")
+    if name == "<array>":
+        return name, {field: data[field] for field in data.dtype.names}, None
+    if name is None:
+        return None
+    columns = {str(key): np.asarray(values) for key, values in data.items()}
+    for key, values in columns.items():
+        if values.ndim != 1:
+            raise DataError(f"{name}: column {key!r} has shape {values.shape}; give one "
+                            "one-dimensional array per column")
+    if len({len(values) for values in columns.values()}) > 1:
+        listed = ", ".join(f"{key}: {len(values)}" for key, values in columns.items())
+        raise DataError(f"{name}: the columns have different lengths ({listed})")
+    return name, columns, None

@@ -26,7 +26,7 @@ from hamid.dissipation import Dissipation, shorthand_names
 from hamid.errors import ModelError, UsageError
 
 __all__ = ["BUILTINS", "Lagrangian", "Model", "builtin_model", "damping_table",
-           "model_from_spec"]
+           "model_from_info", "model_from_spec"]
 
 BUILTINS: dict[str, dict[str, Any]] = {
     "peng-quadratic": {
@@ -412,6 +412,19 @@ def load_model(name_or_path: str | os.PathLike[str]) -> Model:
         raise ModelError(f"{text}: no [model] table")
     model = model_from_spec(document["model"], where=f"{text}: [model]")
     return damping_table(model, document.get("damping", {}), where=f"{text}: [damping]")[0]
+
+
+def model_from_info(info: Mapping[str, Any], *, where: str) -> Model:
+    """The model a report or a simulated file records (`Model.info`), with its
+    dissipation function."""
+    model = model_from_expression(str(info.get("name") or "custom"), info["energy"],
+                                  info["coordinates"], info["velocities"],
+                                  info.get("parameters"), where=where)
+    own = info.get("dissipation")
+    if not own:
+        return model
+    return damping_table(model, {"dissipation": own["function"],
+                                 "parameters": own["parameters"]}, where=where)[0]
 
 
 def damping_table(model: Model, value: Any, *,

@@ -9,6 +9,7 @@ import math
 import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from decimal import Decimal
 from typing import TYPE_CHECKING, Any
 
 from hamid.errors import UsageError
@@ -99,6 +100,18 @@ def _parse_items(
             raise UsageError(f"{option}: {key!r} is given twice")
         result[key] = convert(key, value, item)
     return result
+
+
+def percent(level: float | Decimal) -> str:
+    """A confidence level as a percentage, e.g. 95%, never rounded to 100%: how reports and
+    warnings write the option `level`.
+
+    Decimal arithmetic on the level's shortest repr: 100 * 0.9 is 90.00000000000001 in
+    binary, and 6 digits would turn 0.9999999999999999 into "100%".
+    """
+    if not isinstance(level, Decimal):
+        level = Decimal(repr(float(level)))
+    return f"{(level * 100).normalize():f}%"
 
 
 METHODS = ("auto", "joint", "weak", "energy")

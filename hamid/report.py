@@ -1,4 +1,4 @@
-"""Render a fit result as a table, JSON, markdown or CSV.
+"""Render a fit result as a table, JSON, markdown, CSV, a summary block or HTML.
 
 Presentation only: every number shown is already in the result dict (schema "hamid.fit/1",
 docs/output.md); the only arithmetic here is the relative error against a known truth.
@@ -15,14 +15,16 @@ import json
 import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from decimal import Decimal
 from typing import Any, Literal
 
 from hamid.errors import UsageError
-from hamid.result import SCHEMA, percent
+from hamid.options import percent
+from hamid.validation import SCHEMA
 
 __all__ = ["FORMATS", "SCHEMA", "printable", "render"]
 
-ReportFormat = Literal["table", "json", "markdown", "csv"]
+ReportFormat = Literal["table", "json", "markdown", "csv", "summary", "html"]
 
 _NULL = "—"
 _MINUS = "−"
@@ -507,6 +509,103 @@ def _render_table(result: Mapping[str, Any], *, color: bool, width: int | None) 
     return "\n".join(line.rstrip() for line in buffer.getvalue().splitlines()) + "\n"
 
 
+def _text_table(spec: _Table, width: int) -> list[str]:
+    """Helper: a table as aligned plain text under a rule, later groups after a label."""
+    rows = [spec.header, *(row for _, group in spec.groups for row in group)]
+    widths = [max(len(row[i]) for row in rows if i < len(row)) for i in range(len(spec.header))]
+
+    def line(row: Sequence[str]) -> str:
+        cells = [cell.ljust(w) if i == 0 else cell.rjust(w)
+                 for i, (cell, w) in enumerate(zip(row, widths, strict=False))]
+        return "  ".join(cells).rstrip()
+
+    lines = [] if spec.grid else [line(spec.header), "-" * width]
+    for label, group in spec.groups:
+        if label:
+            lines.append(label)
+        lines.extend(line(row) for row in group)
+    return lines
+
+
+def _render_summary(result: Mapping[str, Any], *, color: bool, width: int | None) -> str:
+    """Helper: a block in the style of statsmodels' `summary()`: key facts in two columns,
+    the parameters and levels under double rules, then numbered notes and warnings."""
+    import textwrap
+
+    width = width or 78
+    view = _view(result)
+    method, residuals = result["method"], result["residuals"]
+    refined = bool((method.get("refinement") or {}).get("applied"))
+    conditioning = result["conditioning"]
+    facts = [
+        ("Model:", result["model"]["name"]),
+        ("Samples:", _count(result["data"]["n_samples"])),
+        ("Method:", method["kind"] + (", refined" if refined else "")),
+        ("Trajectories:", _count(result["data"]["n_trajectories"])),
+        ("Covariance:", "Gauss-Newton" if refined else method["covariance"]),
+        ("Residual rms:", _num(residuals["rms"], ".4g")),
+        ("Level:", percent(method["level"])),
+        ("R²:", _num(residuals["r_squared"], ".6g")),
+        ("Condition:", f"{_num(conditioning['condition_number'], '.4g')} "
+                       f"({conditioning['status']})"),
+        ("Lag-1 autocorr.:", _num(residuals["lag1_autocorrelation"], ".3g")),
+    ]
+    half = (width - 2) // 2
+    cells = [printable(f"{key}{value.rjust(half - len(key))}") for key, value in facts]
+    title = printable(f"hamid fit — {result['model']['name']}")
+    lines = [title.center(width).rstrip(), "=" * width]
+    lines += ["  ".join(cells[i:i + 2]) for i in range(0, len(cells), 2)]
+    # statsmodels' short headers: the bounds as quantiles, [2.5% 97.5%]
+    level = Decimal(repr(float(method["level"])))
+    short = {"std. error": "std err", "rel. error": "rel err",
+             f"{percent(level)} CI low": f"[{percent((1 - level) / 2)}",
+             f"{percent(level)} CI high": f"{percent((1 + level) / 2)}]"}
+    shown = {"Parameters", "Energy levels", "Dissipation"}
+    for section in view.sections:
+        for table in section.tables if section.heading in shown else ():
+            table = replace(table, header=tuple(short.get(h, h) for h in table.header))
+            lines += ["=" * width, *_text_table(table, width)]
+    lines.append("=" * width)
+    notes = [f"method {method['kind']}: {method['kind_reason']}",
+             method.get("covariance_description") or "", *result["warnings"]]
+    notes = [printable(note) for note in notes if note]
+    lines += ["Notes:", *(textwrap.fill(f"[{i}] {note}", width, subsequent_indent="    ")
+                          for i, note in enumerate(notes, 1))]
+    return "\n".join(lines) + "\n"
+
+
+def _html_table(spec: _Table) -> str:
+    """Helper: a table as HTML; a later group's label spans a row of its own."""
+    from html import escape
+
+    head = "" if spec.grid else \
+        "<thead><tr>" + "".join(f"<th>{escape(h)}</th>" for h in spec.header) + "</tr></thead>"
+    body = []
+    for label, group in spec.groups:
+        if label:
+            body.append(f'<tr><td colspan="{len(spec.header)}"><i>{escape(label)}</i></td></tr>')
+        body += ["<tr>" + "".join(f"<td>{escape(cell)}</td>" for cell in row) + "</tr>"
+                 for row in group]
+    return f"<table>{head}<tbody>{''.join(body)}</tbody></table>"
+
+
+def _render_html(result: Mapping[str, Any], *, color: bool, width: int | None) -> str:
+    """Helper: the report as HTML tables, for a notebook's rich display."""
+    from html import escape
+
+    view = _view(result)
+    parts = [f"<p><b>{escape(view.title)}</b></p>", *(f"<p>{escape(line)}</p>"
+                                                     for line in view.intro)]
+    for section in view.sections:
+        if section.heading:
+            parts.append(f"<h4>{escape(section.heading)}</h4>")
+        if section.lines:
+            parts.append("<ul>" + "".join(f"<li>{escape(line)}</li>" for line in section.lines)
+                         + "</ul>")
+        parts += [_html_table(table) for table in section.tables]
+    return '<div class="hamid-fit">' + "\n".join(parts) + "</div>\n"
+
+
 _RENDERERS: dict[str, Callable[..., str]] = {
     "table": _render_table,
     "json": _render_json,
@@ -514,7 +613,10 @@ _RENDERERS: dict[str, Callable[..., str]] = {
     "csv": _render_csv,
 }
 
-FORMATS: tuple[str, ...] = tuple(_RENDERERS)
+FORMATS: tuple[str, ...] = tuple(_RENDERERS)   # those of `hamid fit` and `hamid report`
+# Python's own: `FitResult.summary()` and a notebook's display of a result
+_PYTHON_RENDERERS: dict[str, Callable[..., str]] = {"summary": _render_summary,
+                                                    "html": _render_html}
 
 
 def render(
@@ -531,13 +633,14 @@ def render(
     result : dict
         A fit result of schema "hamid.fit/1": `FitResult.to_dict()` (a loaded JSON report
         goes through `FitResult.from_dict` first, which checks it).
-    format : {"table", "json", "markdown", "csv"}
+    format : {"table", "json", "markdown", "csv", "summary", "html"}
         "table" is for a terminal; "json" is the result itself; "markdown" for notes and
-        issues; "csv" has one row per parameter.
+        issues; "csv" has one row per parameter; "summary" is plain text in the style of
+        statsmodels (`FitResult.summary()`); "html" is a notebook's display of the result.
     color : bool, optional
         Use terminal colors (table only).
     width : int, optional
-        Line width of the table; 100 when not given.
+        Line width of the table (100 when not given) or the summary (78).
 
     Returns
     -------
@@ -548,10 +651,8 @@ def render(
     --------
     >>> text = render(result, "markdown")  # doctest: +SKIP
     """
-    try:
-        renderer = _RENDERERS[format]
-    except KeyError:
-        raise UsageError(
-            f"unknown report format {format!r} (choose from {', '.join(FORMATS)})"
-        ) from None
+    renderer = _RENDERERS.get(format) or _PYTHON_RENDERERS.get(format)
+    if renderer is None:
+        raise UsageError(f"unknown report format {format!r} (choose from "
+                         f"{', '.join([*FORMATS, *_PYTHON_RENDERERS])})")
     return renderer(result, color=color, width=width)

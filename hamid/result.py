@@ -9,8 +9,19 @@ below are the dict parts of a result, as the fit builds them.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
-from typing import Any, Literal, NotRequired, TypedDict
+from typing import TYPE_CHECKING, Any, Literal, NotRequired, TypedDict
+
+from hamid.validation import SCHEMA
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
+    import pandas as pd
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+    from hamid.fitted import Recording
 
 __all__ = [
     "BlockResiduals",
@@ -30,11 +41,9 @@ __all__ = [
     "RefinementInfo",
     "ResidualSummary",
     "SCHEMA",
-    "percent",
     "plain_data",
 ]
 
-SCHEMA = "hamid.fit/1"
 
 
 class ModelInfo(TypedDict):
@@ -215,6 +224,127 @@ class FitResult:
     # Per-sample energy rows (trajectory, t, energy, residual, weight) for --residuals;
     # bulk data, so not part of the JSON nor of equality.
     samples: dict[str, Any] | None = field(default=None, compare=False, repr=False)
+    # The model and records the fit read, for the panels over the data (`plot`); None for a
+    # result read from a report or fitted in chunks. Not part of the JSON nor of equality.
+    recording: Recording | None = field(default=None, compare=False, repr=False)
+
+    def __repr__(self) -> str:
+        refined = (self.method.get("refinement") or {}).get("applied")
+        return (f"FitResult(model={self.model['name']!r}, method="
+                f"{self.method['kind'] + (' refined' if refined else '')!r}, "
+                f"estimates={self.estimates!r}, warnings={len(self.warnings)})")
+
+    def summary(self) -> str:
+        """The result as a text block in the style of statsmodels' ``summary()``: key facts,
+        the parameters and energy levels, then notes and warnings."""
+        from hamid import report
+
+        return report.render(self.to_dict(), "summary")
+
+    def _repr_html_(self) -> str:
+        """Parameters, levels, residuals, conditioning, method and warnings as HTML tables,
+        for a notebook."""
+        from hamid import report
+
+        return report.render(self.to_dict(), "html")
+
+    def to_frame(self) -> pd.DataFrame:
+        """The parameters as a DataFrame indexed by name (role, estimate, stderr, ci_low,
+        ci_high, truth, fixed); NaN where a value is unknown."""
+        import pandas as pd
+
+        frame = pd.DataFrame([asdict(p) for p in self.parameters]).set_index("name")
+        numbers = ["estimate", "stderr", "ci_low", "ci_high", "truth"]
+        frame[numbers] = frame[numbers].astype(float)
+        return frame
+
+    @property
+    def cov(self) -> pd.DataFrame | None:
+        """The covariance matrix of the free parameters' estimates (NaN where it could not
+        be computed); None for a report written without it."""
+        import pandas as pd
+
+        if self.covariance is None:
+            return None
+        names = self.covariance["names"]
+        return pd.DataFrame(self.covariance["matrix"], index=names, columns=names,
+                            dtype=float)
+
+    @property
+    def correlation(self) -> pd.DataFrame | None:
+        """The correlation matrix of the free parameters' estimates, from `cov`."""
+        import numpy as np
+
+        cov = self.cov
+        if cov is None:
+            return None
+        sd = np.sqrt(np.diag(cov.to_numpy()))
+        return cov / np.outer(sd, sd)
+
+    def plot(self, panels: str | int | Sequence[str | int] | None = None,
+             ax: Axes | None = None) -> Figure:
+        """The fit's pictures as one matplotlib figure (needs ``hamid[plot]``).
+
+        Parameters
+        ----------
+        panels : str, int or sequence, optional
+            Panels by number or name: 1 ``energy``, 2 ``residuals``, 3 ``phase``, 4
+            ``motion``, 5 ``parameters``, 6 ``correlation`` (`hamid.figures`); by default
+            all that apply (1-4 need the records, which a result read from a report does
+            not hold; 4 needs the trajectory refinement).
+        ax : matplotlib Axes, optional
+            A subplot to draw one panel in, in place of it.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+        """
+        from hamid import figures
+
+        return figures.figure(self.to_dict(), self.recording, panels, ax)
+
+    def simulate(self, initial: Mapping[str, float] | Sequence[Mapping[str, float]],
+                 t: npt.ArrayLike) -> pd.DataFrame:
+        """The fitted model's motion (damping included) from given initial states, by the
+        simulator of `hamid.simulate`.
+
+        Parameters
+        ----------
+        initial : dict or list of dicts
+            Each trajectory's initial state: model variable -> value.
+        t : array_like
+            Evenly spaced sample times from 0 (t = k dt), e.g. ``numpy.arange(0, 20, 0.01)``.
+
+        Returns
+        -------
+        pandas.DataFrame
+            Columns ``trajectory``, ``t``, the coordinates and the velocities, as from
+            `hamid.simulate`.
+        """
+        import numpy as np
+
+        from hamid import simulation
+        from hamid.errors import UsageError
+
+        times = np.asarray(t, dtype=float)
+        steps = np.diff(times)
+        if times.ndim != 1 or len(times) < 2 or times[0] != 0 or steps[0] <= 0 \
+                or not np.allclose(steps, steps[0], rtol=1e-9, atol=0):
+            raise UsageError("simulate: t must be evenly spaced times from 0, e.g. "
+                             "numpy.arange(0, 20, 0.01)")
+        estimates = self.estimates
+        system = {
+            "model": {key: self.model[key] for key in ("name", "energy", "coordinates",
+                                                         "velocities", "parameters")},
+            "parameters": {name: estimates[name] for name in self.model["parameters"]},
+            "damping": {**({"dissipation": own["function"], "parameters": own["parameters"]}
+                           if (own := self.model.get("dissipation")) else {}),
+                        **{p.name: p.estimate for p in self.parameters if p.role == "damping"}},
+            "initial": [dict(initial)] if isinstance(initial, Mapping)
+            else [dict(state) for state in initial],
+            "simulate": {"t_end": float(times[-1]), "dt": float(steps[0])},
+        }
+        return simulation.sampled(system, where="the fitted model")
 
     @property
     def estimates(self) -> dict[str, float]:
@@ -309,13 +439,3 @@ def plain_data(value: Any) -> Any:
         return value if math.isfinite(value) else None
     return value
 
-
-def percent(level: float) -> str:
-    """A confidence level as a percentage, e.g. 95%, never rounded to 100%.
-
-    Decimal arithmetic on the level's shortest repr: 100 * 0.9 is 90.00000000000001 in
-    binary, and 6 digits would turn 0.9999999999999999 into "100%".
-    """
-    from decimal import Decimal
-
-    return f"{(Decimal(repr(float(level))) * 100).normalize():f}%"

@@ -16,7 +16,7 @@ import math
 import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -27,7 +27,10 @@ from hamid.errors import ModelError
 from hamid.expr import Func
 from hamid.model import Model, damping_table, model_from_spec
 
-__all__ = ["INTEGRATORS", "System", "parse_system", "run"]
+if TYPE_CHECKING:
+    import pandas as pd
+
+__all__ = ["INTEGRATORS", "System", "parse_system", "run", "sampled"]
 
 INTEGRATORS = {"dop853": "DOP853", "rk45": "RK45", "rk23": "RK23", "radau": "Radau",
                "bdf": "BDF", "lsoda": "LSODA"}
@@ -128,6 +131,26 @@ def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:
 
     return System(model, theta, tuple(initial), t_end, dt, method.lower(), rtol, atol, seed,
                   noise, relative, damping, max_samples)
+
+
+def sampled(document: Mapping[str, Any], *, where: str = "system", seed: int | None = None,
+            max_samples: int | None = None,
+            progress: Callable[[float], None] | None = None) -> pd.DataFrame:
+    """The sampled record of a system dict (`hamid.simulate`): columns ``trajectory``,
+    ``t``, the coordinates and the velocities; ``attrs["hamid"]`` holds its provenance."""
+    import dataclasses
+
+    import pandas as pd
+
+    from hamid import __version__
+
+    system = parse_system(document, where=where)
+    if max_samples is not None:
+        system = dataclasses.replace(system, max_samples=max_samples)
+    columns, provenance = run(system, seed=seed, progress=progress)
+    frame = pd.DataFrame(columns)
+    frame.attrs["hamid"] = {**provenance, "hamid_version": __version__}
+    return frame
 
 
 def output_values(system: System) -> float:

@@ -11,13 +11,13 @@ from typing import Any
 
 import numpy as np
 
-from hamid import __version__, design, io, uncertainty
+from hamid import __version__, design, io, loading, uncertainty
 from hamid.design import Block
 from hamid.dissipation import Dissipation
 from hamid.errors import DataError
 from hamid.estimate import LinearFit, NoiseCheck, ResidualSums, Rows
 from hamid.model import Model
-from hamid.options import FitOptions
+from hamid.options import FitOptions, percent
 from hamid.plan import FitPlan
 from hamid.records import Records
 from hamid.result import (
@@ -26,7 +26,6 @@ from hamid.result import (
     InputFile,
     ParameterEstimate,
     ProvenanceInfo,
-    percent,
     plain_data,
 )
 from hamid.unknowns import Unknowns
@@ -137,7 +136,8 @@ def run_provenance(data: Any, options: FitOptions) -> ProvenanceInfo:
 def _input_file(item: Any) -> InputFile:
     """Helper: one input's name, size and digest (None for stdin, a DataFrame, an error)."""
     if not isinstance(item, str | os.PathLike):
-        return {"path": "<DataFrame>", "size": None, "sha256": None}
+        return {"path": loading.in_memory_name(item) or type(item).__name__, "size": None,
+                "sha256": None}
     if io.is_stdio(item):
         return {"path": io.STDIN, "size": None, "sha256": None}
     if not os.path.isfile(item):   # a FIFO or device: hashing would use up or never end

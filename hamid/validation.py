@@ -15,8 +15,9 @@ from typing import Any
 
 from hamid.errors import DataError
 
-__all__ = ["MAX_DEPTH", "SCHEMA_FILE", "check_result", "load_schema"]
+__all__ = ["MAX_DEPTH", "SCHEMA", "SCHEMA_FILE", "check_result", "load_schema"]
 
+SCHEMA = "hamid.fit/1"                # the format a report names in its key "schema"
 SCHEMA_FILE = "schema/fit-1.json"   # inside the package
 # A report is about five levels deep; a value nested far deeper (in a key this version does
 # not know) would make the code that copies and renders it recurse past Python's limit.

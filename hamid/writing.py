@@ -43,7 +43,7 @@ if TYPE_CHECKING:
     import pyarrow as pa
 
 __all__ = ["all_or_nothing", "check_destination", "is_terminal", "overwrites",
-           "remove_temporaries", "table_format", "write_table", "write_text"]
+           "remove_temporaries", "table_format", "write_bytes", "write_table", "write_text"]
 
 Write = Callable[[IO[bytes]], object]
 
@@ -220,6 +220,11 @@ def write_text(text: str, dest: str | os.PathLike[str]) -> None:
     """
     data = text.encode("utf-8")
     _write_output(dest, lambda stream: stream.write(data), binary=False)
+
+
+def write_bytes(data: bytes, dest: str | os.PathLike[str]) -> None:
+    """Write bytes (a rendered figure) atomically; never to a terminal."""
+    _write_output(dest, lambda stream: stream.write(data), binary=True)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -249,3 +249,15 @@ def test_noise_alone_is_not_a_lag():
 
 def test_errors_are_hamid_errors():
     assert issubclass(ModelError, HamidError)
+
+
+def test_the_fitted_result_simulates_and_draws_its_dissipation(chain):
+    pytest.importorskip("matplotlib")
+    result = hamid.fit(chain / "chain.csv", chain / "chain.toml", method="joint")
+    t = np.arange(0.0, 30.0 + 0.005, 0.01)
+    motion = result.simulate([{"x1": 1.0, "x2": -0.5, "v1": 0.0, "v2": 0.0}], t)
+    truth = chain_motion().query("trajectory == 1")
+    np.testing.assert_allclose(motion["x2"], truth["x2"], rtol=0, atol=1e-5)
+    figure = result.plot(panels=[1])
+    (axes, *_) = figure.axes
+    assert axes.get_ylabel()

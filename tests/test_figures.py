@@ -1,0 +1,375 @@
+"""The fit's pictures (hamid.figures, `hamid plot`, `fit --plot`): each panel is rendered to
+PNG from the bundled Henon-Heiles sample and checked: not blank, as many lines, points
+and bars as the data have, the values drawn equal to ones computed here from the file,
+axis labels set, a title that names the file and the method."""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from click.testing import CliRunner
+from conftest import DUFFING
+from helpers import hamid_command
+from scipy.integrate import cumulative_trapezoid
+
+import hamid
+from hamid import figures, fitted
+from hamid.cli import cli
+from hamid.errors import UsageError
+from hamid.result import FitResult
+
+pytest.importorskip("matplotlib")
+
+from matplotlib.collections import PathCollection, PolyCollection  # noqa: E402
+from matplotlib.contour import ContourSet  # noqa: E402
+from matplotlib.image import imread  # noqa: E402
+
+SAMPLE = Path(__file__).resolve().parent.parent / "sample_data" / "henon_heiles.csv"
+
+
+@pytest.fixture(scope="module")
+def fit() -> FitResult:
+    return hamid.fit(str(SAMPLE))
+
+
+@pytest.fixture(scope="module")
+def table() -> pd.DataFrame:
+    return pd.read_csv(SAMPLE, comment="#")
+
+
+@pytest.fixture(scope="module")
+def noise() -> dict[str, float]:
+    """The noise the simulator put into the sample (its metadata line)."""
+    first = SAMPLE.read_text().splitlines()[0]
+    return json.loads(first.removeprefix("# hamid: "))["noise"]
+
+
+def _page(fit, panel: str):
+    (name, figure), = figures.pages(fit.to_dict(), fit.recording, panel)[0]
+    assert name == panel
+    return figure
+
+
+def _png(figure) -> np.ndarray:
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png")
+    return imread(io.BytesIO(buffer.getvalue()))
+
+
+def _data_axes(figure) -> list:
+    """The axes of a panel, colour bars left out."""
+    return [ax for ax in figure.axes if ax.get_label() != "<colorbar>"]
+
+
+def _check_picture(figure) -> None:
+    """Not blank, titled with the file and the method, every axis labelled."""
+    pixels = _png(figure)[..., :3]
+    assert pixels.std() > 0.1 and (pixels.mean(axis=2) < 0.9).mean() > 0.02
+    title = figure.get_suptitle()
+    assert "henon_heiles.csv" in title and "method joint" in title
+    assert any(ax.get_xlabel() for ax in _data_axes(figure))
+    assert all(ax.get_ylabel() or ax.get_title() or ax.get_title(loc="left")
+               for ax in _data_axes(figure))
+
+
+def _energy(table: pd.DataFrame, estimates: dict[str, float]) -> np.ndarray:
+    """The Henon-Heiles energy, written out here."""
+    x, y, vx, vy = (table[c].to_numpy() for c in ("x", "y", "vx", "vy"))
+    a, b, c, d = (estimates[k] for k in "abcd")
+    return (vx**2 + vy**2) / 2 + a * x**2 / 2 + b * y**2 / 2 + c * x**2 * y + d * y**3
+
+
+def test_energy_panel_draws_each_trajectorys_energy_and_level(fit, table):
+    figure = _page(fit, "energy")
+    _check_picture(figure)
+    axes = _data_axes(figure)
+    assert len(axes) == 2
+    energy = _energy(table, fit.estimates)
+    for ax, (label, rows) in zip(axes, table.groupby("trajectory"), strict=True):
+        drawn, level = ax.get_lines()
+        np.testing.assert_allclose(drawn.get_ydata(), energy[rows.index], rtol=1e-12)
+        np.testing.assert_allclose(drawn.get_xdata(), rows["t"])
+        h = next(lv.h for lv in fit.energy_levels if lv.trajectory == label)
+        np.testing.assert_allclose(level.get_ydata(), h)
+        assert sum(isinstance(c, PolyCollection) for c in ax.collections) == 1  # the band
+
+
+def test_energy_panel_of_a_damped_fit_draws_h_minus_the_dissipated_work():
+    """Viscous damping c v: the level line is h - c * integral of v² dt (trapezoid rule
+    here), and the fitted energy follows it."""
+    frame = hamid.simulate({**DUFFING, "damping": {"c_x": 0.05}})
+    result = hamid.fit(frame, damping="viscous")
+    figure = figures.figure(result.to_dict(), result.recording, "energy")
+    first = frame[frame.trajectory == 1]
+    drawn, level = _data_axes(figure)[0].get_lines()
+    c, h = result.estimates["c_x"], result.energy_levels[0].h
+    work = c * cumulative_trapezoid(first["v"] ** 2, first["t"], initial=0)
+    np.testing.assert_allclose(level.get_ydata(), h - work, atol=2e-4 * h)
+    assert level.get_label() == "h − dissipated work"
+    energy = first["v"] ** 2 / 2 + first["x"] ** 2 / 2 + first["x"] ** 4 / 8
+    np.testing.assert_allclose(drawn.get_ydata(), energy, rtol=1e-6)
+    assert np.ptp(drawn.get_ydata()) > 0.1 * h      # it loses energy: the test sees it
+
+
+def test_noise_band_holds_the_energys_scatter(fit):
+    """The band is twice the noise the measurement puts into E: about 95% of the samples'
+    energies lie within it (the noise is known here: the simulator added it)."""
+    e = fitted.energies(fit.to_dict(), fit.recording)
+    inside = np.abs(e.energy - e.level) <= 2 * e.noise
+    assert 0.9 < inside.mean() < 0.99
+
+
+def test_residuals_panel(fit, table):
+    figure = _page(fit, "residuals")
+    _check_picture(figure)
+    series, histogram, correlation = _data_axes(figure)
+    energy = _energy(table, fit.estimates)
+    h = table["trajectory"].map({lv.trajectory: lv.h for lv in fit.energy_levels})
+    traces = [line for line in series.get_lines() if line.get_label().startswith("trajectory")]
+    assert len(traces) == 2
+    np.testing.assert_allclose(np.concatenate([t.get_ydata() for t in traces]),
+                               energy - h.to_numpy(), atol=1e-12)
+    (bars,) = histogram.containers
+    assert len(bars) == int(np.sqrt(len(table)))        # 40 bins for 1602 samples
+    assert sum(b.get_height() * b.get_width() for b in bars) == pytest.approx(1.0)
+    (normal,) = histogram.get_lines()
+    x, density = normal.get_xydata().T
+    np.testing.assert_allclose(density, np.exp(-x**2 / 2) / np.sqrt(2 * np.pi))
+    (lags,) = correlation.containers
+    assert len(lags) == 40 and lags[0].get_x() + lags[0].get_width() / 2 == pytest.approx(1)
+    assert lags[0].get_height() == pytest.approx(fit.residuals["lag1_autocorrelation"],
+                                                 rel=1e-9)
+
+
+def test_phase_panel_draws_every_sample_and_a_contour_per_trajectory(fit, table):
+    figure = _page(fit, "phase")
+    _check_picture(figure)
+    axes = _data_axes(figure)
+    assert [(ax.get_xlabel(), ax.get_ylabel()) for ax in axes] == [("x", "vx"), ("y", "vy")]
+    for ax, (q, v) in zip(axes, [("x", "vx"), ("y", "vy")], strict=True):
+        points = [c for c in ax.collections if isinstance(c, PathCollection)]
+        assert [len(p.get_offsets()) for p in points] == [801, 801]
+        np.testing.assert_array_equal(np.vstack([p.get_offsets() for p in points]),
+                                      table[[q, v]].to_numpy())
+        assert sum(isinstance(c, ContourSet) for c in ax.collections) == 2
+
+
+def test_phase_contour_of_one_degree_of_freedom_is_the_orbit(clean_records):
+    """Duffing without noise: the contour of trajectory 1 is its orbit, the curve of the
+    energy it started with, v²/2 + x²/2 + x⁴/8 = 5/8 (at rest at x = 1)."""
+    result = hamid.fit(clean_records["duffing"])
+    figure = figures.figure(result.to_dict(), result.recording, "phase")
+    ax = _data_axes(figure)[0]
+    contour = next(c for c in ax.collections if isinstance(c, ContourSet))
+    x, v = contour.get_paths()[0].vertices.T
+    np.testing.assert_allclose(v**2 / 2 + x**2 / 2 + x**4 / 8, 5 / 8, rtol=2e-3)
+    assert x.max() == pytest.approx(1.0, abs=2e-3) and x.min() == pytest.approx(-1.0, abs=2e-3)
+
+
+def test_contours_are_solid_at_negative_levels(clean_records):
+    """A pendulum's levels are negative (E = ω²/2 − K cos θ), which matplotlib would dash;
+    its contour is still the orbit: at rest at θ = 1.2, E = −9 cos 1.2."""
+    result = hamid.fit(clean_records["pendulum"])
+    figure = figures.figure(result.to_dict(), result.recording, "phase")
+    contour = next(c for c in _data_axes(figure)[0].collections if isinstance(c, ContourSet))
+    assert contour.get_linestyle() == [(0, None)]     # solid
+    theta, omega = contour.get_paths()[0].vertices.T
+    np.testing.assert_allclose(omega**2 / 2 - 9 * np.cos(theta), -9 * np.cos(1.2), rtol=2e-3)
+
+
+def test_motion_panel_fits_the_recording_to_its_noise(fit, table, noise):
+    figure = _page(fit, "motion")
+    _check_picture(figure)
+    axes = _data_axes(figure)
+    assert len(axes) == 4        # motion and misfit, per trajectory
+    length = fit.method["refinement"]["segment_seconds"]
+    first = table[(table.trajectory == 1) & (table.t <= length + 1e-9)]
+    lines = axes[0].get_lines()
+    assert len(lines) == 4       # recorded and fitted, per coordinate
+    np.testing.assert_array_equal(lines[0].get_ydata(), first["x"])
+    np.testing.assert_array_equal(lines[2].get_ydata(), first["y"])
+    misfit = [line.get_ydata() for line in axes[1].get_lines()[:2]]
+    assert np.std(misfit[0]) == pytest.approx(noise["x"], rel=0.15)
+    assert np.std(misfit[1]) == pytest.approx(noise["y"], rel=0.15)
+
+
+def test_parameters_panel_draws_each_interval_and_the_truth(fit):
+    figure = _page(fit, "parameters")
+    _check_picture(figure)
+    axes = _data_axes(figure)
+    assert len(axes) == len(fit.parameters)
+    for ax, p in zip(axes, fit.parameters, strict=True):
+        (bars,) = ax.containers
+        point, _, (segments,) = bars
+        assert point.get_xdata()[0] == p.estimate
+        np.testing.assert_allclose(segments.get_segments()[0][:, 0], [p.ci_low, p.ci_high])
+        truth = [line.get_xdata()[0] for line in ax.get_lines() if line.get_linestyle() == "--"]
+        assert truth == [p.truth]
+        assert ax.get_title(loc="left").startswith(f"{p.name} = ")
+
+
+def test_correlation_panel_is_the_reports_correlation(fit):
+    figure = _page(fit, "correlation")
+    _check_picture(figure)
+    (ax,) = _data_axes(figure)
+    (image,) = ax.get_images()
+    matrix = np.array(fit.covariance["matrix"])
+    sd = np.sqrt(np.diag(matrix))
+    np.testing.assert_allclose(image.get_array(), matrix / np.outer(sd, sd), rtol=1e-12)
+    assert len(ax.texts) == 16
+    assert [t.get_text() for t in ax.get_xticklabels()] == fit.covariance["names"]
+
+
+def test_one_figure_of_all_panels(fit):
+    figure = fit.plot()
+    assert len(figure.subfigs) == 6
+    assert [s.get_suptitle().split(".")[0] for s in figure.subfigs] == \
+        ["1", "2", "3", "4", "5", "6"]
+
+
+def test_a_panel_in_a_given_subplot(fit):
+    from matplotlib.figure import Figure
+
+    figure = Figure()
+    left, right = figure.subplots(1, 2)
+    assert fit.plot("parameters", ax=right) is figure
+    assert left in figure.axes and right not in figure.axes
+    assert len(figure.subfigs) == 1 and len(figure.subfigs[0].axes) == len(fit.parameters)
+    with pytest.raises(UsageError, match="ax: give one panel"):
+        fit.plot(["parameters", "correlation"], ax=left)
+
+
+def test_a_result_read_back_draws_only_what_needs_no_data(fit):
+    loaded = FitResult.from_dict(fit.to_dict())
+    figure = loaded.plot()
+    assert [s.get_suptitle()[:2] for s in figure.subfigs] == ["5.", "6."]
+    with pytest.raises(UsageError, match=r"^panel 1 \(energy\) needs the data the fit read"):
+        loaded.plot(1)
+
+
+@pytest.mark.parametrize(("panels", "names"), [
+    ("1,phase", ("energy", "phase")), (5, ("parameters",)),
+    (["6", "energy"], ("energy", "correlation")),
+])
+def test_panels_by_number_or_name(fit, panels, names):
+    assert figures.choose(fit.to_dict(), fit.recording, panels)[0] == names
+
+
+def test_unknown_panel():
+    with pytest.raises(UsageError, match=r"unknown panel 'speed' \(choose from 1 energy, "):
+        figures.parse_panels("speed")
+
+
+def test_drawing_opens_no_window_and_imports_no_pyplot(tmp_path):
+    code = (f"import sys, hamid\nr = hamid.fit({str(SAMPLE)!r}, method='joint')\n"
+            f"r.plot().savefig({str(tmp_path / 'f.png')!r})\n"
+            "print('matplotlib.pyplot' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, env={"PATH": "/usr/bin:/bin", "DISPLAY": ""})
+    assert out.stdout.strip() == "False" and (tmp_path / "f.png").stat().st_size > 10_000
+
+
+# --- the command line ---------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def report_file(tmp_path_factory, fit) -> Path:
+    path = tmp_path_factory.mktemp("report") / "r.json"
+    path.write_text(json.dumps(fit.to_dict()))
+    return path
+
+
+def _run(*args: str):
+    return CliRunner().invoke(cli, list(args))
+
+
+def test_plot_without_data_draws_panels_5_and_6_and_says_which_it_left_out(report_file,
+                                                                            tmp_path):
+    result = _run("plot", str(report_file), "-o", str(tmp_path / "fig.png"))
+    assert result.exit_code == 0 and result.stdout == ""
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fig-5-parameters.png",
+                                                           "fig-6-correlation.png"]
+    assert result.stderr == ("left out panels 1 energy, 2 residuals, 3 phase, 4 motion: "
+                             "they need the data the fit read (hamid plot RESULT.json "
+                             "DATA..., or a fit in memory)\n")
+
+
+def test_plot_with_data_writes_a_pdf_page_per_panel(report_file, tmp_path):
+    result = _run("plot", str(report_file), str(SAMPLE), "-o", str(tmp_path / "fig.pdf"))
+    assert result.exit_code == 0 and result.output == ""
+    pdf = (tmp_path / "fig.pdf").read_bytes()
+    assert len(re.findall(rb"/Type /Page\b", pdf)) == 6
+    assert [p.name for p in tmp_path.iterdir()] == ["fig.pdf"]
+
+
+def test_plot_of_one_panel_is_the_file_named(report_file, tmp_path):
+    result = _run("plot", str(report_file), "-o", str(tmp_path / "p.svg"), "--panels", "5")
+    assert result.exit_code == 0
+    assert (tmp_path / "p.svg").read_text().startswith("<?xml")
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["-o", "fig.jpg"], "Error: -o 'fig.jpg': a figure is written as .png, .svg, .pdf"),
+    (["-o", "fig.png", "--panels", "1"], "Error: panel 1 (energy) needs the data the fit read"),
+    (["-o", "fig.png", "--panels", "0"], "Error: --panels: unknown panel '0'"),
+])
+def test_plot_usage_errors(report_file, tmp_path, monkeypatch, args, message):
+    monkeypatch.chdir(tmp_path)
+    result = _run("plot", str(report_file), *args)
+    assert result.exit_code == 2 and result.stdout == ""
+    assert message in result.stderr and "Traceback" not in result.output
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_plot_refuses_other_data_than_the_fit_read(report_file, tmp_path, table):
+    part = tmp_path / "part.csv"
+    table[table.trajectory == 1].to_csv(part, index=False)
+    result = _run("plot", str(report_file), str(part), "-o", str(tmp_path / "fig.png"))
+    assert result.exit_code == 1 and result.stdout == ""
+    assert result.stderr.startswith(f"Error: {part}: 801 samples in 1 trajectories, but the fit "
+                                    "had 1602 in 2")
+    assert [p.name for p in tmp_path.iterdir()] == ["part.csv"]
+
+
+def test_fit_with_plot_writes_the_report_and_the_figures(tmp_path):
+    result = _run("fit", str(SAMPLE), "--method", "joint", "-o", str(tmp_path / "r.json"),
+                  "--plot", str(tmp_path / "f.png"))
+    assert result.exit_code == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "f-1-energy.png", "f-2-residuals.png", "f-3-phase.png", "f-5-parameters.png",
+        "f-6-correlation.png", "r.json"]
+    assert "left out panel 4 motion: it needs the trajectory refinement, which method joint " \
+           "does not make" in result.stderr
+
+
+def test_fit_with_a_bad_plot_name_fails_before_the_fit(tmp_path):
+    result = _run("fit", str(SAMPLE), "-o", str(tmp_path / "r.json"), "--plot",
+                  str(tmp_path / "f.gif"))
+    assert result.exit_code == 2 and "--plot" in result.stderr and ".png" in result.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_without_matplotlib_one_line_names_the_extra(tmp_path, report_file):
+    code = ("import sys\nsys.modules['matplotlib'] = None\n"
+            "from hamid.cli import main\nmain()")
+    for args in (["plot", str(report_file), "-o", str(tmp_path / "f.png")],
+                 ["fit", str(SAMPLE), "--plot", str(tmp_path / "f.png")]):
+        out = subprocess.run([sys.executable, "-c", code, *args], capture_output=True,
+                             text=True)
+        assert out.returncode == 1 and out.stdout == ""
+        assert out.stderr == ("Error: drawing figures needs matplotlib: "
+                              "pip install 'hamid[plot]'\n")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_plot_help_through_the_installed_command():
+    out = subprocess.run([*hamid_command(), "plot", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0 and "--panels" in out.stdout
