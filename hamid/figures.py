@@ -149,7 +149,8 @@ class _Context:
 
     @property
     def damped(self) -> bool:
-        return bool(self.report["method"]["damping"])
+        """Whether the fit had dissipation: --damping, or the model's own function."""
+        return bool(self.report["method"]["damping"] or self.report["model"].get("dissipation"))
 
     @property
     def time_label(self) -> str:
@@ -257,11 +258,23 @@ def _draw_residuals(fig: Figure | SubFigure, ctx: _Context) -> str:
     r = e.residual
     # in units of the noise band: N(0, 1) when the model is right and the noise is white
     z = r[e.noise > 0] / e.noise[e.noise > 0]
-    histogram.hist(z, bins=min(60, max(10, int(np.sqrt(len(z))))), density=True,
-                   color=OKABE_ITO[0], alpha=0.6, label="r / σ")
-    x = np.linspace(min(z.min(initial=0.0), -4), max(z.max(initial=0.0), 4), 200)
+    # the bulk of the residuals, however far a few outliers reach
+    low, high = np.percentile(z, [0.5, 99.5]) if z.size else (0.0, 0.0)
+    span = (min(low, -4.0), max(high, 4.0))
+    heights, _, _ = histogram.hist(z, bins=min(60, max(10, int(np.sqrt(len(z))))),
+                                   range=span, density=True, color=OKABE_ITO[0], alpha=0.6,
+                                   label="r / σ")
+    x = np.linspace(*span, 200)
     histogram.plot(x, np.exp(-x**2 / 2) / np.sqrt(2 * np.pi), color=OKABE_ITO[3],
                    linewidth=1.5, label="standard normal")
+    spread = float(np.std(z)) if z.size else 1.0
+    if not 0.5 < spread < 2.0:   # misfit beyond the noise: the residuals' own scale too
+        histogram.plot(x, np.exp(-(x / spread)**2 / 2) / (spread * np.sqrt(2 * np.pi)),
+                       color=OKABE_ITO[5], linewidth=1.2, linestyle="--",
+                       label=f"normal, sd {spread:.3g}")
+        # scaled to the residuals: the standard normal's peak runs off the top
+        histogram.set_ylim(0.0, max(heights.max(initial=0.0),
+                                    1 / (spread * np.sqrt(2 * np.pi))))
     histogram.set(xlabel="r / σ", ylabel="density", title="histogram")
     histogram.legend(fontsize="small", loc="upper left")
     histogram.set_ylim(top=1.35 * histogram.get_ylim()[1])   # room for the legend

@@ -373,3 +373,20 @@ def test_without_matplotlib_one_line_names_the_extra(tmp_path, report_file):
 def test_plot_help_through_the_installed_command():
     out = subprocess.run([*hamid_command(), "plot", "--help"], capture_output=True, text=True)
     assert out.returncode == 0 and "--panels" in out.stdout
+
+
+def test_residuals_far_beyond_the_noise_are_drawn_on_their_own_scale():
+    """The real double pendulum misses part of its friction: its residuals spread about 50
+    times the noise band, shown against a normal of their own spread."""
+    root = SAMPLE.parent
+    result = hamid.fit(str(root / "double_pendulum.csv"), str(root / "double_pendulum.toml"),
+                       method="joint", velocity="savgol")
+    figure = figures.pages(result.to_dict(), result.recording, "residuals")[0][0][1]
+    _, histogram, _ = _data_axes(figure)
+    standard, own = histogram.get_lines()
+    energies = fitted.energies(result.to_dict(), result.recording)
+    z = energies.residual / energies.noise
+    assert own.get_label() == f"normal, sd {np.std(z):.3g}" and np.std(z) > 10
+    assert histogram.get_ylim()[1] < 0.1 < standard.get_ydata().max()
+    low, high = histogram.get_xlim()
+    assert low <= np.percentile(z, 0.5) and high >= np.percentile(z, 99.5)
