@@ -99,7 +99,8 @@ def parse(text: str, names: Sequence[str] | None, *, where: str = "energy") -> a
             # such text is refused instead.
             warnings.simplefilter("error", SyntaxWarning)
             warnings.simplefilter("error", DeprecationWarning)
-            tree = ast.parse(text.strip(), mode="eval").body
+            # line breaks are spaces (a long energy over several lines of a TOML string)
+            tree = ast.parse(" ".join(text.split()), mode="eval").body
     except (SyntaxError, ValueError, MemoryError, RecursionError) as exc:
         detail = getattr(exc, "msg", None) or str(exc) or type(exc).__name__
         raise ModelError(f"{where}: cannot parse {text.strip()!r}: {detail}") from exc

@@ -261,3 +261,75 @@ def test_the_fitted_result_simulates_and_draws_its_dissipation(chain):
     figure = result.plot(panels=[1])
     (axes, *_) = figure.axes
     assert axes.get_ylabel()
+
+
+# --- coverage of a simulated double pendulum with joint friction ------------------------
+
+DOUBLE_PENDULUM = """
+[model]
+name = "double-pendulum"
+coordinates = ["theta1", "theta2"]
+velocities = ["omega1", "omega2"]
+energy = '''omega1**2/2 + J2*omega2**2/2 + B*cos(theta1 - theta2)*omega1*omega2
+  + C1*cos(theta1) + C2*cos(theta2)'''
+parameters = ["J2", "B", "C1", "C2"]
+
+[damping]
+dissipation = "k1*omega1**2/2 + k2*(omega2 - omega1)**2/2"
+parameters = ["k1", "k2"]
+k1 = 0.042
+k2 = 0.0018
+
+[parameters]
+J2 = 0.5568
+B = 0.4913
+C1 = 58.96
+C2 = 27.90
+
+[[initial]]
+theta1 = 3.6
+theta2 = 3.0
+omega1 = 0.0
+omega2 = 1.0
+
+[[initial]]
+theta1 = 2.3
+theta2 = 2.0
+omega1 = 0.0
+omega2 = 0.0
+
+[simulate]
+t_end = 8.0
+dt = 0.01
+
+[noise]
+relative = 0.01
+"""
+DP_TRUTH = {"J2": 0.5568, "B": 0.4913, "C1": 58.96, "C2": 27.90, "k1": 0.042, "k2": 0.0018}
+
+
+def _covered(seed: int) -> dict[str, bool]:
+    """Whether each 95% interval of the default fit of one noisy realization holds the truth."""
+    import tomllib
+
+    system = tomllib.loads(DOUBLE_PENDULUM)
+    from hamid.model import damping_table, model_from_spec
+
+    frame = hamid.simulate(system, seed=seed)
+    model, _ = damping_table(model_from_spec(system["model"]), system["damping"])
+    result = hamid.fit(frame, model)
+    assert result.method["refinement"]["applied"] or result.method["refinement"]["reason"]
+    return {p.name: p.ci_low <= DP_TRUTH[p.name] <= p.ci_high for p in result.parameters}
+
+
+@pytest.mark.slow
+def test_joint_friction_intervals_cover_the_truth():
+    """Every parameter of the default fit, friction included: 90-98% coverage of the 95%
+    intervals over 100 realizations at 1% noise (measured 95-97%)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(2) as pool:
+        runs = list(pool.map(_covered, range(100)))
+    for name in DP_TRUTH:
+        coverage = np.mean([run[name] for run in runs])
+        assert 0.90 <= coverage <= 0.98, (name, coverage)

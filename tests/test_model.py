@@ -404,3 +404,11 @@ def test_spec_wrong_types_are_rejected(change, message):
 def test_spec_bad_builtin_or_missing_keys(spec, message):
     with pytest.raises(ModelError, match=re.escape(message)):
         model_from_spec(spec)
+
+
+def test_an_energy_over_several_lines_is_one_expression():
+    """A long energy in a TOML multi-line string: its line breaks and indents are spaces."""
+    model = model_from_expression("m", "v**2/2\n    + k*x**2/2\n\t+ k3*x**4/4", ["x"], ["v"],
+                                  ["k", "k3"])
+    assert model.total_energy(np.array([[2.0, 1.0]]), [1.0, 1.0])[0] == pytest.approx(
+        0.5 + 2.0 + 4.0)
