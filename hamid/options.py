@@ -106,6 +106,7 @@ COVARIANCE_KINDS = ("hac", "classical", "hc", "bootstrap")
 VELOCITY_SOURCES = ("measured", "savgol")
 TIME_UNITS = ("s", "ms", "us", "ns")   # naming.TIME_UNITS, without importing it
 GAP_POLICIES = ("split", "error")
+SELECTION_CRITERIA = ("bic", "aic", "cv")   # of `hamid select` (hamid.selection)
 SAVGOL_ORDER = 5
 
 # Files larger than this are read in chunks when the options allow it: the chunked fit is
