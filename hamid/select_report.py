@@ -80,8 +80,10 @@ def _table(doc: Mapping[str, Any], color: bool, width: int) -> str:
     console.print()
     line("Candidate models", "bold underline")
     table(("rank", "terms", doc["criterion"], "Δ", "residual variance"),
-          [(str(i + 1), ", ".join(c["terms"]), _number(c["criterion"]), _number(c["delta"]),
-            _number(c["residual_variance"])) for i, c in enumerate(doc["candidates"])], 2)
+          [(f"{i + 1}{' *' if c['chosen'] else ''}", ", ".join(c["terms"]),
+            _number(c["criterion"]), _number(c["delta"]), _number(c["residual_variance"]))
+           for i, c in enumerate(doc["candidates"])], 2)
+    line(f"* chosen: {doc['rule']}; residual variance relative to the whole library's")
     if doc["inclusion"] is not None:
         console.print()
         stability = doc["stability"]

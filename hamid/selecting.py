@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from hamid import __version__, design, estimate, loading, plan, selection
+from hamid import __version__, design, estimate, loading, plan, selection, solve
 from hamid.errors import FitError, UsageError
 from hamid.library import Library
 from hamid.model import Model, parse_poly_name, poly_model_over
@@ -30,6 +30,12 @@ __all__ = ["SCHEMA", "Choice", "SelectOptions", "Selection", "choose", "select"]
 SCHEMA = "hamid.select/1"
 DEFAULT_DEGREE = 4
 MIN_REPLICATES = 10
+RULES = {
+    "bic": "the fewest terms within 2 of the lowest BIC, the lowest of them",
+    "aic": "the fewest terms within 2 of the lowest AIC, the lowest of them",
+    "cv": "the fewest terms within one standard error of the lowest cross-validated error "
+          "(the one-standard-error rule), the lowest of them",
+}
 CONDITIONAL = ("conditional on the chosen terms: they leave out the uncertainty of the "
                "choice itself")
 
@@ -131,7 +137,7 @@ class Selection:
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready data (docs/output.md, "hamid select")."""
         c = self.choice
-        best = c.ranking.best.score
+        best = c.ranking.candidates[0].score
         return plain_data({
             "schema": SCHEMA,
             "hamid_version": __version__,
@@ -140,6 +146,7 @@ class Selection:
                         "parameters": [t.parameter for t in c.library.terms]},
             "criterion": c.options.criterion,
             "search": "exhaustive" if c.ranking.exhaustive else "stepwise",
+            "rule": RULES[c.options.criterion],
             "rows": {"kind": c.kind, "n_rows": c.n_rows, "effective_rows": c.n_effective,
                      "subsets_scored": c.ranking.evaluated},
             "kept": c.library.texts(c.kept),
@@ -151,7 +158,8 @@ class Selection:
             "stability": None if c.inclusion is None else {
                 "replicates": c.options.stability, "seed": c.options.seed},
             "candidates": [{"terms": c.terms(m.columns), "criterion": m.score,
-                            "delta": m.score - best, "residual_variance": m.variance}
+                            "delta": m.score - best, "residual_variance": m.variance,
+                            "chosen": m == c.ranking.chosen}
                            for m in c.ranking.candidates],
             "intervals": CONDITIONAL,
             "warnings": c.warnings,
@@ -199,17 +207,18 @@ def choose(data: Any, options: SelectOptions, *, columns: Mapping[str, str] | No
     library = Library.of(m)
     kept = library.find(options.keep)
     forces = design.Damping(fit_options.damping, m.coordinates)
-    # Collinear terms are found on the energy rows (the terms themselves on the data),
+    # Collinear terms are found on the rows themselves, each block scaled to unit size,
     # before any fit: the rows of the whole library could not be solved with them in.
     n_terms = len(library.terms)
-    energy = design.energy_block(m, records, forces)
-    centred = energy.A - np.stack([np.bincount(energy.group, energy.A[:, k])
-                                   / np.bincount(energy.group)
-                                   for k in range(energy.A.shape[1])], axis=1)[energy.group]
+    fit_plan = plan.decide(fit_options, m, source.scales())
+    raw, fit_plan = estimate.rows_of(source, Unknowns.of(m.parameters, forces.names, {}),
+                                     forces, fit_plan, fit_options)
+    stacked = solve.centre([dataclasses.replace(b, weight=b.weight / max(
+        float(np.mean(b.b**2)), estimate.TINY)) for b in raw.blocks], records.n_trajectories)
     simple = sorted(range(n_terms), key=lambda k: library.terms[k].complexity)
-    order = [*range(n_terms, energy.A.shape[1]), *kept,
+    order = [*range(n_terms, stacked.A.shape[1]), *kept,
              *(k for k in simple if k not in kept)]
-    collinear = [(j, tuple(sorted(p))) for j, p in selection.collinear(centred, order)]
+    collinear = [(j, tuple(sorted(p))) for j, p in selection.collinear(stacked.A, order)]
     blocked = [j for j, _ in collinear if j in kept or j >= n_terms]
     if blocked:
         raise FitError("cannot tell apart the terms kept (--keep, --damping) on these data: "
@@ -219,7 +228,6 @@ def choose(data: Any, options: SelectOptions, *, columns: Mapping[str, str] | No
     dropped = {j for j, _ in collinear}
     unknowns = Unknowns.of(m.parameters, forces.names,
                            {library.terms[j].parameter: 0.0 for j in dropped})
-    fit_plan = plan.decide(fit_options, m, source.scales())
     _, fit_plan, rows = estimate.fit_rows(source, unknowns, forces, fit_plan, fit_options, None)
     solved = estimate.least_squares(rows.blocks, unknowns.free_names, records.n_trajectories)
     window_group = None if rows.windows is None else rows.windows.group
@@ -236,7 +244,7 @@ def choose(data: Any, options: SelectOptions, *, columns: Mapping[str, str] | No
         shares = {columns_of[c]: float(p) for c, p in zip(free, probability, strict=True)}
         shares.update({k: 1.0 for k in kept})
         shares = dict(sorted(shares.items()))
-    chosen = tuple(sorted(columns_of[c] for c in ranking.best.columns
+    chosen = tuple(sorted(columns_of[c] for c in ranking.chosen.columns
                           if columns_of[c] is not None))
     return Choice(library, options, chosen, tuple(kept), tuple(collinear), ranking,
                   tuple(columns_of), shares, fit_plan.kind, grid.n_rows, grid.n_effective)

@@ -25,7 +25,7 @@ from hamid.design import WINDOW_STEP, Block
 from hamid.options import SELECTION_CRITERIA as CRITERIA
 from hamid.records import runs
 
-__all__ = ["CRITERIA", "EXHAUSTIVE_TERMS", "Candidate", "Design", "Ranking", "collinear",
+__all__ = ["CRITERIA", "EXHAUSTIVE_TERMS", "MARGIN", "Candidate", "Design", "Ranking", "collinear",
            "effective_fraction", "inclusion", "search"]
 
 # Up to this many free terms every subset is scored (2^20 subsets take about 10 s).
@@ -38,6 +38,9 @@ RESIDUAL_FLOOR = 1e-8
 # apart from them on the data (a variance inflation factor above 1e12).
 COLLINEAR = 1e-6
 CV_FOLDS = 5
+# Differences of BIC or AIC below 2 are "not worth more than a bare mention" (Kass and
+# Raftery 1995): the fewest terms within this margin of the lowest value are chosen.
+MARGIN = 2.0
 SHOWN = 10   # candidate models kept in the ranking
 _BATCH = 4096  # subsets scored together (memory: _BATCH * (p + 1) * k doubles)
 
@@ -153,71 +156,80 @@ def collinear(A: FloatArray, order: Sequence[int]) -> list[tuple[int, list[int]]
 
 @dataclass(frozen=True)
 class Candidate:
-    """A scored subset: its columns, criterion value, and residual variance per row
-    relative to that of the whole library."""
+    """A scored subset: its columns, criterion value, residual variance per row relative
+    to that of the whole library, and margin: by how much a subset of fewer columns may
+    score worse and still be preferred (`MARGIN` for BIC and AIC, one standard error of
+    the cross-validated error for CV)."""
 
     columns: tuple[int, ...]
     score: float
     variance: float
+    margin: float
 
 
 @dataclass(frozen=True)
 class Ranking:
-    """The best subsets, best first, and how they were found."""
+    """The best subsets, best first, the one chosen, and how they were found."""
 
     candidates: tuple[Candidate, ...]
+    chosen: Candidate
     exhaustive: bool
     evaluated: int
 
-    @property
-    def best(self) -> Candidate:
-        return self.candidates[0]
 
-
-Scorer = Callable[[IntArray], tuple[FloatArray, FloatArray]]
+Scores = tuple[FloatArray, FloatArray, FloatArray]
+Scorer = Callable[[IntArray], Scores]
 
 
 def search(design: Design, forced: Sequence[int], free: Sequence[int],
            criterion: str) -> Ranking:
     """The subsets of the `free` columns (each with every `forced` one) ranked by the
-    criterion: "bic", "aic" or "cv"; at least one column in each."""
+    criterion: "bic", "aic" or "cv"; at least one column in each.
+
+    The chosen subset is the one with the fewest columns among those within the best
+    one's margin of it (2 for BIC and AIC; one standard error of the cross-validated
+    error, the one-standard-error rule, for CV), the best of them if several have as few.
+    """
     score = _scorer(design, criterion)
-    if len(free) <= EXHAUSTIVE_TERMS:
-        found = _exhaustive(score, forced, free)
-    else:
-        found = _stepwise(score, forced, free)
+    exhaustive = len(free) <= EXHAUSTIVE_TERMS
+    found, count = (_exhaustive if exhaustive else _stepwise)(score, forced, free)
     # ties (models at the residual floor) go to the fewer terms
     ranked = sorted(found, key=lambda c: (c.score, len(c.columns)))
-    return Ranking(tuple(ranked[:SHOWN]), len(free) <= EXHAUSTIVE_TERMS, len(found))
+    chosen = min((c for c in ranked if c.score <= ranked[0].score + ranked[0].margin),
+                 key=lambda c: (len(c.columns), c.score))
+    return Ranking(tuple(ranked[:SHOWN]), chosen, exhaustive, count)
 
 
 def _scorer(design: Design, criterion: str) -> Scorer:
-    """The criterion of subsets of columns (shape (m, k), k the same for all) and their
-    residual variance per row."""
+    """The criterion of subsets of columns (shape (m, k), k the same for all), their
+    residual variance per row relative to the whole library's, and their margin."""
     n, R = design.n_rows, design.R
-
-    # residual variance per row, relative to the whole library's
     scale = max(float(R[-1, -1]) ** 2 / max(n - design.n_terms, 1), design.floor)
 
-    def variance(subsets: IntArray) -> FloatArray:
-        return _rss(R, subsets) / max(n - subsets.shape[1], 1) / scale
+    def variance(rss: FloatArray, k: int) -> FloatArray:
+        return rss / max(n - k, 1) / scale
 
     if criterion == "cv":
         folds = _folds(design)
 
-        def cross_validated(subsets: IntArray) -> tuple[FloatArray, FloatArray]:
-            error = sum(_prediction_error(train, test, subsets) for train, test in folds)
-            return np.maximum(error / n, design.floor), variance(subsets)
+        def cross_validated(subsets: IntArray) -> Scores:
+            errors = np.array([_prediction_error(train, test, subsets) / size
+                               for train, test, size in folds])
+            sizes = np.array([size for _, _, size in folds])
+            mean = np.maximum(sizes @ errors / sizes.sum(), design.floor)
+            # one standard error of the mean over the folds
+            spread = np.std(errors, axis=0, ddof=1) / math.sqrt(len(folds))
+            return mean, variance(_rss(R, subsets), subsets.shape[1]), spread
 
         return cross_validated
     n_eff = design.n_effective
     penalty = math.log(n_eff) if criterion == "bic" else 2.0
 
-    def information(subsets: IntArray) -> tuple[FloatArray, FloatArray]:
+    def information(subsets: IntArray) -> Scores:
         rss = _rss(R, subsets)
-        fitted = np.maximum(rss / n, design.floor)
-        return (n_eff * np.log(fitted) + penalty * subsets.shape[1],
-                rss / max(n - subsets.shape[1], 1) / scale)
+        k = subsets.shape[1]
+        return (n_eff * np.log(np.maximum(rss / n, design.floor)) + penalty * k,
+                variance(rss, k), np.full(len(subsets), MARGIN))
 
     return information
 
@@ -254,8 +266,8 @@ def _prediction_error(train: FloatArray, test: FloatArray, subsets: IntArray) ->
     return np.concatenate(out)
 
 
-def _folds(design: Design) -> list[tuple[FloatArray, FloatArray]]:
-    """(training factor, test factor) of each fold: `CV_FOLDS` contiguous blocks of each
+def _folds(design: Design) -> list[tuple[FloatArray, FloatArray, int]]:
+    """(training factor, test factor, test rows) of each fold: `CV_FOLDS` contiguous blocks of each
     trajectory's units, held out in turn; the units that share samples with a held-out
     block (`gap` on either side) are left out of its training rows."""
     fold = np.empty(len(design.unit_group), dtype=np.intp)
@@ -275,25 +287,29 @@ def _folds(design: Design) -> list[tuple[FloatArray, FloatArray]]:
         test, train = held[design.unit], ~near[design.unit]
         if test.any() and train.any():
             out.append((np.linalg.qr(design.M[train], mode="r"),
-                        np.linalg.qr(design.M[test], mode="r")))
+                        np.linalg.qr(design.M[test], mode="r"), int(test.sum())))
     return out
 
 
-def _exhaustive(score: Scorer, forced: Sequence[int], free: Sequence[int]) -> list[Candidate]:
-    found = []
-    smallest = 0 if forced else 1
-    for k in range(smallest, len(free) + 1):
+def _exhaustive(score: Scorer, forced: Sequence[int],
+                free: Sequence[int]) -> tuple[list[Candidate], int]:
+    """The best `SHOWN` subsets of each size, and how many subsets were scored."""
+    found, count = [], 0
+    for k in range(0 if forced else 1, len(free) + 1):
         combos = list(itertools.combinations(free, k))
         chosen = np.array(combos, dtype=np.intp).reshape(len(combos), k)
         subsets = np.column_stack([np.broadcast_to(np.asarray(forced, dtype=np.intp),
                                                    (len(chosen), len(forced))), chosen])
-        values, variances = score(subsets)
-        found += [Candidate(tuple(sorted(s)), float(v), float(w))
-                  for s, v, w in zip(subsets.tolist(), values, variances, strict=True)]
-    return found
+        values, variances, margins = score(subsets)
+        best = np.argsort(values, kind="stable")[:SHOWN]
+        found += [Candidate(tuple(sorted(subsets[i].tolist())), float(values[i]),
+                            float(variances[i]), float(margins[i])) for i in best]
+        count += len(subsets)
+    return found, count
 
 
-def _stepwise(score: Scorer, forced: Sequence[int], free: Sequence[int]) -> list[Candidate]:
+def _stepwise(score: Scorer, forced: Sequence[int],
+              free: Sequence[int]) -> tuple[list[Candidate], int]:
     """A greedy forward-backward path: from the forced columns (or the best single one),
     take the best of adding or removing one free column while the criterion falls."""
     seen: dict[tuple[int, ...], Candidate] = {}
@@ -302,9 +318,9 @@ def _stepwise(score: Scorer, forced: Sequence[int], free: Sequence[int]) -> list
         new = sorted({s for s in sets if s not in seen}, key=len)
         for _, same in itertools.groupby(new, key=len):
             group = list(same)
-            values, variances = score(np.array(group, dtype=np.intp).reshape(len(group), -1))
-            seen.update({s: Candidate(s, float(v), float(w))
-                         for s, v, w in zip(group, values, variances, strict=True)})
+            scored = score(np.array(group, dtype=np.intp).reshape(len(group), -1))
+            seen.update({s: Candidate(s, *map(float, values))
+                         for s, *values in zip(group, *scored, strict=True)})
 
     current = tuple(sorted(forced))
     if not current:
@@ -318,7 +334,7 @@ def _stepwise(score: Scorer, forced: Sequence[int], free: Sequence[int]) -> list
         evaluate(moves)
         best = min((seen[m] for m in moves), key=lambda c: c.score, default=None)
         if best is None or best.score >= seen[current].score:
-            return list(seen.values())
+            return list(seen.values()), len(seen)
         current = best.columns
 
 
@@ -335,7 +351,7 @@ def inclusion(design: Design, forced: Sequence[int], free: Sequence[int], criter
     counts = np.zeros(len(free))
     for r in range(replicates):
         units = uncertainty.block_indices(rng, starts, stops, lengths)
-        best = search(design.resampled(units), forced, free, criterion).best.columns
+        best = search(design.resampled(units), forced, free, criterion).chosen.columns
         counts += [j in best for j in free]
         if progress is not None:
             progress(f"bootstrap replicate {r + 1} of {replicates}")
