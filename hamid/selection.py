@@ -204,7 +204,7 @@ def _scorer(design: Design, criterion: str) -> Scorer:
     """The criterion of subsets of columns (shape (m, k), k the same for all), their
     residual variance per row relative to the whole library's, and their margin."""
     n, R = design.n_rows, design.R
-    scale = max(float(R[-1, -1]) ** 2 / max(n - design.n_terms, 1), design.floor)
+    scale = max(float(R[-1, -1]) ** 2 / max(n - design.n_terms, 1), np.finfo(float).tiny)
 
     def variance(rss: FloatArray, k: int) -> FloatArray:
         return rss / max(n - k, 1) / scale
