@@ -536,9 +536,11 @@ def select(data: tuple[str, ...], library: str | None, keep: str | None, criteri
     inputs = [*data, *([library] if library is not None and os.path.isfile(library) else [])]
     _check_output("-o", output, inputs)
     if write_model is not None:
-        if not write_model.endswith(".toml") or writing.overwrites(write_model, output):
-            raise UsageError(f"--write-model {write_model!r}: give a new FILE.toml (hamid fit "
+        if not write_model.endswith(".toml"):
+            raise UsageError(f"--write-model {write_model!r}: give a FILE.toml (hamid fit "
                              "--model reads model files by that extension)")
+        if writing.overwrites(write_model, output):
+            raise UsageError(f"-o and --write-model name the same file {output!r}")
         _check_output("--write-model", write_model, inputs)
     with _status("selecting") as status:
         chosen = run_select(list(data), library, keep=(keep or "").split(",") if keep else (),

@@ -99,7 +99,9 @@ class Library:
     def toml(self, indices: Sequence[int], name: str, comments: Sequence[str]) -> str:
         """A model file of the terms at `indices`, as `hamid fit --model` reads it."""
         m = self.model
-        lines = [*(f"# {line}" for line in comments), "[model]",
+        # a comment ends at a line break: any in the text (a model's name) is escaped
+        lines = [*(f"# {line.encode('unicode_escape').decode('ascii')}" for line in comments),
+                 "[model]",
                  f"name = {_string(name)}",
                  f"coordinates = [{', '.join(map(_string, m.coordinates))}]",
                  f"velocities = [{', '.join(map(_string, m.velocities))}]",

@@ -154,6 +154,16 @@ def test_a_submodel_keeps_each_terms_function_and_parameter(source):
     np.testing.assert_allclose(E0, library.model.energy_basis(X)[0], rtol=1e-12)
 
 
+def test_a_line_break_in_a_name_stays_inside_the_model_files_comment(tmp_path):
+    library = Library.of(load_model("duffing"))
+    text = library.toml([0, 1], "a\nname", ["from the library a\n[model]"])
+    path = tmp_path / "m.toml"
+    path.write_text(text)
+    assert [line for line in text.splitlines() if not line.startswith(("#", " "))
+            and "=" not in line] == ["[model]"]
+    assert load_model(path).name == "a\nname"
+
+
 def test_the_model_file_reads_back_as_the_chosen_model(records, tmp_path):
     chosen = hamid.select(records["duffing"], "poly:1:4")
     path = tmp_path / "chosen.toml"
@@ -356,7 +366,8 @@ def test_the_command_writes_a_table_the_json_report_and_the_model(tmp_path):
 
 @pytest.mark.parametrize(("args", "message"), [
     (["--seed", "1"], "--seed applies only to --stability"),
-    (["--write-model", "chosen.txt"], "--write-model 'chosen.txt': give a new FILE.toml"),
+    (["--write-model", "chosen.txt"], "--write-model 'chosen.txt': give a FILE.toml"),
+    (["--write-model", "same.toml", "-o", "same.toml"], "-o and --write-model name the same"),
     (["--library", "poly:3:4"], "--library poly:3:4: 3 coordinates, but the data have 1"),
     (["--keep", "x**5"], "--keep: 'x**5' is not a term of the library"),
     (["--stability", "5"], "--stability needs at least 10 replicates"),
