@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from hamid import __version__, design, estimate, loading, plan, selection, solve
-from hamid.errors import FitError, UsageError
+from hamid.errors import DataError, FitError, UsageError
 from hamid.library import Library
 from hamid.model import Model, parse_poly_name, poly_model_over
 from hamid.options import FitOptions
@@ -180,7 +180,14 @@ def _library_source(data: Any, library: str | os.PathLike[str] | Model | None,
             raise UsageError("--columns needs --library (poly:N:D names the coordinates "
                              "q1..qN and velocities v1..vN, or a model file names them)")
         return loading.load(data, name, options)
-    source = loading.load(data, None, options)
+    try:
+        source = loading.load(data, None, options)
+    except DataError as exc:
+        if "no coordinate with a velocity column" not in str(exc):
+            raise
+        # the reader's advice names fit's --model; select takes the library instead
+        raise DataError(f"{str(exc).split(';')[0]}; give --library MODEL.toml, or --library "
+                        "poly:N:D with --columns q1=COL,v1=COL,...") from exc
     found = source.model
     degree = DEFAULT_DEGREE
     if name is not None:

@@ -388,3 +388,14 @@ def test_standard_input_is_refused_as_it_cannot_be_read_twice():
     result = invoke(["select", "-"])
     assert result.exit_code == 2 and result.stdout == ""
     assert "select reads the data twice" in result.stderr
+
+
+def test_data_without_velocity_columns_take_the_library_and_columns(records, tmp_path):
+    path = tmp_path / "run.csv"
+    records["duffing"].rename(columns={"x": "pos", "v": "vel"}).to_csv(path, index=False)
+    refused = invoke(["select", path])
+    assert refused.exit_code == 1 and refused.stdout == ""
+    assert "give --library MODEL.toml, or --library poly:N:D with --columns" in refused.stderr
+    choice = selecting.choose(str(path), selecting.SelectOptions("poly:1:4"),
+                              columns={"q1": "pos", "v1": "vel"})
+    assert choice.library.texts(choice.chosen) == ["q1**2", "q1**4"]
