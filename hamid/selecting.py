@@ -200,6 +200,35 @@ def _library_source(data: Any, library: str | os.PathLike[str] | Model | None,
         found.coordinates, found.velocities, degree))
 
 
+def _collinear(source: loading.Loaded, library: Library, kept: Sequence[int],
+               forces: design.Damping, options: FitOptions
+               ) -> tuple[list[tuple[int, tuple[int, ...]]], plan.FitPlan]:
+    """The terms the rows cannot tell apart from simpler ones, each with those ones, and
+    the plan of the rows; an error when kept terms or damping coefficients are among them.
+
+    Found on the rows themselves, each block scaled to unit size, before any fit: the
+    rows of the whole library could not be solved with them in.
+    """
+    m, n_terms = source.model, len(library.terms)
+    fit_plan = plan.decide(options, m, source.scales())
+    raw, fit_plan = estimate.rows_of(source, Unknowns.of(m.parameters, forces.names, {}),
+                                     forces, fit_plan, options)
+    stacked = solve.centre([dataclasses.replace(b, weight=b.weight / max(
+        float(np.mean(b.b**2)), estimate.TINY)) for b in raw.blocks],
+        source.records.n_trajectories)
+    simple = sorted(range(n_terms), key=lambda k: library.terms[k].complexity)
+    order = [*range(n_terms, stacked.A.shape[1]), *kept,
+             *(k for k in simple if k not in kept)]
+    collinear = [(j, tuple(sorted(p))) for j, p in selection.collinear(stacked.A, order)]
+    blocked = [(j, p) for j, p in collinear if j in kept or j >= n_terms]
+    if blocked:
+        raise FitError("cannot tell apart the terms kept (--keep, --damping) on these data: "
+                       + "; ".join(f"{_name(library, j)} is collinear with "
+                                   f"{', '.join(_name(library, k) for k in p)}"
+                                   for j, p in blocked))
+    return collinear, fit_plan
+
+
 def choose(data: Any, options: SelectOptions, *, columns: Mapping[str, str] | None = None,
            damping: str | Sequence[str] = "none",
            progress: Callable[[str], None] | None = None) -> Choice:
@@ -214,24 +243,8 @@ def choose(data: Any, options: SelectOptions, *, columns: Mapping[str, str] | No
     library = Library.of(m)
     kept = library.find(options.keep)
     forces = design.Damping(fit_options.damping, m.coordinates)
-    # Collinear terms are found on the rows themselves, each block scaled to unit size,
-    # before any fit: the rows of the whole library could not be solved with them in.
+    collinear, fit_plan = _collinear(source, library, kept, forces, fit_options)
     n_terms = len(library.terms)
-    fit_plan = plan.decide(fit_options, m, source.scales())
-    raw, fit_plan = estimate.rows_of(source, Unknowns.of(m.parameters, forces.names, {}),
-                                     forces, fit_plan, fit_options)
-    stacked = solve.centre([dataclasses.replace(b, weight=b.weight / max(
-        float(np.mean(b.b**2)), estimate.TINY)) for b in raw.blocks], records.n_trajectories)
-    simple = sorted(range(n_terms), key=lambda k: library.terms[k].complexity)
-    order = [*range(n_terms, stacked.A.shape[1]), *kept,
-             *(k for k in simple if k not in kept)]
-    collinear = [(j, tuple(sorted(p))) for j, p in selection.collinear(stacked.A, order)]
-    blocked = [j for j, _ in collinear if j in kept or j >= n_terms]
-    if blocked:
-        raise FitError("cannot tell apart the terms kept (--keep, --damping) on these data: "
-                       + "; ".join(f"{_name(library, j)} is collinear with "
-                                   f"{', '.join(_name(library, k) for k in p)}"
-                                   for j, p in collinear if j in blocked))
     dropped = {j for j, _ in collinear}
     unknowns = Unknowns.of(m.parameters, forces.names,
                            {library.terms[j].parameter: 0.0 for j in dropped})
