@@ -22,10 +22,12 @@ __all__ = [
     "__version__",
     "fit",
     "load_model",
+    "select",
     "simulate",
 ]
 
-_LAZY = {"fit": "hamid.api", "simulate": "hamid.api", "load_model": "hamid.api"}
+_LAZY = {"fit": "hamid.api", "simulate": "hamid.api", "load_model": "hamid.api",
+         "select": "hamid.selecting"}
 
 
 def __getattr__(name: str) -> Any:

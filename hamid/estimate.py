@@ -28,7 +28,7 @@ from hamid.records import Records, runs
 from hamid.unknowns import Unknowns
 
 __all__ = ["LinearFit", "ResidualSums", "Rows", "Scores", "balance", "fit_rows",
-           "fitted_levels", "residual_sums"]
+           "fitted_levels", "residual_sums", "rows_of"]
 
 TINY = 1e-300
 _MAX_ROUNDS = 20
@@ -289,10 +289,10 @@ def level_variance(c: Any, Abar: Any) -> Any:
             + np.einsum("jp,pq,jq->j", Abar, c.theta, Abar))
 
 
-def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: FitPlan,
-             options: FitOptions, sigma: Any) -> tuple[LinearFit, FitPlan, Rows]:
-    """The linear fit of records in memory: rows, balance or noise weights, solution and
-    covariance; the plan falls back to the energy rows when `auto` finds too few windows."""
+def rows_of(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: FitPlan,
+            options: FitOptions) -> tuple[Rows, FitPlan]:
+    """The rows of records in memory that the plan asks for, before any weighting; the
+    plan falls back to the energy rows when `auto` finds too few windows."""
     m, records = loaded.model, loaded.records
     names, J = unknowns.free_names, records.n_trajectories
     all_energy = design.energy_block(m, records, damping)
@@ -306,6 +306,17 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
         *([design.window_means(energy, spans)] if plan.kind == "joint" else []),
         unknowns.hold_fixed(design.weak_block(m, records, spans, damping))]
     design.check_weak_rows(blocks[-1], records.labels)
+    return Rows(energy, all_energy, blocks, spans), plan
+
+
+def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: FitPlan,
+             options: FitOptions, sigma: Any) -> tuple[LinearFit, FitPlan, Rows]:
+    """The linear fit of records in memory: rows, balance or noise weights, solution and
+    covariance; the plan falls back to the energy rows when `auto` finds too few windows."""
+    m, records = loaded.model, loaded.records
+    names, J = unknowns.free_names, records.n_trajectories
+    rows, plan = rows_of(loaded, unknowns, damping, plan, options)
+    energy, all_energy, blocks, spans = rows.energy, rows.all_energy, rows.blocks, rows.windows
     window_group = None if spans is None else spans.group
     if sigma is None:
         blocks, block_variance = _balance_blocks(blocks, names, J, window_group)

@@ -121,6 +121,7 @@ TIME_UNITS = ("s", "ms", "us", "ns")   # naming.TIME_UNITS, without importing it
 GAP_POLICIES = ("split", "error")
 # hamid.dissipation.SHORTHAND, without importing numpy at the CLI's start
 DAMPING_KINDS = ("viscous", "coulomb", "quadratic")
+SELECTION_CRITERIA = ("bic", "aic", "cv")   # of `hamid select` (hamid.selection)
 SAVGOL_ORDER = 5
 
 # Files larger than this are read in chunks when the options allow it: the chunked fit is

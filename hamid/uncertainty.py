@@ -51,6 +51,7 @@ __all__ = [
     "ScoreSums",
     "UNITS_NOTE",
     "bartlett_bandwidth",
+    "block_indices",
     "bootstrap",
     "confidence_bounds",
     "covariance",
@@ -560,10 +561,12 @@ def confidence_bounds(
     return est - half, est + half
 
 
-def _block_indices(
+def block_indices(
     rng: np.random.Generator, starts: IntArray, stops: IntArray, lengths: IntArray
 ) -> IntArray:
-    """Helper drawing one moving-block resample of the rows, trajectory by trajectory."""
+    """One moving-block resample of the rows, trajectory by trajectory: rows `starts[j]` to
+    `stops[j]` rebuilt to their length from blocks of `lengths[j]` rows drawn with
+    replacement."""
     parts = []
     for lo, hi, block in zip(starts, stops, lengths, strict=True):
         size = hi - lo
@@ -641,7 +644,7 @@ def bootstrap(
     n_failed = 0
     last_error: FitError | None = None
     for _ in range(n_boot):
-        indices = _block_indices(rng, starts, stops, lengths)
+        indices = block_indices(rng, starts, stops, lengths)
         try:
             estimate = np.asarray(refit(indices), dtype=np.float64)
         except FitError as exc:
