@@ -9,7 +9,7 @@ same balance (`balance`).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,7 +28,7 @@ from hamid.records import Records, runs
 from hamid.unknowns import Unknowns
 
 __all__ = ["LinearFit", "ResidualSums", "Rows", "Scores", "balance", "fit_rows",
-           "fitted_levels", "residual_sums", "rows_of"]
+           "fitted_levels", "resampling_units", "residual_sums", "rows_of"]
 
 TINY = 1e-300
 _MAX_ROUNDS = 20
@@ -360,6 +360,22 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
     return linear, plan, Rows(energy, all_energy, blocks, spans)
 
 
+def resampling_units(blocks: Sequence[Block]) -> tuple[np.ndarray, np.ndarray]:
+    """The unit of every row of the stacked blocks (rows of one trajectory and time: a
+    window's weak rows and its energy row) and each unit's trajectory, for resampling
+    whole windows."""
+    group = np.concatenate([b.group for b in blocks])
+    time = np.concatenate([b.time for b in blocks])
+    order = np.lexsort((time, group))
+    fresh = np.ones(len(order), dtype=bool)
+    fresh[1:] = (np.diff(group[order]) != 0) | (np.diff(time[order]) != 0)
+    units = np.empty(len(order), dtype=np.int64)
+    units[order] = np.cumsum(fresh) - 1
+    unit_group = np.zeros(int(units.max()) + 1, dtype=np.int64)
+    unit_group[units] = group
+    return units, unit_group
+
+
 def _bootstrap_covariance(blocks: list[Block], names: list[str], J: int, kind: str,
                           n_boot: int, seed: int | None) -> tuple[Any, Any, str]:
     """Covariance of theta and the levels from refits on resampled blocks of units:
@@ -370,14 +386,7 @@ def _bootstrap_covariance(blocks: list[Block], names: list[str], J: int, kind: s
     if kind == "energy":
         units, unit_group = np.arange(len(group)), group
     else:
-        time = np.concatenate([b.time for b in blocks])
-        order = np.lexsort((time, group))
-        fresh = np.ones(len(order), dtype=bool)
-        fresh[1:] = (np.diff(group[order]) != 0) | (np.diff(time[order]) != 0)
-        units = np.empty(len(order), dtype=np.int64)
-        units[order] = np.cumsum(fresh) - 1
-        unit_group = np.zeros(units.max() + 1, dtype=np.int64)
-        unit_group[units] = group
+        units, unit_group = resampling_units(blocks)
     offsets = np.cumsum([0] + [b.n_rows for b in blocks])
     # Rows of each unit, found by one sort (a scan per unit would be quadratic in rows).
     by_unit = np.argsort(units, kind="stable")

@@ -75,15 +75,7 @@ class Design:
         """The design of a least-squares fit of `blocks` (every term free)."""
         A, b = fit.centred.A, fit.centred.b
         M = np.column_stack([A / np.linalg.norm(A, axis=0), b])
-        group = np.concatenate([blk.group for blk in blocks])
-        time = np.concatenate([blk.time for blk in blocks])
-        order = np.lexsort((time, group))
-        fresh = np.ones(len(order), dtype=bool)
-        fresh[1:] = (np.diff(group[order]) != 0) | (np.diff(time[order]) != 0)
-        unit = np.empty(len(order), dtype=np.intp)
-        unit[order] = np.cumsum(fresh) - 1
-        unit_group = np.zeros(int(unit.max()) + 1, dtype=np.intp)
-        unit_group[unit] = group
+        unit, unit_group = estimate.resampling_units(blocks)
         windows = len(blocks) > 1 or not blocks[0].has_level
         gap = round(1 / WINDOW_STEP) - 1 if windows else 0
         return cls(M, unit, unit_group, gap, fraction,
