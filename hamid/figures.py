@@ -395,7 +395,12 @@ def _draw_parameters(fig: Figure | SubFigure, ctx: _Context) -> str:
             text += f"; truth {truth:.6g}"
         ax.set_yticks([])
         ax.set_title(text, fontsize="medium", loc="left")
-        ax.ticklabel_format(axis="x", useOffset=False, style="plain")
+        if reach < 1e-4 * abs(estimate):
+            # ticks as distances from a round number near the estimate
+            offset = float(np.round(estimate, -int(np.floor(np.log10(reach))) - 1))
+            ax.ticklabel_format(axis="x", useOffset=offset, style="sci", scilimits=(-3, 4))
+        else:
+            ax.ticklabel_format(axis="x", useOffset=False, style="plain")
         ax.xaxis.set_major_locator(_ticks(7))
     axes[-1].set_xlabel("estimate")
     truth = ", dashed: the truth" if any(p["truth"] is not None for p in parameters) else ""

@@ -390,3 +390,15 @@ def test_residuals_far_beyond_the_noise_are_drawn_on_their_own_scale():
     assert histogram.get_ylim()[1] < 0.1 < standard.get_ydata().max()
     low, high = histogram.get_xlim()
     assert low <= np.percentile(z, 0.5) and high >= np.percentile(z, 99.5)
+
+
+def test_parameters_known_to_rounding_get_short_tick_labels():
+    """Clean data determine the estimates to 1e-13: the ticks are distances from a round
+    offset, not 17-digit numbers running into each other."""
+    result = hamid.fit(str(SAMPLE.parent / "peng_quadratic.csv"))
+    figure = _page(result, "parameters")
+    _png(figure)   # labels and offsets are set when drawn
+    for ax in _data_axes(figure):
+        labels = [t.get_text() for t in ax.get_xticklabels() if t.get_text()]
+        assert labels and max(len(text) for text in labels) <= 6, labels
+        assert ax.xaxis.get_offset_text().get_text(), ax.get_title(loc="left")
