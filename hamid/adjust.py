@@ -21,11 +21,21 @@ so the weighted Gram matrix A'WA is estimated without bias by
     c^ab_s = sum_r w_r Q^a_rs Q^b_rs,
 
 with A_H the columns built from H[f]; the same holds for A'Wb.
+
+The estimate solves sum_r psi_r(theta) = 0 with the corrected score of each row
+
+    psi_r = w_r a_r (a_r theta - b_r) + (C_r theta - c_r),
+
+C_r and c_r its part of the self-pair corrections (`Moments.shares`); psi_r has mean zero
+at the true parameters, row by row, so the covariance is the sandwich of these scores
+(the corrected-score estimator of Carroll, Ruppert, Stefanski and Crainiceanu,
+"Measurement Error in Nonlinear Models", 2006, ch. 7). Scores of the residuals alone
+carry the self-pair bias as a mean, which the sandwich counts as variance.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -85,13 +95,17 @@ def _self_pair(p: Polynomial, q: Polynomial, Y: np.ndarray, sigma: np.ndarray) -
 class Moments:
     """A block with unbiased columns, and the corrections of its sums of products.
 
-    A, b : the block's rows built from unbiased estimates of every function.
+    block : the block, its rows A, b built from unbiased estimates of every function.
     AA, Ab : the self-pair corrections of A'WA (p, p) and A'Wb (p,).
+    shares : theta -> (n_rows, p), each row's part C_r theta - c_r of AA theta - Ab
+        (a trajectory's centring shared by its rows in proportion to their weights);
+        the rows' parts sum to AA theta - Ab.
     """
 
     block: Block
     AA: npt.NDArray[np.float64]
     Ab: npt.NDArray[np.float64]
+    shares: Callable[[npt.NDArray[np.float64]], npt.NDArray[np.float64]]
 
 
 def check_adjustable(model: Model, derived_velocities: bool, damping: Any) -> None:
@@ -151,6 +165,18 @@ def _negate(f: Any) -> Polynomial:
     return Polynomial(f.variables, f.exponents, -f.coefficients)
 
 
+def _at(functions: Sequence[Polynomial], target: Polynomial, theta: Any) -> Polynomial:
+    """sum_k theta_k functions_k - target: what the rows equate to zero, at theta."""
+    return Polynomial.combine([*functions, target], [*theta, -1.0])
+
+
+def _pairs_at(functions: Sequence[Polynomial], g: Polynomial, Y: np.ndarray,
+              sigma: np.ndarray) -> np.ndarray:
+    """(n_samples, p): the self-pair bias of each function with g, at every sample."""
+    return np.column_stack([_self_pair(f, g, Y, sigma) for f in functions]) if functions \
+        else np.zeros((len(Y), 0))
+
+
 def _energy_moments(block: Block, phi: list[Polynomial], minus_E0: Polynomial,
                     P: Any, Y: np.ndarray, sigma: np.ndarray,
                     sample_group: np.ndarray) -> Moments:
@@ -173,7 +199,19 @@ def _energy_moments(block: Block, phi: list[Polynomial], minus_E0: Polynomial,
         self_weight = P.multiply(P).T @ w - W[sample_group] * shares**2
     AA = np.array([[self_weight @ _self_pair(p, q, Y, sigma) for q in phi] for p in phi])
     Ab = np.array([self_weight @ _self_pair(p, minus_E0, Y, sigma) for p in phi])
-    return Moments(dataclasses.replace(block, A=A, b=b), AA.reshape(len(phi), len(phi)), Ab)
+    # The centring term -W_j shares_s^2 of each sample, shared by its trajectory's rows.
+    centring = W[sample_group] * (w / W[block.group] if P is None else shares) ** 2
+    own = w if P is None else P.multiply(P)
+
+    def row_shares(theta: Any) -> Any:
+        d = _pairs_at(phi, _at(phi, minus_E0, theta), Y, sigma)
+        total = np.stack([np.bincount(sample_group, weights=centring * d[:, k],
+                                      minlength=n_groups) for k in range(len(phi))], axis=1)
+        mine = own[:, None] * d if P is None else w[:, None] * (own @ d)
+        return mine - (w / W[block.group])[:, None] * total[block.group]
+
+    return Moments(dataclasses.replace(block, A=A, b=b), AA.reshape(len(phi), len(phi)), Ab,
+                   row_shares)
 
 
 def _weak_moments(block: Block, functions: list[Any], target: list[Any], operators: list[Any],
@@ -202,4 +240,15 @@ def _weak_moments(block: Block, functions: list[Any], target: list[Any], operato
                     Ab[k] += pair @ _self_pair(fa[k], tc, Y, sigma)
                     for m in range(p):
                         AA[k, m] += pair @ _self_pair(fa[k], fc[m], Y, sigma)
-    return Moments(dataclasses.replace(block, A=A, b=b), AA, Ab)
+
+    def row_shares(theta: Any) -> Any:
+        out = np.zeros((n_windows * N, p))
+        for i, (per_operator, per_target) in enumerate(zip(functions, target, strict=True)):
+            w = block.weight[i::N]
+            for Qa, fa in zip(operators, per_operator, strict=True):
+                for Qc, fc, tc in zip(operators, per_operator, per_target, strict=True):
+                    d = _pairs_at(fa, _at(fc, tc, theta), Y, sigma)
+                    out[i::N] += w[:, None] * (Qa.multiply(Qc) @ d)
+        return out
+
+    return Moments(dataclasses.replace(block, A=A, b=b), AA, Ab, row_shares)

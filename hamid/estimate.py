@@ -122,16 +122,20 @@ class Scores:
         self.h = means_A @ theta - means_b
 
     def feed(self, sums: uncertainty.ScoreSums, blocks: list[Block], scales: list[float],
-             window_group: npt.NDArray[np.int64] | None) -> list[tuple[int, float, float]]:
+             window_group: npt.NDArray[np.int64] | None,
+             shares: list[npt.NDArray[np.float64]] | None = None
+             ) -> list[tuple[int, float, float]]:
         """Feed one piece of rows: `blocks` over the same windows (weak and joint fits, in
         window order) or energy rows; `scales` multiply each block's weights.
         `window_group`, the trajectory of each window, asks for the windows' summed
-        scores. Returns each block's rows, sum of squared residuals and largest one."""
+        scores. `shares`, per block, each row's part of the noise-bias correction of
+        adjusted least squares (`hamid.adjust.Moments.shares`), which joins its score.
+        Returns each block's rows, sum of squared residuals and largest one."""
         p = len(self.theta)
         if window_group is not None:
             window_scores = np.zeros((len(window_group), p + 1))
         stats = []
-        for block, scale in zip(blocks, scales, strict=True):
+        for k, (block, scale) in enumerate(zip(blocks, scales, strict=True)):
             w = scale * block.weight
             r = block.A @ self.theta - block.b
             if block.has_level:
@@ -142,12 +146,15 @@ class Scores:
                 G, lam = w[:, None] * (block.A @ self.inverse), np.zeros(len(w))
             z = np.column_stack([G, lam])
             stats.append((len(r), float(r @ r), float(np.max(np.abs(r), initial=0.0))))
+            offset = None if shares is None else np.column_stack(
+                [scale * shares[k] @ self.inverse, np.zeros(len(r))])
             if window_group is not None:
-                window_scores += (z * r[:, None]).reshape(len(window_group), -1,
-                                                          p + 1).sum(axis=1)
+                score = z * r[:, None] if offset is None else z * r[:, None] + offset
+                window_scores += score.reshape(len(window_group), -1, p + 1).sum(axis=1)
             else:
                 for j, start, stop in runs(block.group):
-                    sums.add(j, z[start:stop], r[start:stop], w[start:stop])
+                    sums.add(j, z[start:stop], r[start:stop], w[start:stop],
+                             None if offset is None else offset[start:stop])
         if window_group is not None:
             for j, start, stop in runs(window_group):
                 sums.add(j, window_scores[start:stop], np.ones(stop - start),
@@ -164,10 +171,12 @@ def windows_covariance(c: uncertainty.Covariance, n_windows: int) -> uncertainty
 
 
 def covariance(kind: str, fit: Solved, blocks: list[Block],
-               window_group: npt.NDArray[np.int64] | None) -> uncertainty.Covariance:
+               window_group: npt.NDArray[np.int64] | None,
+               shares: list[npt.NDArray[np.float64]] | None = None) -> uncertainty.Covariance:
     """Covariance of a fit of rows in memory: the analytic kinds of `hamid.uncertainty`,
     ``hac`` on the windows' summed scores for weak and joint rows (`Scores`), whose
-    windows belong to the trajectories `window_group` (None for energy rows).
+    windows belong to the trajectories `window_group` (None for energy rows); `shares`,
+    the rows' parts of the correction of an adjusted fit (`Scores.feed`).
 
     Its automatic bandwidth grows with the windows' autocorrelation: overlapping windows,
     and the long memory that the cumulative work of an energy balance brings.
@@ -182,7 +191,7 @@ def covariance(kind: str, fit: Solved, blocks: list[Block],
     by_window = kind == "hac" and window_group is not None
     fed = window_group if by_window else None
     sums, automatic = uncertainty.fed_sums(
-        kind, p, J, lambda s: scores.feed(s, blocks, [1.0] * len(blocks), fed))
+        kind, p, J, lambda s: scores.feed(s, blocks, [1.0] * len(blocks), fed, shares))
     fitted = fit.centred.A.shape[0] - fit.df_resid
     if not by_window:
         return sums.covariance(fit.df_resid, automatic=automatic)
@@ -312,7 +321,7 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Damping, plan: FitPlan
     else:
         blocks, block_variance, rounds = _noise_weighted(
             blocks, m, records, spans, damping, sigma, unknowns, J)
-    correction = None
+    correction, moments = None, None
     if options.bias_correct:
         from hamid import adjust
 
@@ -327,7 +336,8 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Damping, plan: FitPlan
                                                        options.bootstrap, options.seed)
         df = fit.df_resid
     else:
-        c = covariance(options.cov, fit, blocks, window_group)
+        shares = None if moments is None else [mo.shares(fit.theta) for mo in moments]
+        c = covariance(options.cov, fit, blocks, window_group, shares)
         theta_cov, text, df = c.theta, c.description, c.df
         if damping.kinds:
             theta_cov, text = _with_propagated_noise(theta_cov, text, fit, blocks, m, records,
