@@ -319,8 +319,11 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Damping, plan: FitPlan
         blocks, block_variance = _balance_blocks(blocks, names, J, window_group)
         rounds = 0
     else:
+        # Adjusted least squares is unbiased only when no row's weight depends on its
+        # own noise: its weights are found at the states of the neighbouring samples.
         blocks, block_variance, rounds = _noise_weighted(
-            blocks, m, records, spans, damping, sigma, unknowns, J)
+            blocks, m, _neighbour_states(records) if options.bias_correct else records,
+            spans, damping, sigma, unknowns, J)
     correction, moments = None, None
     if options.bias_correct:
         from hamid import adjust
@@ -420,6 +423,20 @@ def _with_propagated_noise(theta_cov: Any, text: str, fit: Solved, blocks: list[
             text + "; each variance at least the one propagated from the measurement noise")
 
 
+def _neighbour_states(records: Records) -> Records:
+    """Each sample's state as the mean of its neighbours' (one neighbour at a trajectory's
+    ends): close to the sample's for finely sampled motion, free of its own noise."""
+    X = records.X
+    before = np.ones(len(X), dtype=bool)
+    after = np.ones(len(X), dtype=bool)
+    for start, stop in records.bounds():
+        before[start], after[stop - 1] = False, False
+    previous, following = np.roll(X, 1, axis=0), np.roll(X, -1, axis=0)
+    count = (before.astype(float) + after)[:, None]
+    total = np.where(before[:, None], previous, 0.0) + np.where(after[:, None], following, 0.0)
+    return dataclasses.replace(records, X=np.where(count > 0, total / np.maximum(count, 1), X))
+
+
 def _noise_weighted(blocks: list[Block], model: Model, records: Records,
                     spans: Windows | None, damping: Damping, sigma: Any, unknowns: Unknowns,
                     J: int) -> tuple[list[Block], dict[str, float] | None, int]:
@@ -428,7 +445,8 @@ def _noise_weighted(blocks: list[Block], model: Model, records: Records,
     The variance depends on the parameters, so fit, re-weight and refit until the
     parameters settle (relative change below 1e-10, at most `_MAX_ROUNDS`). In a joint
     fit the two blocks are then balanced as without noise (`balance`): the rows of
-    overlapping windows are correlated, which the row variances do not see.
+    overlapping windows are correlated, which the row variances do not see. The
+    variances are taken at the states of `records`.
     """
     names = unknowns.free_names
     unit_size = [dataclasses.replace(b, weight=b.weight / max(float(np.mean(b.b**2)), TINY))
@@ -525,13 +543,13 @@ def residual_sums(energy_rows: Iterable[Block], theta: npt.NDArray[np.float64],
 @dataclass(frozen=True)
 class NoiseCheck:
     """How the measurement noise compares with the motion, and what it does to a linear
-    fit that does not correct for it (docs/method.md, "Noise: weighting and bias
-    correction").
+    fit that does not correct for it (docs/method.md, "The noise check").
 
     ratio : each variable's noise (estimated from 4th differences, or as given) over its
         spread in the records.
     bias : each parameter's least-squares estimate minus the adjusted (bias-corrected)
-        one, in its standard errors; None when the adjustment does not apply.
+        one, in its standard errors; None when the adjustment does not apply, or the
+        residuals do not show the noise.
     uncorrectable : the noise is too large for the adjustment to work at all.
     """
 
@@ -540,17 +558,23 @@ class NoiseCheck:
     uncorrectable: bool = False
 
 
-# Below this noise (as a share of each column's spread) the bias is not looked for.
-_NOISE_LOOKED_AT = 5e-3
+# Residuals whose variance is below this share of the one the noise would put into them
+# do not carry that noise: what the 4th differences found is the motion's own curvature
+# (clean or pre-smoothed records), and no bias follows from it.
+_NOISE_SEEN = 0.1
 
 
 def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unknowns,
                 damping: Damping, options: FitOptions, sigma: Any) -> NoiseCheck | None:
     """The noise against the motion, and the errors-in-variables bias of the linear fit
     `fit` of `rows` (None: a refined fit, which has none to look for): least squares
-    against adjusted least squares (`hamid.adjust`), which is unbiased for polynomial
-    energies and measured velocities; None when the trajectories are too short to tell
-    the noise."""
+    against adjusted least squares (`hamid.adjust`) on the same rows, which is unbiased
+    for polynomial energies and measured velocities; None when the trajectories are too
+    short to tell the noise.
+
+    Energy rows of single samples carry the largest bias; window means and weak rows
+    average the noise first, but over long records their bias outgrows their errors too.
+    """
     from hamid import adjust, measurement
 
     m, records = loaded.model, loaded.records
@@ -562,12 +586,9 @@ def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unk
     spread = records.X.std(axis=0)
     ratio = {name: float(s / d) if d > 0 else 0.0
              for name, s, d in zip(m.variables, sigma, spread, strict=True)}
-    # Weak-form windows and window means average the noise before it enters the squares
-    # and cubes; the bias worth its cost (an adjusted fit of every row) is that of the
-    # energy rows of single samples.
-    if (fit is None or rows.windows is not None or options.bias_correct
-            or not m.is_polynomial or options.velocity == "savgol"
-            or damping.kinds or max(ratio.values()) < _NOISE_LOOKED_AT):
+    if (fit is None or options.bias_correct or not m.is_polynomial
+            or options.velocity == "savgol" or damping.kinds
+            or not _noise_in_residuals(rows.energy, fit, m, records, unknowns, sigma)):
         return NoiseCheck(ratio)
     names = unknowns.free_names
     moments = [adjust.adjusted_moments(b, m, records, sigma, rows.windows, names,
@@ -582,3 +603,12 @@ def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unk
     shift = np.divide(fit.theta - adjusted.theta, stderr,
                       out=np.zeros_like(stderr), where=stderr > 0)
     return NoiseCheck(ratio, dict(zip(names, shift.tolist(), strict=True)))
+
+
+def _noise_in_residuals(energy: Block, fit: LinearFit, model: Model, records: Records,
+                        unknowns: Unknowns, sigma: Any) -> bool:
+    """Whether the energy residuals of the fit show at least a share `_NOISE_SEEN` of the
+    variance that noise of std `sigma` would put into them."""
+    residual = energy.A @ fit.theta - energy.b - fit.h[energy.group]
+    expected = design.row_variance(energy, model, records, unknowns.full(fit.theta), sigma)
+    return bool(np.mean(residual**2) >= _NOISE_SEEN * np.mean(expected))
