@@ -83,6 +83,11 @@ class _Hermite:
             self.known[poly] = out
         return self.known[poly]
 
+    def release(self) -> None:
+        """Forget the tables and estimates (as large as the record), until asked again."""
+        self.tables = [table[:2] for table in self.tables]
+        self.known.clear()
+
     def self_pair(self, p: Polynomial, q: Polynomial) -> npt.NDArray[np.float64]:
         """H[pq] - H[p] H[q] at every sample: the bias of pairing a sample with itself."""
         product = _product(p, q)
@@ -222,8 +227,10 @@ def _energy_moments(block: Block, phi: list[Polynomial], minus_E0: Polynomial,
         total = np.stack([np.bincount(sample_group, weights=centring * d[:, k],
                                       minlength=n_groups) for k in range(len(phi))], axis=1)
         mine = w[:, None] * (d if squares is None else squares @ d)
+        H.release()
         return mine - (w / W[block.group])[:, None] * total[block.group]
 
+    H.release()
     return Moments(dataclasses.replace(block, A=A, b=b), AA.reshape(len(phi), len(phi)), Ab,
                    row_shares)
 
@@ -273,6 +280,8 @@ def _weak_moments(block: Block, functions: list[Any], target: list[Any], operato
                 for Qc, fc, tc in zip(operators, per_operator, per_target, strict=True):
                     d = _pairs_at(fa, _at(fc, tc, theta), H)
                     out[i::N] += w[:, None] * (Qa.multiply(Qc) @ d)
+        H.release()
         return out
 
+    H.release()
     return Moments(dataclasses.replace(block, A=A, b=b), AA, Ab, row_shares)

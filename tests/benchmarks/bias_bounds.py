@@ -5,12 +5,12 @@
                                            [--runs energy energy+bc ...] [--short]
 
 For every system the clean record is simulated once: the accuracy benchmark's (100 s at
-dt 0.02, tests/benchmarks/accuracy.py), or with --short the test suite's (30-40 s at dt
-0.05, tests/conftest.py);
-each realization adds white Gaussian noise of a fixed fraction of each column's standard
-deviation to the positions and velocities (`with_noise`, seeds 0..N-1). Each run fits the
-same noisy record. Per parameter the table gives, over the realizations, of
-z = (estimate - truth) / std. error:
+dt 0.02, 15,003 and 10,002 samples; tests/benchmarks/accuracy.py), or with --short the
+test suite's (30-40 s at dt 0.05; tests/conftest.py). Each realization adds white
+Gaussian noise of a fixed fraction of each column's standard deviation to the positions
+and velocities (`with_noise`, seeds 0..N-1), and each run fits the same noisy record.
+Per parameter the table gives, over the realizations, of z = (estimate - truth) / std.
+error:
 
     mean z     the bias in standard errors (0 for an unbiased estimator);
     spread     the standard deviation of z (1 when the standard errors are right);
