@@ -21,11 +21,21 @@ so the weighted Gram matrix A'WA is estimated without bias by
     c^ab_s = sum_r w_r Q^a_rs Q^b_rs,
 
 with A_H the columns built from H[f]; the same holds for A'Wb.
+
+The estimate solves sum_r psi_r(theta) = 0 with the corrected score of each row
+
+    psi_r = w_r a_r (a_r theta - b_r) + (C_r theta - c_r),
+
+C_r and c_r its part of the self-pair corrections (`Moments.shares`); psi_r has mean zero
+at the true parameters, row by row, so the covariance is the sandwich of these scores
+(the corrected-score estimator of Carroll, Ruppert, Stefanski and Crainiceanu,
+"Measurement Error in Nonlinear Models", 2006, ch. 7). Scores of the residuals alone
+carry the self-pair bias as a mean, which the sandwich counts as variance.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,29 +51,55 @@ from hamid.records import Records
 __all__ = ["Moments", "adjusted_moments", "unbiased"]
 
 
-def _hermite_table(y: npt.NDArray[np.float64], sigma: float, top: int) -> list[Any]:
-    """s^n He_n(y/s) for n = 0..top: H_0 = 1, H_1 = y, H_n+1 = y H_n - n s^2 H_n-1."""
-    table: list[Any] = [np.ones_like(y), y]
-    for n in range(1, top):
-        table.append(y * table[n] - n * sigma**2 * table[n - 1])
-    return table[:top + 1]
+class _Hermite:
+    """Unbiased estimates of polynomials of the states y, sharing the work between them.
+
+    The table of s^n He_n(y/s) of each variable (H_0 = 1, H_1 = y,
+    H_n+1 = y H_n - n s^2 H_n-1) grows to the highest power asked for, and the estimate
+    of each polynomial is kept, since the sums of products ask for the same ones often.
+    """
+
+    def __init__(self, Y: npt.NDArray[np.float64], sigma: npt.NDArray[np.float64]) -> None:
+        self.Y, self.sigma = Y, sigma
+        self.tables: list[list[Any]] = [[np.ones(len(Y)), Y[:, j]] for j in range(Y.shape[1])]
+        self.known: dict[Polynomial, npt.NDArray[np.float64]] = {}
+
+    def power(self, j: int, n: int) -> npt.NDArray[np.float64]:
+        table, s2 = self.tables[j], float(self.sigma[j]) ** 2
+        while len(table) <= n:
+            k = len(table) - 1
+            table.append(self.Y[:, j] * table[k] - k * s2 * table[k - 1])
+        return table[n]
+
+    def of(self, poly: Polynomial) -> npt.NDArray[np.float64]:
+        """The unbiased estimate of poly(x) at every sample."""
+        if poly not in self.known:
+            out = np.zeros(len(self.Y))
+            for coefficient, row in zip(poly.coefficients, poly.exponents, strict=True):
+                term = np.full(len(self.Y), coefficient)
+                for j in np.flatnonzero(row):
+                    term = term * self.power(int(j), int(row[j]))
+                out += term
+            self.known[poly] = out
+        return self.known[poly]
+
+    def release(self) -> None:
+        """Forget the tables and estimates (as large as the record), until asked again."""
+        self.tables = [table[:2] for table in self.tables]
+        self.known.clear()
+
+    def self_pair(self, p: Polynomial, q: Polynomial) -> npt.NDArray[np.float64]:
+        """H[pq] - H[p] H[q] at every sample: the bias of pairing a sample with itself."""
+        product = _product(p, q)
+        pair = self.of(product) - self.of(p) * self.of(q)
+        del self.known[product]   # products are asked for once
+        return pair
 
 
 def unbiased(poly: Polynomial, Y: npt.NDArray[np.float64],
              sigma: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     """Unbiased estimate of poly(x) from y = x + Gaussian noise of std sigma (per variable)."""
-    out = np.zeros(len(Y))
-    if not len(poly.coefficients):
-        return out
-    highest = poly.exponents.max(axis=0)
-    tables = [_hermite_table(Y[:, j], float(sigma[j]), int(top))
-              for j, top in enumerate(highest)]
-    for coefficient, row in zip(poly.coefficients, poly.exponents, strict=True):
-        term = np.full(len(Y), coefficient)
-        for j in np.flatnonzero(row):
-            term = term * tables[j][row[j]]
-        out += term
-    return out
+    return _Hermite(Y, sigma).of(poly)
 
 
 def _product(p: Polynomial, q: Polynomial) -> Polynomial:
@@ -76,22 +112,21 @@ def _product(p: Polynomial, q: Polynomial) -> Polynomial:
     return Polynomial.from_terms({k: c for k, c in terms.items() if c != 0.0}, p.variables)
 
 
-def _self_pair(p: Polynomial, q: Polynomial, Y: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """H[pq] - H[p] H[q] at every sample: the bias of pairing a sample with itself."""
-    return unbiased(_product(p, q), Y, sigma) - unbiased(p, Y, sigma) * unbiased(q, Y, sigma)
-
-
 @dataclass(frozen=True)
 class Moments:
     """A block with unbiased columns, and the corrections of its sums of products.
 
-    A, b : the block's rows built from unbiased estimates of every function.
+    block : the block, its rows A, b built from unbiased estimates of every function.
     AA, Ab : the self-pair corrections of A'WA (p, p) and A'Wb (p,).
+    shares : theta -> (n_rows, p), each row's part C_r theta - c_r of AA theta - Ab
+        (a trajectory's centring shared by its rows in proportion to their weights);
+        the rows' parts sum to AA theta - Ab.
     """
 
     block: Block
     AA: npt.NDArray[np.float64]
     Ab: npt.NDArray[np.float64]
+    shares: Callable[[npt.NDArray[np.float64]], npt.NDArray[np.float64]]
 
 
 def check_adjustable(model: Model, derived_velocities: bool, damping: Any) -> None:
@@ -116,7 +151,6 @@ def adjusted_moments(block: Block, model: Model, records: Records, sigma: np.nda
     ones held at known values (their terms join the known side). The block's weights are
     taken as given.
     """
-    Y = records.X
     index = [model.parameters.index(p) for p in parameters]
     held = [(model.parameters.index(name), value) for name, value in fixed.items()]
 
@@ -141,43 +175,68 @@ def adjusted_moments(block: Block, model: Model, records: Records, sigma: np.nda
             dq = [f.diff(model.coordinates[i]) for f in parts]
             functions.append(([dv[k + 1] for k in index], [dq[k + 1] for k in index]))
             target.append((known(dv[0], dv[1:]), known(dq[0], dq[1:])))
+    H = _Hermite(records.X, sigma)
     if block.kind == "energy":
-        return _energy_moments(block, functions[0], target[0], operators[0], Y, sigma,
-                               records.group)
-    return _weak_moments(block, functions, target, operators, Y, sigma)
+        return _energy_moments(block, functions[0], target[0], operators[0], H, records.group)
+    return _weak_moments(block, functions, target, operators, H)
 
 
 def _negate(f: Any) -> Polynomial:
     return Polynomial(f.variables, f.exponents, -f.coefficients)
 
 
+def _at(functions: Sequence[Polynomial], target: Polynomial, theta: Any) -> Polynomial:
+    """sum_k theta_k functions_k - target: what the rows equate to zero, at theta."""
+    return Polynomial.combine([*functions, target], [*theta, -1.0])
+
+
+def _pairs_at(functions: Sequence[Polynomial], g: Polynomial, H: _Hermite) -> np.ndarray:
+    """(n_samples, p): the self-pair bias of each function with g, at every sample."""
+    return np.column_stack([H.self_pair(f, g) for f in functions]) if functions \
+        else np.zeros((len(H.Y), 0))
+
+
 def _energy_moments(block: Block, phi: list[Polynomial], minus_E0: Polynomial,
-                    P: Any, Y: np.ndarray, sigma: np.ndarray,
-                    sample_group: np.ndarray) -> Moments:
+                    P: Any, H: _Hermite, sample_group: np.ndarray) -> Moments:
     """Energy rows (per sample, or window means P), centred within each trajectory."""
     import dataclasses
 
-    columns = np.column_stack([unbiased(f, Y, sigma) for f in phi]) if phi else \
-        np.zeros((len(Y), 0))
-    target = unbiased(minus_E0, Y, sigma)
+    columns = np.column_stack([H.of(f) for f in phi]) if phi else np.zeros((len(H.Y), 0))
+    target = H.of(minus_E0)
     w = block.weight
     n_groups = int(sample_group.max()) + 1  # every trajectory, with windows or not
     W = np.bincount(block.group, weights=w, minlength=n_groups)
+    # c_s = sum_r w_r P_rs^2 - W_j (u'P)_s^2, u = w / W_j within the trajectory (P = I for
+    # rows of single samples; every such trajectory has W > 0)
     if P is None:
-        self_weight = w * (1 - w / W[block.group])  # W > 0: every sample is a row
-        A, b = columns, target
+        A, b, squares = columns, target, None
+        shares, own = w / W[block.group], w
     else:
-        A, b = P @ columns, P @ target
-        # c_s = sum_r w_r P_rs^2 - W_j (u'P)_s^2, u = w / W_j within the trajectory
-        shares = P.T @ (w / W[block.group])
-        self_weight = P.multiply(P).T @ w - W[sample_group] * shares**2
-    AA = np.array([[self_weight @ _self_pair(p, q, Y, sigma) for q in phi] for p in phi])
-    Ab = np.array([self_weight @ _self_pair(p, minus_E0, Y, sigma) for p in phi])
-    return Moments(dataclasses.replace(block, A=A, b=b), AA.reshape(len(phi), len(phi)), Ab)
+        A, b, squares = P @ columns, P @ target, P.multiply(P)
+        shares, own = P.T @ (w / W[block.group]), squares.T @ w
+    centring = W[sample_group] * shares**2
+    self_weight = own - centring
+    AA = np.zeros((len(phi), len(phi)))
+    for k, m in zip(*np.triu_indices(len(phi)), strict=True):
+        AA[k, m] = AA[m, k] = self_weight @ H.self_pair(phi[k], phi[m])
+    Ab = np.array([self_weight @ H.self_pair(p, minus_E0) for p in phi])
+
+    def row_shares(theta: Any) -> Any:
+        """Each row's own self-pairs, less its weight's share of the centring term."""
+        d = _pairs_at(phi, _at(phi, minus_E0, theta), H)
+        total = np.stack([np.bincount(sample_group, weights=centring * d[:, k],
+                                      minlength=n_groups) for k in range(len(phi))], axis=1)
+        mine = w[:, None] * (d if squares is None else squares @ d)
+        H.release()
+        return mine - (w / W[block.group])[:, None] * total[block.group]
+
+    H.release()
+    return Moments(dataclasses.replace(block, A=A, b=b), AA.reshape(len(phi), len(phi)), Ab,
+                   row_shares)
 
 
 def _weak_moments(block: Block, functions: list[Any], target: list[Any], operators: list[Any],
-                  Y: np.ndarray, sigma: np.ndarray) -> Moments:
+                  H: _Hermite) -> Moments:
     """Weak rows (window, coordinate) = sum over operators (psi', psi) of Q f(y)."""
     import dataclasses
 
@@ -192,14 +251,37 @@ def _weak_moments(block: Block, functions: list[Any], target: list[Any], operato
         per_target = [tv, tq]
         for Q, fs, t in zip(operators, per_operator, per_target, strict=True):
             if p:
-                A[i::N] += Q @ np.column_stack([unbiased(f, Y, sigma) for f in fs])
-            b[i::N] += Q @ unbiased(t, Y, sigma)
+                A[i::N] += Q @ np.column_stack([H.of(f) for f in fs])
+            b[i::N] += Q @ H.of(t)
         w = block.weight[i::N]
-        for Qa, fa in zip(operators, per_operator, strict=True):
-            for Qc, fc, tc in zip(operators, per_operator, per_target, strict=True):
-                pair = Qa.multiply(Qc).T @ w  # c^ab_s
-                for k in range(p):
-                    Ab[k] += pair @ _self_pair(fa[k], tc, Y, sigma)
-                    for m in range(p):
-                        AA[k, m] += pair @ _self_pair(fa[k], fc[m], Y, sigma)
-    return Moments(dataclasses.replace(block, A=A, b=b), AA, Ab)
+        for a, (Qa, fa) in enumerate(zip(operators, per_operator, strict=True)):
+            live = [k for k in range(p) if not fa[k].is_zero()]
+            for c, (Qc, fc, tc) in enumerate(zip(operators, per_operator, per_target,
+                                                 strict=True)):
+                pair = Qa.multiply(Qc).T @ w  # c^ac_s, which is c^ca_s
+                for k in live:
+                    Ab[k] += pair @ H.self_pair(fa[k], tc)
+                if c < a:   # the pairs (a, c) are those of (c, a), transposed
+                    continue
+                for k in live:
+                    for m in range(k if a == c else 0, p):
+                        if fc[m].is_zero():
+                            continue
+                        value = pair @ H.self_pair(fa[k], fc[m])
+                        AA[k, m] += value
+                        if a != c or m != k:
+                            AA[m, k] += value
+
+    def row_shares(theta: Any) -> Any:
+        out = np.zeros((n_windows * N, p))
+        for i, (per_operator, per_target) in enumerate(zip(functions, target, strict=True)):
+            w = block.weight[i::N]
+            for Qa, fa in zip(operators, per_operator, strict=True):
+                for Qc, fc, tc in zip(operators, per_operator, per_target, strict=True):
+                    d = _pairs_at(fa, _at(fc, tc, theta), H)
+                    out[i::N] += w[:, None] * (Qa.multiply(Qc) @ d)
+        H.release()
+        return out
+
+    H.release()
+    return Moments(dataclasses.replace(block, A=A, b=b), AA, Ab, row_shares)

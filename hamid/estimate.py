@@ -123,16 +123,20 @@ class Scores:
         self.h = means_A @ theta - means_b
 
     def feed(self, sums: uncertainty.ScoreSums, blocks: list[Block], scales: list[float],
-             window_group: npt.NDArray[np.int64] | None) -> list[tuple[int, float, float]]:
+             window_group: npt.NDArray[np.int64] | None,
+             shares: list[npt.NDArray[np.float64]] | None = None
+             ) -> list[tuple[int, float, float]]:
         """Feed one piece of rows: `blocks` over the same windows (weak and joint fits, in
         window order) or energy rows; `scales` multiply each block's weights.
         `window_group`, the trajectory of each window, asks for the windows' summed
-        scores. Returns each block's rows, sum of squared residuals and largest one."""
+        scores. `shares`, per block, each row's part of the noise-bias correction of
+        adjusted least squares (`hamid.adjust.Moments.shares`), which joins its score.
+        Returns each block's rows, sum of squared residuals and largest one."""
         p = len(self.theta)
         if window_group is not None:
             window_scores = np.zeros((len(window_group), p + 1))
         stats = []
-        for block, scale in zip(blocks, scales, strict=True):
+        for k, (block, scale) in enumerate(zip(blocks, scales, strict=True)):
             w = scale * block.weight
             r = block.A @ self.theta - block.b
             if block.has_level:
@@ -143,12 +147,15 @@ class Scores:
                 G, lam = w[:, None] * (block.A @ self.inverse), np.zeros(len(w))
             z = np.column_stack([G, lam])
             stats.append((len(r), float(r @ r), float(np.max(np.abs(r), initial=0.0))))
+            offset = None if shares is None else np.column_stack(
+                [scale * shares[k] @ self.inverse, np.zeros(len(r))])
             if window_group is not None:
-                window_scores += (z * r[:, None]).reshape(len(window_group), -1,
-                                                          p + 1).sum(axis=1)
+                score = z * r[:, None] if offset is None else z * r[:, None] + offset
+                window_scores += score.reshape(len(window_group), -1, p + 1).sum(axis=1)
             else:
                 for j, start, stop in runs(block.group):
-                    sums.add(j, z[start:stop], r[start:stop], w[start:stop])
+                    sums.add(j, z[start:stop], r[start:stop], w[start:stop],
+                             None if offset is None else offset[start:stop])
         if window_group is not None:
             for j, start, stop in runs(window_group):
                 sums.add(j, window_scores[start:stop], np.ones(stop - start),
@@ -165,10 +172,12 @@ def windows_covariance(c: uncertainty.Covariance, n_windows: int) -> uncertainty
 
 
 def covariance(kind: str, fit: Solved, blocks: list[Block],
-               window_group: npt.NDArray[np.int64] | None) -> uncertainty.Covariance:
+               window_group: npt.NDArray[np.int64] | None,
+               shares: list[npt.NDArray[np.float64]] | None = None) -> uncertainty.Covariance:
     """Covariance of a fit of rows in memory: the analytic kinds of `hamid.uncertainty`,
     ``hac`` on the windows' summed scores for weak and joint rows (`Scores`), whose
-    windows belong to the trajectories `window_group` (None for energy rows).
+    windows belong to the trajectories `window_group` (None for energy rows); `shares`,
+    the rows' parts of the correction of an adjusted fit (`Scores.feed`).
 
     Its automatic bandwidth grows with the windows' autocorrelation: overlapping windows,
     and the long memory that the cumulative work of an energy balance brings.
@@ -183,7 +192,7 @@ def covariance(kind: str, fit: Solved, blocks: list[Block],
     by_window = kind == "hac" and window_group is not None
     fed = window_group if by_window else None
     sums, automatic = uncertainty.fed_sums(
-        kind, p, J, lambda s: scores.feed(s, blocks, [1.0] * len(blocks), fed))
+        kind, p, J, lambda s: scores.feed(s, blocks, [1.0] * len(blocks), fed, shares))
     fitted = fit.centred.A.shape[0] - fit.df_resid
     if not by_window:
         return sums.covariance(fit.df_resid, automatic=automatic)
@@ -322,9 +331,12 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
         blocks, block_variance = _balance_blocks(blocks, names, J, window_group)
         rounds = 0
     else:
+        # Adjusted least squares is unbiased only when no row's weight depends on its
+        # own noise: its weights are found at the states of the neighbouring samples.
         blocks, block_variance, rounds = _noise_weighted(
-            blocks, m, records, spans, damping, sigma, unknowns, J)
-    correction = None
+            blocks, m, _neighbour_states(records) if options.bias_correct else records,
+            spans, damping, sigma, unknowns, J)
+    correction, moments = None, None
     if options.bias_correct:
         from hamid import adjust
 
@@ -339,7 +351,8 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
                                                        options.bootstrap, options.seed)
         df = fit.df_resid
     else:
-        c = covariance(options.cov, fit, blocks, window_group)
+        shares = None if moments is None else [mo.shares(fit.theta) for mo in moments]
+        c = covariance(options.cov, fit, blocks, window_group, shares)
         theta_cov, text, df = c.theta, c.description, c.df
         if damping:
             theta_cov, text = _with_propagated_noise(theta_cov, text, fit, blocks, m, records,
@@ -431,6 +444,20 @@ def _with_propagated_noise(theta_cov: Any, text: str, fit: Solved, blocks: list[
             text + "; each variance at least the one propagated from the measurement noise")
 
 
+def _neighbour_states(records: Records) -> Records:
+    """Each sample's state as the mean of its neighbours' (one neighbour at a trajectory's
+    ends): close to the sample's for finely sampled motion, free of its own noise."""
+    X = records.X
+    before = np.ones(len(X), dtype=bool)
+    after = np.ones(len(X), dtype=bool)
+    for start, stop in records.bounds():
+        before[start], after[stop - 1] = False, False
+    previous, following = np.roll(X, 1, axis=0), np.roll(X, -1, axis=0)
+    count = (before.astype(float) + after)[:, None]
+    total = np.where(before[:, None], previous, 0.0) + np.where(after[:, None], following, 0.0)
+    return dataclasses.replace(records, X=np.where(count > 0, total / np.maximum(count, 1), X))
+
+
 def _noise_weighted(blocks: list[Block], model: Model, records: Records,
                     spans: Windows | None, damping: Dissipation, sigma: Any, unknowns: Unknowns,
                     J: int) -> tuple[list[Block], dict[str, float] | None, int]:
@@ -439,7 +466,8 @@ def _noise_weighted(blocks: list[Block], model: Model, records: Records,
     The variance depends on the parameters, so fit, re-weight and refit until the
     parameters settle (relative change below 1e-10, at most `_MAX_ROUNDS`). In a joint
     fit the two blocks are then balanced as without noise (`balance`): the rows of
-    overlapping windows are correlated, which the row variances do not see.
+    overlapping windows are correlated, which the row variances do not see. The
+    variances are taken at the states of `records`.
     """
     names = unknowns.free_names
     unit_size = [dataclasses.replace(b, weight=b.weight / max(float(np.mean(b.b**2)), TINY))
@@ -536,13 +564,13 @@ def residual_sums(energy_rows: Iterable[Block], theta: npt.NDArray[np.float64],
 @dataclass(frozen=True)
 class NoiseCheck:
     """How the measurement noise compares with the motion, and what it does to a linear
-    fit that does not correct for it (docs/method.md, "Noise: weighting and bias
-    correction").
+    fit that does not correct for it (docs/method.md, "The noise check").
 
     ratio : each variable's noise (estimated from 4th differences, or as given) over its
         spread in the records.
     bias : each parameter's least-squares estimate minus the adjusted (bias-corrected)
-        one, in its standard errors; None when the adjustment does not apply.
+        one, in its standard errors; None when the adjustment does not apply, or the
+        residuals do not show the noise.
     uncorrectable : the noise is too large for the adjustment to work at all.
     """
 
@@ -551,17 +579,23 @@ class NoiseCheck:
     uncorrectable: bool = False
 
 
-# Below this noise (as a share of each column's spread) the bias is not looked for.
-_NOISE_LOOKED_AT = 5e-3
+# Residuals whose variance is below this share of the one the noise would put into them
+# do not carry that noise: what the 4th differences found is the motion's own curvature
+# (clean or pre-smoothed records), and no bias follows from it.
+_NOISE_SEEN = 0.1
 
 
 def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unknowns,
                 damping: Dissipation, options: FitOptions, sigma: Any) -> NoiseCheck | None:
     """The noise against the motion, and the errors-in-variables bias of the linear fit
     `fit` of `rows` (None: a refined fit, which has none to look for): least squares
-    against adjusted least squares (`hamid.adjust`), which is unbiased for polynomial
-    energies and measured velocities; None when the trajectories are too short to tell
-    the noise."""
+    against adjusted least squares (`hamid.adjust`) on the same rows, which is unbiased
+    for polynomial energies and measured velocities; None when the trajectories are too
+    short to tell the noise.
+
+    Energy rows of single samples carry the largest bias; window means and weak rows
+    average the noise first, but over long records their bias outgrows their errors too.
+    """
     from hamid import adjust, measurement
 
     m, records = loaded.model, loaded.records
@@ -573,12 +607,9 @@ def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unk
     spread = records.X.std(axis=0)
     ratio = {name: float(s / d) if d > 0 else 0.0
              for name, s, d in zip(m.variables, sigma, spread, strict=True)}
-    # Weak-form windows and window means average the noise before it enters the squares
-    # and cubes; the bias worth its cost (an adjusted fit of every row) is that of the
-    # energy rows of single samples.
-    if (fit is None or rows.windows is not None or options.bias_correct
-            or not m.is_polynomial or options.velocity == "savgol"
-            or damping or max(ratio.values()) < _NOISE_LOOKED_AT):
+    if (fit is None or options.bias_correct or not m.is_polynomial
+            or options.velocity == "savgol" or damping
+            or not _noise_in_residuals(rows.energy, fit, m, records, unknowns, sigma)):
         return NoiseCheck(ratio)
     names = unknowns.free_names
     moments = [adjust.adjusted_moments(b, m, records, sigma, rows.windows, names,
@@ -593,3 +624,12 @@ def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unk
     shift = np.divide(fit.theta - adjusted.theta, stderr,
                       out=np.zeros_like(stderr), where=stderr > 0)
     return NoiseCheck(ratio, dict(zip(names, shift.tolist(), strict=True)))
+
+
+def _noise_in_residuals(energy: Block, fit: LinearFit, model: Model, records: Records,
+                        unknowns: Unknowns, sigma: Any) -> bool:
+    """Whether the energy residuals of the fit show at least a share `_NOISE_SEEN` of the
+    variance that noise of std `sigma` would put into them."""
+    residual = energy.A @ fit.theta - energy.b - fit.h[energy.group]
+    expected = design.row_variance(energy, model, records, unknowns.full(fit.theta), sigma)
+    return bool(np.mean(residual**2) >= _NOISE_SEEN * np.mean(expected))

@@ -241,9 +241,12 @@ class ScoreSums:
         """Whether this pass only finds the bandwidth (hac without one given)."""
         return self.kind == "hac" and self.bandwidth is None
 
-    def add(self, j: int, z: FloatArray, r: FloatArray, w: FloatArray) -> None:
+    def add(self, j: int, z: FloatArray, r: FloatArray, w: FloatArray,
+            offset: FloatArray | None = None) -> None:
         """Rows of trajectory `j` that follow its earlier ones: influence rows z = [G, lam],
-        residuals r and weights w."""
+        residuals r and weights w. `offset` is a part of each row's score z r that the
+        residual does not carry (a corrected score's correction); the robust estimators
+        add it, the classical one, which models the residuals alone, has no use for it."""
         if len(r) == 0:
             return
         self.sizes[j] += len(r)
@@ -251,7 +254,7 @@ class ScoreSums:
         if self.kind == "classical":
             self.meat[j] += (z / w[:, None]).T @ z
             return
-        s = z * r[:, None]
+        s = z * r[:, None] if offset is None else z * r[:, None] + offset
         if self.kind == "hc":
             self.meat[j] += s.T @ s
         elif self.needs_bandwidth:

@@ -69,8 +69,9 @@ def test_a_noise_bias_larger_than_the_errors_names_the_fix():
         assert p.ci_low <= {"k": 1.0, "k3": 0.5}[p.name] <= p.ci_high
 
 
-@pytest.mark.parametrize("method", ["joint", "energy"])
-def test_an_unbiased_fit_gives_no_bias_warning(method):
-    """1% noise over a short record: the bias is well inside the errors."""
-    result = hamid.fit(_noisy(0.01, 40.0), method=method)
+@pytest.mark.parametrize("method, relative", [("joint", 0.01), ("energy", 0.002)])
+def test_an_unbiased_fit_gives_no_bias_warning(method, relative):
+    """A short record: the joint rows at 1% noise and the energy rows at 0.2% are biased
+    by well under a third of their errors (tests/test_bias.py measures it)."""
+    result = hamid.fit(_noisy(relative, 40.0), method=method)
     assert not _has(result.warnings, "biases")
