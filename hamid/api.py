@@ -195,7 +195,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
             records = source.records if chunks is None else source.whole(n_samples)
             refined, refinement = refine.refine(linear, m, records, damping_forces, unknowns,
                                                 fit_plan, sigma, opts.velocity == "savgol",
-                                                progress)
+                                                rows if chunks is None else None, progress)
             fitted = refined or linear
             del records
         else:
