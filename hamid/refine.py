@@ -214,13 +214,14 @@ def _held_out(fit: SegmentFit, theta_linear: npt.NDArray[np.float64], unknowns: 
               n_trajectories: int, rows: Rows | None,
               progress: Callable[[str], None] | None) -> dict[str, Any] | None:
     """How the refined and the linear parameters predict segments held out of their fits,
-    or None with fewer than two segments.
+    or None with fewer than two segments (or refits that cannot be made).
 
     The segments are cut into FOLDS contiguous blocks; each block is predicted by the
-    refinement fitted without it (one Gauss-Newton step from the converged fit) and by
-    the linear fit refitted without the windows that reach into it, each segment's
-    initial state refitted. `t` is the paired t statistic of the two misfits over the
-    segments (positive when the refinement predicts worse).
+    refinement fitted without it (to second order from the converged fit,
+    `SegmentFit.held_out_folds`) and by the linear fit refitted without the windows that
+    reach into it (integrated), each segment's initial state refitted. `t` is the paired
+    t statistic of the two misfits over the segments (positive when the refinement
+    predicts worse).
     """
     S = fit.segments
     if S < 2:
@@ -231,7 +232,7 @@ def _held_out(fit: SegmentFit, theta_linear: npt.NDArray[np.float64], unknowns: 
     linear = np.repeat(theta_linear[None], S, axis=0)
     refitted = rows is not None and rows.windows is not None
     try:
-        refined = fit.fold_parameters(folds)
+        refined = fit.held_out_folds(folds)[1]
         if refitted:
             assert rows is not None and rows.windows is not None
             for k in range(K):
@@ -241,15 +242,14 @@ def _held_out(fit: SegmentFit, theta_linear: npt.NDArray[np.float64], unknowns: 
                     [fit.problem.pieces[s] for s in np.flatnonzero(held)])
     except (np.linalg.LinAlgError, FitError):
         return None
-    costs = fit.held_out([refined, linear], progress)
+    predicted = fit.held_out(linear, progress)
     values = fit.problem.n_used
-    difference = costs[0] - costs[1]
+    difference = refined - predicted
     spread = float(np.std(difference, ddof=1))
-    mean = float(np.mean(difference))
-    t = mean / spread * np.sqrt(S) if spread > 0 else 0.0
+    t = float(np.mean(difference)) / spread * np.sqrt(S) if spread > 0 else 0.0
     return {"rule": "held-out", "folds": K, "linear_refitted": refitted,
-            "held_out_linear": float(costs[1].sum() / values),
-            "held_out_refined": float(costs[0].sum() / values),
+            "held_out_linear": float(predicted.sum() / values),
+            "held_out_refined": float(refined.sum() / values),
             "t": float(t), "t_limit": uncertainty.t_quantile(S - 1, HELD_OUT_LEVEL)}
 
 

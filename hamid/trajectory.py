@@ -91,12 +91,6 @@ class _Problem:
         """The same segments under other weights."""
         return dataclasses.replace(self, weight=weight)
 
-    def repeated(self, times: int) -> _Problem:
-        """The segments `times` over, one after the other (to integrate at several
-        parameters in one pass)."""
-        return dataclasses.replace(self, pieces=self.pieces * times, tau=self.tau * times,
-                                   measured=self.measured * times)
-
     @property
     def n_used(self) -> int:
         """Weighted values: samples times variables with a weight."""
@@ -144,68 +138,71 @@ class SegmentFit:
                             np.nan)
 
     @cached_property
-    def _reduced(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """Each segment's Schur complement (S, p, p) and score (S, p) at the final
-        parameters, its initial state eliminated (the scores sum to zero)."""
+    def _reduced(self) -> tuple[npt.NDArray[np.float64], ...]:
+        """Each segment's misfit (S,), score (S, p) and Schur complement (S, p, p) at the
+        final parameters, its initial state eliminated: to second order (Gauss-Newton),
+        the misfit at the final parameters plus d, the state refitted, is
+        misfit - 2 score.d + d.schur.d. The scores sum to zero."""
         normal = self.normal
         inverse = np.linalg.inv(normal.H_xx)
         schur = normal.H_tt - np.einsum("sak,sab,sbl->skl", normal.H_xt, inverse, normal.H_xt)
         score = normal.g_t - np.einsum("sak,sab,sb->sk", normal.H_xt, inverse, normal.g_x)
-        return schur, score - schur @ self.shift
+        misfit = normal.cost.sum(axis=1) - np.einsum("sa,sab,sb->s", normal.g_x, inverse,
+                                                     normal.g_x)
+        # from the point the equations were made at to the final one
+        shift = self.shift
+        misfit = misfit - 2 * score @ shift + np.einsum("k,skl,l->s", shift, schur, shift)
+        return misfit, score - schur @ shift, schur
 
     def covariance(self, kind: str) -> npt.NDArray[np.float64]:
         """The free parameters' covariance: "scaled", the Gauss-Newton one times the misfit
         per degree of freedom; "sandwich", robust to any error shared within a segment
         (segments independent), with the small-sample factor S / (S - p)."""
-        schur, score = self._reduced
+        _, score, schur = self._reduced
         inverse = np.linalg.inv(schur.sum(axis=0))
         if kind == "scaled":
             return inverse * self.chi2_per_dof
         S, p = score.shape
         return inverse @ (score.T @ score) @ inverse * S / max(S - p, 1)
 
-    def fold_parameters(self, folds: npt.NDArray[np.intp]) -> npt.NDArray[np.float64]:
-        """Every parameter refitted without each segment's fold, row by segment (S, P):
-        one Gauss-Newton step from the converged fit over the other folds' segments."""
-        schur, score = self._reduced
+    def held_out_folds(self, folds: npt.NDArray[np.intp]) -> tuple[Any, Any]:
+        """Every parameter refitted without each segment's fold, row by segment (S, P),
+        and each segment's misfit at its row, its initial state refitted (S,).
+
+        Both to second order from the converged fit (one Gauss-Newton step over the other
+        folds' segments): the refits move the parameters by about a standard error."""
+        misfit, score, schur = self._reduced
         total = schur.sum(axis=0)
         thetas = np.repeat(self.theta[None], self.segments, axis=0)
+        held_misfit = np.empty(self.segments)
         for k in np.unique(folds):
             held = folds == k
-            step = np.linalg.solve(total - schur[held].sum(axis=0), score[held].sum(axis=0))
-            thetas[np.ix_(held, self.free)] -= step
-        return thetas
+            d = -np.linalg.solve(total - schur[held].sum(axis=0), score[held].sum(axis=0))
+            thetas[np.ix_(held, self.free)] += d
+            held_misfit[held] = (misfit[held] - 2 * score[held] @ d
+                                 + np.einsum("k,skl,l->s", d, schur[held], d))
+        return thetas, np.maximum(held_misfit, 0.0)
 
-    def held_out(self, thetas: list[npt.NDArray[np.float64]],
+    def held_out(self, thetas: npt.NDArray[np.float64],
                  progress: Callable[[str], None] | None = None) -> npt.NDArray[np.float64]:
-        """Each segment's weighted misfit at other parameters, its initial state refitted.
-
-        `thetas` are arrays (S, P) of every parameter, row by segment; the result is
-        (len(thetas), S). The states are refitted by one Gauss-Newton step from the fitted
-        ones, kept only where it lowers the misfit.
-        """
-        problem = self.problem.repeated(len(thetas))
-        stacked = np.concatenate(thetas)
-        states = np.tile(self.states, (len(thetas), 1))
-        total = len(problem.tau)
-
-        def batch_done(done: int, stage: int) -> None:
+        """Each segment's weighted misfit at other parameters (every parameter, row by
+        segment: (S, P)), its initial state refitted from the fitted one by a Gauss-Newton
+        step (the misfit that step predicts)."""
+        def batch_done(done: int) -> None:
             if progress is not None:
-                progress(f"held-out check of the trajectory fit: {stage * total + done:,} "
-                         f"of {2 * total:,} segments")
+                progress(f"held-out check of the trajectory fit: {done:,} of "
+                         f"{self.segments:,} segments")
 
         with np.errstate(all="ignore"):
-            normal = _normal_equations(problem, stacked, states, (), None, self.rtol,
-                                       lambda done: batch_done(done, 0))
+            normal = _normal_equations(self.problem, thetas, self.states, (), None,
+                                       self.rtol, batch_done)
+            misfit = normal.cost.sum(axis=1)
             try:
                 step = np.linalg.solve(normal.H_xx, normal.g_x[..., None])[..., 0]
             except np.linalg.LinAlgError:
-                step = np.zeros_like(states)
-            stepped = _normal_equations(problem, stacked, states + step, (), None, self.rtol,
-                                        lambda done: batch_done(done, 1), derivatives=False)
-        before, after = normal.cost.sum(axis=1), stepped.cost.sum(axis=1)
-        best = np.where(np.isfinite(after) & (after < before), after, before)
-        return best.reshape(len(thetas), -1)
+                return misfit
+        predicted = misfit - np.einsum("sa,sa->s", normal.g_x, step)
+        return np.where(np.isfinite(predicted), np.maximum(predicted, 0.0), misfit)
 
 
 def _segments(records: Records, t: npt.NDArray[np.float64],
