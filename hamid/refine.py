@@ -35,7 +35,7 @@ __all__ = ["level_errors", "refine"]
 
 CHI2_LIMIT = 1.5         # weighted misfit per degree of freedom that the noise explains
 FOLDS = 5                # contiguous blocks of segments held out in turn
-CHECKED_SEGMENTS = 2 * FOLDS  # fewest segments that check a fit beyond the noise
+CHECKED_SEGMENTS = 2 * FOLDS  # fewest segments the held-out check is made with
 REWEIGHT_ROUNDS = 3      # fits at residual-based noise levels, at most
 REWEIGHT_SETTLED = 0.1   # relative change of every noise level that ends them
 HELD_OUT_LEVEL = 0.95    # refused when the refinement predicts worse beyond this bound
@@ -74,10 +74,11 @@ class _Noise:
 
     def raised(self, fit: SegmentFit) -> _Noise:
         """Each level not given by the user raised from its base to the fit's root mean
-        square residual of its variable, where that is larger."""
+        square residual of its variable, where the base does not explain that (its misfit
+        per value, the squared ratio, is CHI2_LIMIT or more)."""
         rms = np.nan_to_num(fit.residual_rms)
-        return dataclasses.replace(self, levels=np.where(
-            self.used & ~self.given, np.maximum(self.base, rms), self.base))
+        beyond = self.used & ~self.given & (rms**2 >= CHI2_LIMIT * self.base**2)
+        return dataclasses.replace(self, levels=np.where(beyond, rms, self.base))
 
     def settled(self, other: _Noise) -> bool:
         """Whether no level of `other` is more than REWEIGHT_SETTLED away from this one."""
@@ -143,7 +144,7 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Damping,
     beyond = (f"the integrated model misses the recording by {first_misfit:.3g} times the "
               "noise variance, and ")
     acceptance = None
-    if within or fit.segments >= CHECKED_SEGMENTS:
+    if fit.segments >= CHECKED_SEGMENTS:
         acceptance = _held_out(fit, theta_linear, unknowns, records.n_trajectories, rows,
                                progress)
     info["acceptance"] = acceptance or {"rule": "noise"}
@@ -214,19 +215,18 @@ def _held_out(fit: SegmentFit, theta_linear: npt.NDArray[np.float64], unknowns: 
               n_trajectories: int, rows: Rows | None,
               progress: Callable[[str], None] | None) -> dict[str, Any] | None:
     """How the refined and the linear parameters predict segments held out of their fits,
-    or None with fewer than two segments (or refits that cannot be made).
+    or None when the refits cannot be made.
 
-    The segments are cut into FOLDS contiguous blocks; each block is predicted by the
+    The segments (at least CHECKED_SEGMENTS, so that a block left out moves the
+    parameters by about a standard error and the second-order refits hold) are cut into
+    FOLDS contiguous blocks; each block is predicted by the
     refinement fitted without it (to second order from the converged fit,
     `SegmentFit.held_out_folds`) and by the linear fit refitted without the windows that
     reach into it (integrated), each segment's initial state refitted. `t` is the paired
     t statistic of the two misfits over the segments (positive when the refinement
     predicts worse).
     """
-    S = fit.segments
-    if S < 2:
-        return None
-    K = min(FOLDS, S)
+    S, K = fit.segments, FOLDS
     folds = np.arange(S) * K // S
     free = list(fit.free)
     linear = np.repeat(theta_linear[None], S, axis=0)

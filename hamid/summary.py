@@ -291,7 +291,7 @@ def _refinement_notes(refinement: dict[str, Any] | None) -> list[str]:
     if not refinement["applied"]:
         if not refinement["reason"].startswith("the integrated model"):
             return []   # left aside for an option or the model's form: said in kind_reason
-        return [f"the trajectory refinement was not kept ({refinement['reason']}); the "
+        return [f"the trajectory refinement was not kept: {refinement['reason']}; the "
                 "linear fit is reported: the model may be wrong or incomplete"]
     raised = {name: entry["sigma"] for name, entry in refinement["noise"].items()
               if entry["source"] == "residuals"}
