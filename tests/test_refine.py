@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 
 import numpy as np
 import pandas as pd
@@ -14,9 +15,12 @@ from conftest import DUFFING, with_noise
 from scipy.signal import savgol_coeffs, savgol_filter
 
 import hamid
-from hamid import measurement, options, refine, trajectory, writing
+from hamid import estimate, measurement, options, refine, trajectory, writing
+from hamid.design import Damping
 from hamid.model import model_from_spec
 from hamid.records import Records
+from hamid.report import render
+from hamid.unknowns import Unknowns
 
 # A wrong model for Duffing data: the quartic spring alone, no linear one.
 QUARTIC = model_from_spec({"name": "quartic", "coordinates": ["x"], "velocities": ["v"],
@@ -173,7 +177,7 @@ def test_held_out_folds_match_refits_without_them(clean_records):
     records = Records(frame[["x", "v"]].to_numpy(), frame["t"].to_numpy(),
                       frame["trajectory"].to_numpy() - 1, (1, 2))
     model = hamid.load_model("duffing")
-    damping = hamid.design.Damping((), model.coordinates)
+    damping = Damping((), model.coordinates)
     weight = 1 / measurement.estimate_noise(records.X, records.bounds())
     fit = trajectory.fit(model, records, damping, [1.0, 0.5], [0, 1], 5.7, weight)
     assert fit.segments == 10
@@ -228,3 +232,45 @@ def test_bounds_cover_the_truth_with_smoothed_velocities_and_unmodelled_friction
                 hits[p.name] += p.ci_low <= truth[p.name] <= p.ci_high
     for name, count in hits.items():
         assert 0.85 <= count / n <= 0.99, (name, count / n)
+
+
+def test_linear_refits_without_a_block_move_by_about_its_errors():
+    """The linear fit refitted without the windows that reach into a block of samples:
+    another estimate from fewer data, a fraction of its standard errors away."""
+    clean = hamid.simulate({**DUFFING, "simulate": {"t_end": 120.0, "dt": 0.05}})
+    frame = with_noise(clean, 0.01, seed=4)
+    captured = {}
+    fit_rows = estimate.fit_rows
+
+    def keep_rows(*args, **kwargs):
+        captured["fit"] = fit_rows(*args, **kwargs)
+        return captured["fit"]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(estimate, "fit_rows", keep_rows)
+        hamid.fit(frame, method="joint")
+    linear, _, rows = captured["fit"]
+    unknowns = Unknowns.of(["k", "k3"], [], {})
+    errors = np.sqrt(np.diag(linear.covariance))
+    assert refine._linear_without(rows, unknowns, 2, []) == pytest.approx(linear.theta,
+                                                                          rel=1e-12)
+    block = refine._linear_without(rows, unknowns, 2, [(0, 480)])   # a fifth of the record
+    assert np.all(np.abs(block - linear.theta) < 2 * errors)
+    assert np.all(np.abs(block - linear.theta) > 1e-3 * errors)
+
+
+def test_the_table_says_how_the_refinement_weighted_and_was_checked():
+    result = hamid.fit("sample_data/pendulum_encoder.csv", "sample_data/pendulum.toml",
+                       damping="viscous")
+    text = render(result.to_dict(), "table", width=200)
+    assert "sandwich over the segments of the trajectory fit" in text
+    assert re.search(r"refinement noise σ +theta [0-9.e-]+, omega [0-9.e-]+ from its "
+                     r"residuals", text)
+    assert re.search(r"held-out check +misfit [0-9.]+ against [0-9.]+ of the linear fit "
+                     r"over 5 folds, t = -?[0-9.]+ \(refused above [0-9.]+\)", text)
+    # a report saved before these keys still renders, without those rows
+    old = result.to_dict()
+    old["method"]["refinement"] = {k: old["method"]["refinement"][k] for k in (
+        "applied", "segments", "segment_seconds", "iterations", "chi2_per_dof")}
+    text = render(old, "table", width=200)
+    assert "trajectory fit over 12 segments" in text and "held-out check" not in text
