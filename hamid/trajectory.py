@@ -92,9 +92,13 @@ class _Problem:
         return dataclasses.replace(self, weight=weight)
 
     @property
+    def n_samples(self) -> int:
+        return sum(len(x) for x in self.tau)
+
+    @property
     def n_used(self) -> int:
         """Weighted values: samples times variables with a weight."""
-        return sum(len(x) for x in self.tau) * int(np.count_nonzero(self.weight))
+        return self.n_samples * int(np.count_nonzero(self.weight))
 
 
 @dataclass(frozen=True, eq=False)
@@ -131,7 +135,7 @@ class SegmentFit:
     @property
     def residual_rms(self) -> npt.NDArray[np.float64]:
         """Root mean square residual of each variable, in its own units (NaN unweighted)."""
-        n = sum(len(x) for x in self.problem.tau)
+        n = self.problem.n_samples
         weight = self.problem.weight
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(weight > 0, np.sqrt(self.normal.cost.sum(axis=0) / n) / weight,
@@ -228,7 +232,8 @@ def segment_count(records: Records, length: float) -> int:
 
 def refine(model: Model, records: Records, damping: Damping, theta_all: npt.ArrayLike,
            free: list[int], period: float, weight: npt.NDArray[np.float64],
-           progress: Callable[[str], None] | None = None) -> SegmentFit:
+           progress: Callable[[str], None] | None = None,
+           beyond: float | None = None) -> SegmentFit:
     """Parameters whose integrated segments fit the recording best (module docstring).
 
     `theta_all` holds every parameter (fixed ones at their values) and starts the search;
@@ -236,13 +241,15 @@ def refine(model: Model, records: Records, damping: Damping, theta_all: npt.Arra
     for a variable that carries no independent information, e.g. derived velocities).
     Segments of four periods are tried first and halved while the fit fails, down to
     one period; raises RefinementFailed when even that fails. `progress`, if given, hears
-    of every batch of segments integrated.
+    of every batch of segments integrated. With `beyond`, Gauss-Newton stops where the
+    misfit per degree of freedom it heads for exceeds that: the weights are wrong, and
+    the point reached starts a fit under others.
     """
     periods = SEGMENT_PERIODS
     while True:
         try:
             return fit(model, records, damping, theta_all, free, periods * period, weight,
-                       progress)
+                       progress, beyond=beyond)
         except RefinementFailed as exc:
             if periods / 2 < MIN_SEGMENT_PERIODS:
                 raise RefinementFailed(f"{exc}, even over segments of {periods:g} period"
@@ -252,13 +259,14 @@ def refine(model: Model, records: Records, damping: Damping, theta_all: npt.Arra
 
 def fit(model: Model, records: Records, damping: Damping, theta_all: npt.ArrayLike,
         free: list[int], length: float, weight: npt.NDArray[np.float64],
-        progress: Callable[[str], None] | None = None, stage: str = "") -> SegmentFit:
+        progress: Callable[[str], None] | None = None, stage: str = "",
+        beyond: float | None = None) -> SegmentFit:
     """The fit over segments of about `length` seconds (`refine`); `stage` names it in
     the progress messages. Raises RefinementFailed when it fails."""
     try:
         problem = _Problem.cut(model, records, damping, length, weight)
         return _fit_segments(problem, np.array(theta_all, float), tuple(free), None,
-                             LOOSE_RTOL, progress, stage)
+                             LOOSE_RTOL, progress, stage, beyond)
     except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
         raise RefinementFailed(f"{exc}") from exc
 
@@ -279,8 +287,11 @@ class _SegmentFitFailed(Exception):
 
 def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple[int, ...],
                   X0: npt.NDArray[np.float64] | None, rtol: float,
-                  progress: Callable[[str], None] | None, stage: str = "") -> SegmentFit:
-    """Gauss-Newton over the free parameters and every segment's initial state."""
+                  progress: Callable[[str], None] | None, stage: str = "",
+                  beyond: float | None = None) -> SegmentFit:
+    """Gauss-Newton over the free parameters and every segment's initial state; stopped
+    early when the misfit per degree of freedom an undamped step heads for is over
+    `beyond`."""
     free_list = list(free)
     if X0 is None:
         X0 = np.array([x[0] for x in problem.measured])
@@ -311,8 +322,14 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
             theta[free_list] += d_theta
             X0 = X0 + d_x
             iterations += 1
-            # the parameters' spread, scaled by the misfit (the noise may be misjudged)
             dof = max(problem.n_used - len(free) - X0.size, 1)
+            if beyond is not None and damping_factor == 0.0:
+                heading = normal.total - float(normal.g_t.sum(axis=0) @ d_theta
+                                               + np.einsum("sa,sa->", normal.g_x, d_x))
+                if heading > beyond * dof:   # stay at the point evaluated
+                    theta, X0, d_theta = best[1], best[2], np.zeros_like(d_theta)
+                    break
+            # the parameters' spread, scaled by the misfit (the noise may be misjudged)
             spread = np.sqrt(np.abs(np.diag(np.linalg.inv(schur))) * normal.total / dof)
             settled = np.all(np.abs(d_theta) <= 1e-9 * np.abs(theta[free_list]) + 1e-3 * spread)
             if damping_factor == 0.0 and settled:
