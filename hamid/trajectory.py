@@ -14,7 +14,9 @@ M(q; theta) a = dL/dq - (d/dq dL/dv) v + F, every piece linear in (1, theta)
 (`hamid.dynamics`, with weights per state). Segments
 keep the integration short enough that a wrong start cannot wander off into another
 minimum, and the per-segment states are eliminated from the normal equations (Schur
-complement), so the work grows linearly with the record.
+complement), so the work grows linearly with the record. A `SegmentFit` also gives the
+parameters' covariance (misfit-scaled, or the sandwich over segments) and what the
+parameters predict for segments left out of the fit, for `hamid.refine` to judge it by.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -103,7 +105,8 @@ class _Problem:
 
 @dataclass(frozen=True, eq=False)
 class SegmentFit:
-    """A converged fit of the integrated segments at one set of weights.
+    """A fit of the integrated segments at one set of weights: converged, or stopped
+    where its weights proved hopeless (`refine`'s `beyond`).
 
     `theta` holds every parameter (fixed ones at their values), `states` each segment's
     fitted initial state; `normal` are the Gauss-Newton normal equations at the last point
@@ -146,7 +149,7 @@ class SegmentFit:
         """Each segment's misfit (S,), score (S, p) and Schur complement (S, p, p) at the
         final parameters, its initial state eliminated: to second order (Gauss-Newton),
         the misfit at the final parameters plus d, the state refitted, is
-        misfit - 2 score.d + d.schur.d. The scores sum to zero."""
+        misfit - 2 score.d + d.schur.d. The scores sum to zero once converged."""
         normal = self.normal
         inverse = np.linalg.inv(normal.H_xx)
         schur = normal.H_tt - np.einsum("sak,sab,sbl->skl", normal.H_xt, inverse, normal.H_xt)
@@ -158,7 +161,7 @@ class SegmentFit:
         misfit = misfit - 2 * score @ shift + np.einsum("k,skl,l->s", shift, schur, shift)
         return misfit, score - schur @ shift, schur
 
-    def covariance(self, kind: str) -> npt.NDArray[np.float64]:
+    def covariance(self, kind: Literal["scaled", "sandwich"]) -> npt.NDArray[np.float64]:
         """The free parameters' covariance: "scaled", the Gauss-Newton one times the misfit
         per degree of freedom; "sandwich", robust to any error shared within a segment
         (segments independent), with the small-sample factor S / (S - p)."""
@@ -169,7 +172,8 @@ class SegmentFit:
         S, p = score.shape
         return inverse @ (score.T @ score) @ inverse * S / max(S - p, 1)
 
-    def held_out_folds(self, folds: npt.NDArray[np.intp]) -> tuple[Any, Any]:
+    def held_out_folds(self, folds: npt.NDArray[np.intp]
+                       ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """Every parameter refitted without each segment's fold, row by segment (S, P),
         and each segment's misfit at its row, its initial state refitted (S,).
 
