@@ -186,9 +186,10 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
             opts, None if chunks is None else 8 * n_samples * (len(m.variables) + 2))
         if obstacle is None:
             records = source.records if chunks is None else source.whole(n_samples)
+            given = sigma if isinstance(opts.noise, Mapping) else None   # not --noise auto
             refined, refinement = refine.refine(linear, m, records, damping_forces, unknowns,
-                                                fit_plan, sigma, opts.velocity == "savgol",
-                                                progress)
+                                                fit_plan, given, opts.velocity == "savgol",
+                                                rows if chunks is None else None, progress)
             fitted = refined or linear
             del records
         else:

@@ -1,37 +1,119 @@
 """The trajectory refinement of an automatic joint fit: the linear fit's parameters refined
 by fitting the model's integrated motion to the recording (`hamid.trajectory` does the
-work; docs/method.md, "The trajectory refinement")."""
+work; docs/method.md, "The trajectory refinement").
+
+What is decided here: the noise each variable is weighted by (the user's, the difference
+estimate, or, when the misfit shows that estimate too small, the fit's own residual
+scale), which covariance the refined parameters get, and whether they replace the linear
+ones: only when they predict segments held out of their fit no worse than the linear
+fit's parameters do (blocked cross-validation).
+"""
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Sequence
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
 
-from hamid import design, measurement
+from hamid import design, estimate, measurement, uncertainty
 from hamid.dissipation import Dissipation
-from hamid.estimate import LinearFit, ResidualSums
+from hamid.errors import FitError
+from hamid.estimate import LinearFit, ResidualSums, Rows
 from hamid.expr import Func
 from hamid.model import Model
 from hamid.plan import FitPlan
 from hamid.records import Records
 from hamid.unknowns import Unknowns
 
+if TYPE_CHECKING:
+    from hamid.trajectory import SegmentFit
+
 __all__ = ["level_errors", "refine"]
+
+CHI2_LIMIT = 1.5         # weighted misfit per degree of freedom that the noise explains
+HOPELESS = 100           # times that: no use converging at those weights
+FOLDS = 5                # contiguous blocks of segments held out in turn
+CHECKED_SEGMENTS = 2 * FOLDS  # fewest segments the held-out check is made with
+REWEIGHT_ROUNDS = 2      # fits at residual-based noise levels, at most
+REWEIGHT_SETTLED = 0.1   # relative change of every noise level that ends them sooner
+HELD_OUT_LEVEL = 0.95    # refused when the refinement predicts worse beyond this bound
+NOISE_FLOOR = 1e-9       # of a variable's spread: the smallest noise level weighted by
+
+
+@dataclass(frozen=True)
+class _Noise:
+    """The noise level of each variable that the trajectory fit weights by.
+
+    `base` is the user's level where given, else the estimate from differences;
+    `levels` are the ones in use, raised above `base` where the fit's residuals showed it
+    too small. Variables not `used` (derived velocities) get no weight.
+    """
+
+    base: npt.NDArray[np.float64]
+    levels: npt.NDArray[np.float64]
+    given: npt.NDArray[np.bool_]
+    used: npt.NDArray[np.bool_]
+    floor: npt.NDArray[np.float64]
+
+    @classmethod
+    def of(cls, records: Records, sigma: npt.NDArray[np.float64] | None,
+           n_coordinates: int, derived_velocities: bool) -> _Noise:
+        differences = measurement.estimate_noise(records.X, records.bounds())
+        given = np.zeros(len(differences), bool) if sigma is None else sigma > 0
+        base = np.where(given, 0.0 if sigma is None else sigma, differences)
+        used = np.ones(len(base), bool)
+        if derived_velocities:
+            used[n_coordinates:] = False  # derived from the positions: nothing of their own
+        return cls(base, base, given, used, NOISE_FLOOR * records.X.std(axis=0))
+
+    @property
+    def weights(self) -> npt.NDArray[np.float64]:
+        return np.where(self.used, 1.0 / np.maximum(self.levels, self.floor), 0.0)
+
+    def raised(self, fit: SegmentFit) -> _Noise:
+        """Each level not given by the user raised from its base to the fit's root mean
+        square residual of its variable, where the base does not explain that (its misfit
+        per value, the squared ratio, is CHI2_LIMIT or more)."""
+        rms = np.nan_to_num(fit.residual_rms)
+        beyond = self.used & ~self.given & (rms**2 >= CHI2_LIMIT * self.base**2)
+        return dataclasses.replace(self, levels=np.where(beyond, rms, self.base))
+
+    def misfit(self, fit: SegmentFit) -> float:
+        """The fit's misfit per degree of freedom weighted by the base levels (the noise
+        given or estimated from differences)."""
+        squares = fit.problem.n_samples * np.nan_to_num(fit.residual_rms) ** 2
+        return float(np.sum(squares[self.used] / np.maximum(self.base, self.floor)[self.used]
+                            ** 2) / fit.dof)
+
+    def settled(self, other: _Noise) -> bool:
+        """Whether no level of `other` is more than REWEIGHT_SETTLED away from this one."""
+        return bool(np.all(np.abs(other.levels - self.levels)
+                           <= REWEIGHT_SETTLED * self.levels))
+
+    def report(self, names: tuple[str, ...]) -> dict[str, dict[str, Any]]:
+        """Variable -> the level used (None: no weight) and where it came from."""
+        source = np.where(self.given, "given", np.where(self.levels > self.base,
+                                                        "residuals", "differences"))
+        return {name: {"sigma": float(self.levels[k]), "source": str(source[k])}
+                if self.used[k] else {"sigma": None, "source": "derived"}
+                for k, name in enumerate(names)}
 
 
 def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipation,
            unknowns: Unknowns, plan: FitPlan, sigma: npt.NDArray[np.float64] | None,
-           derived_velocities: bool,
+           derived_velocities: bool, rows: Rows | None,
            progress: Callable[[str], None] | None) -> tuple[LinearFit | None, dict[str, Any]]:
-    """The refined fit, or None when the integrated model does not fit the recording, and
-    what the report says of it.
+    """The refined fit, or None when it is not kept, and what the report says of it.
 
-    The refined fit's levels are the mean energies at its parameters; their standard
-    errors need a pass over the energy residuals there (`level_errors`) and are NaN here.
+    `sigma` is the noise the user gave (0 where not given), `rows` the linear fit's rows
+    when it was made in memory (its refits without each block need them; without them
+    the held-out check compares with the linear fit of the whole record). The refined
+    fit's levels are the mean energies at its parameters; their standard errors need a
+    pass over the energy residuals there (`level_errors`) and are NaN here.
     """
     for what, kinks in (("energy", model.kinks),
                         ("dissipation", [k for part in damping.kinks for k in part])):
@@ -43,30 +125,163 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipati
                 "steps without end")}
     from hamid import trajectory  # scipy.integrate: only when a fit is refined
 
-    N = len(model.coordinates)
-    noise = measurement.estimate_noise(records.X, records.bounds())
-    if sigma is not None:
-        noise = np.where(sigma > 0, sigma, noise)
-    weight = 1.0 / np.maximum(noise, 1e-9 * records.X.std(axis=0))
-    if derived_velocities:
-        weight[N:] = 0.0  # derived from the positions: no information of their own
+    noise = _Noise.of(records, sigma, len(model.coordinates), derived_velocities)
     period = design.median_period(plan.scales)
     if period is None:   # windows given with --weak-window, no period found
         period = 2 * plan.window
+    theta_linear, free = unknowns.full(linear.theta), list(unknowns.free)
     try:
-        refined = trajectory.refine(model, records, damping, unknowns.full(linear.theta),
-                                    list(unknowns.free), period, weight, progress)
+        fit = trajectory.refine(model, records, damping, theta_linear, free, period,
+                                noise.weights, progress, beyond=HOPELESS * CHI2_LIMIT)
+        within = fit.chi2_per_dof < CHI2_LIMIT
+        if not within:
+            # fewer segments than the held-out check needs: shorter ones, down to a period
+            length = fit.problem.length
+            while (trajectory.segment_count(records, length) < CHECKED_SEGMENTS
+                   and length / 2 >= trajectory.MIN_SEGMENT_PERIODS * period):
+                length /= 2
+            fit, noise = _beyond_noise(fit, noise, length, lambda weight: trajectory.fit(
+                model, records, damping, fit.theta, free, length, weight, progress,
+                "reweighted, "), progress)
     except trajectory.RefinementFailed as exc:
         return None, {"applied": False, "reason": f"the integrated model does not fit the "
                       f"recording: {exc}"}
+    info: dict[str, Any] = {
+        "segments": fit.segments, "segment_seconds": fit.problem.length,
+        "iterations": fit.iterations, "chi2_per_dof": fit.chi2_per_dof,
+        "noise_chi2_per_dof": noise.misfit(fit), "noise": noise.report(model.variables),
+        "covariance": "misfit-scaled" if within else "sandwich"}
+    beyond = (f"the integrated model misses the recording by {noise.misfit(fit):.3g} times the "
+              "noise variance, and ")
+    acceptance = None
+    if fit.segments >= CHECKED_SEGMENTS:
+        acceptance = _held_out(fit, theta_linear, unknowns, records.n_trajectories, rows,
+                               progress)
+    info["acceptance"] = acceptance or {"rule": "noise"}
+    reason = None
+    if acceptance is None and not within:
+        reason = beyond + (
+            f"the record holds {fit.segments} segments of one period, too few to check it on "
+            f"segments held out of its fit (at least {CHECKED_SEGMENTS})"
+            if fit.segments < CHECKED_SEGMENTS else
+            "its fits without a block of segments could not be made to check it")
+    elif acceptance is not None and acceptance["t"] > acceptance["t_limit"]:
+        reason = ("the integrated model, fitted without each block of segments, predicts "
+                  "the held-out segments worse than the linear fit does (misfit "
+                  f"{acceptance['held_out_refined']:.5g} against "
+                  f"{acceptance['held_out_linear']:.5g} per value, t = {acceptance['t']:.3g} "
+                  f"over {fit.segments} segments)")
+    if reason is not None:
+        return None, {"applied": False, "reason": reason, **info}
+    return _refined(linear, fit, within), {"applied": True, **info}
+
+
+def _beyond_noise(fit: SegmentFit, noise: _Noise, length: float,
+                  cut: Callable[[npt.NDArray[np.float64]], SegmentFit],
+                  progress: Callable[[str], None] | None) -> tuple[SegmentFit, _Noise]:
+    """The fit over segments of `length` seconds at noise levels raised to its own
+    residual scale, refitted until they settle (REWEIGHT_ROUNDS fits at most), and those
+    levels; `cut` fits segments of that length afresh at given weights.
+
+    A misfit beyond the noise means physics the model lacks, or channels smoothed before
+    they were recorded (the differences of a smoothed channel see almost no noise):
+    weighted by their own residual scale, the channels count alike. The levels are not
+    iterated to a fixed point: with a model that misses the motion, a channel weighted
+    more is fitted closer (the states trade one channel against another), so none need
+    exist, and the sandwich covariance holds whatever the weights.
+    """
+    from hamid import trajectory
+
+    raised = noise.raised(fit)
+    fit = (trajectory.refit(fit, raised.weights, progress)
+           if length == fit.problem.length else cut(raised.weights))
+    for _ in range(REWEIGHT_ROUNDS - 1):
+        again = noise.raised(fit)
+        if raised.settled(again):
+            break
+        raised = again
+        fit = trajectory.refit(fit, raised.weights, progress)
+    return fit, raised
+
+
+def _refined(linear: LinearFit, fit: SegmentFit, within: bool) -> LinearFit:
+    """The linear fit with the refined parameters and their covariance: misfit-scaled
+    Gauss-Newton when the noise explains the misfit, else the sandwich over segments
+    (with its degrees of freedom, segments less parameters)."""
+    theta = fit.theta[list(fit.free)]
+    if within:
+        covariance, df = fit.covariance("scaled"), fit.dof
+        description = ("Gauss-Newton covariance of the trajectory fit, scaled by its misfit "
+                       f"per degree of freedom ({fit.chi2_per_dof:.3g})")
+    else:
+        covariance, df = fit.covariance("sandwich"), max(fit.segments - len(theta), 1)
+        description = (f"sandwich covariance of the trajectory fit over its {fit.segments} "
+                       "segments (robust to errors shared within a segment: the misfit "
+                       "exceeds the noise)")
     means_A, means_b = linear.energy_means
-    fit = dataclasses.replace(
-        linear, theta=refined.theta, covariance=refined.covariance,
-        description=refined.description, df=refined.dof, h=means_A @ refined.theta - means_b,
-        h_stderr=np.full(len(means_b), np.nan), residuals=None)
-    return fit, {"applied": True, "segments": refined.segments,
-                 "segment_seconds": refined.segment_seconds,
-                 "iterations": refined.iterations, "chi2_per_dof": refined.chi2_per_dof}
+    return dataclasses.replace(
+        linear, theta=theta, covariance=covariance, description=description, df=df,
+        h=means_A @ theta - means_b, h_stderr=np.full(len(means_b), np.nan), residuals=None)
+
+
+def _held_out(fit: SegmentFit, theta_linear: npt.NDArray[np.float64], unknowns: Unknowns,
+              n_trajectories: int, rows: Rows | None,
+              progress: Callable[[str], None] | None) -> dict[str, Any] | None:
+    """How the refined and the linear parameters predict segments held out of their fits,
+    or None when the refits cannot be made.
+
+    The segments (at least CHECKED_SEGMENTS, so that a block left out moves the
+    parameters by about a standard error and the second-order refits hold) are cut into
+    FOLDS contiguous blocks; each block is predicted by the
+    refinement fitted without it (to second order from the converged fit,
+    `SegmentFit.held_out_folds`) and by the linear fit refitted without the windows that
+    reach into it (integrated), each segment's initial state refitted. `t` is the paired
+    t statistic of the two misfits over the segments (positive when the refinement
+    predicts worse).
+    """
+    S, K = fit.segments, FOLDS
+    folds = np.arange(S) * K // S
+    free = list(fit.free)
+    linear = np.repeat(theta_linear[None], S, axis=0)
+    refitted = rows is not None and rows.windows is not None
+    try:
+        refined = fit.held_out_folds(folds)[1]
+        if refitted:
+            assert rows is not None and rows.windows is not None
+            for k in range(K):
+                held = folds == k
+                linear[np.ix_(held, free)] = _linear_without(
+                    rows, unknowns, n_trajectories,
+                    [fit.problem.pieces[s] for s in np.flatnonzero(held)])
+    except (np.linalg.LinAlgError, FitError):
+        return None
+    predicted = fit.held_out(linear, progress)
+    values = fit.problem.n_used
+    difference = refined - predicted
+    spread = float(np.std(difference, ddof=1))
+    t = float(np.mean(difference)) / spread * np.sqrt(S) if spread > 0 else 0.0
+    return {"rule": "held-out", "folds": K, "linear_refitted": refitted,
+            "held_out_linear": float(predicted.sum() / values),
+            "held_out_refined": float(refined.sum() / values),
+            "t": float(t), "t_limit": uncertainty.t_quantile(S - 1, HELD_OUT_LEVEL)}
+
+
+def _linear_without(rows: Rows, unknowns: Unknowns, n_trajectories: int,
+                    pieces: list[tuple[int, int]]) -> npt.NDArray[np.float64]:
+    """The linear fit's parameters from its rows less the windows that reach into the
+    samples of `pieces`; the blocks' weights as they were."""
+    windows = rows.windows
+    assert windows is not None
+    reach = np.zeros(windows.n_windows, bool)
+    for a, b in pieces:
+        reach |= (windows.last >= a) & (windows.first < b)
+    kept = []
+    for block in rows.blocks:   # rows in window order, as many per window
+        keep = np.repeat(~reach, block.n_rows // windows.n_windows)
+        kept.append(dataclasses.replace(block, A=block.A[keep], b=block.b[keep],
+                                        group=block.group[keep], time=block.time[keep],
+                                        weight=block.weight[keep]))
+    return estimate.least_squares(kept, unknowns.free_names, n_trajectories).theta
 
 
 def level_errors(fit: LinearFit, residuals: ResidualSums) -> npt.NDArray[np.float64]:

@@ -269,12 +269,36 @@ def _conditioning_section(result: Mapping[str, Any]) -> _Section:
     return _Section("Conditioning", tables=(_Table(("quantity", "value"), (("", rows),), True),))
 
 
+def _refinement_checks(refinement: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """Helper: the refinement's noise levels when raised from its residuals, and its
+    held-out check against the linear fit (reports of older versions have neither)."""
+    rows = []
+    noise = refinement.get("noise") or {}
+    raised = [f"{name} {_num(entry['sigma'], '.3g')}" for name, entry in noise.items()
+              if entry["source"] == "residuals"]
+    if raised:
+        rows.append(("refinement noise σ", f"{', '.join(raised)} from its residuals "
+                     f"(misfit {_num(refinement.get('noise_chi2_per_dof'), '.3g')} × the noise "
+                     "estimated from differences)"))
+    acceptance = refinement.get("acceptance") or {}
+    if acceptance.get("rule") == "held-out":
+        rows.append(("held-out check", f"misfit {_num(acceptance['held_out_refined'], '.4g')}"
+                     f" against {_num(acceptance['held_out_linear'], '.4g')} of the linear "
+                     f"fit over {_plural(acceptance['folds'], 'fold', 'folds')}, t = "
+                     f"{_num(acceptance['t'], '.3g')} (refused above "
+                     f"{_num(acceptance['t_limit'], '.3g')})"))
+    return rows
+
+
 def _method_section(result: Mapping[str, Any]) -> _Section:
     """Helper: how the fit was made."""
     method = result["method"]
     refinement = method.get("refinement")
-    covariance = ("Gauss-Newton of the trajectory fit" if refinement and refinement["applied"]
-                  else method["covariance"])
+    covariance = method["covariance"]
+    if refinement and refinement["applied"]:
+        covariance = ("sandwich over the segments of the trajectory fit"
+                      if refinement.get("covariance") == "sandwich"
+                      else "Gauss-Newton of the trajectory fit")
     rows = [
         ("covariance", f"{covariance}, {percent(method['level'])} intervals"),
         ("weighting", method["weighting"]),
@@ -295,6 +319,7 @@ def _method_section(result: Mapping[str, Any]) -> _Section:
                      f"{_plural(refinement['iterations'], 'iteration', 'iterations')}"))
     elif refinement:
         rows.append(("refinement", f"none: {refinement['reason']}"))
+    rows += _refinement_checks(refinement or {})
     rows.append(("damping", ", ".join(method["damping"]) or "none"))
     fixed = ", ".join(f"{name} = {_num(value)}" for name, value in method["fixed"].items())
     rows.append(("fixed", fixed or "none"))

@@ -24,6 +24,7 @@ if TYPE_CHECKING:
     from hamid.fitted import Recording
 
 __all__ = [
+    "AcceptanceInfo",
     "BlockResiduals",
     "ConditioningInfo",
     "CovarianceInfo",
@@ -36,6 +37,7 @@ __all__ = [
     "InputFile",
     "MethodInfo",
     "ModelInfo",
+    "NoiseLevel",
     "ParameterEstimate",
     "ProvenanceInfo",
     "RefinementInfo",
@@ -68,15 +70,38 @@ class DataInfo(TypedDict):
     velocity_order: NotRequired[int]    # and its polynomial order
 
 
+class NoiseLevel(TypedDict):
+    """The noise one variable was weighted by in the trajectory refinement."""
+
+    sigma: float | None                  # None: not weighted (derived velocities)
+    source: Literal["given", "differences", "residuals", "derived"]
+
+
+class AcceptanceInfo(TypedDict):
+    """Why the refinement was kept or not: its held-out check against the linear fit."""
+
+    rule: Literal["held-out", "noise"]
+    folds: NotRequired[int]              # the rest with the held-out rule
+    linear_refitted: NotRequired[bool]
+    held_out_linear: NotRequired[float]
+    held_out_refined: NotRequired[float]
+    t: NotRequired[float]
+    t_limit: NotRequired[float]
+
+
 class RefinementInfo(TypedDict):
     """Whether the trajectory refinement of `auto` ran; its figures, or why not."""
 
     applied: bool
     reason: NotRequired[str]             # when not applied
-    segments: NotRequired[int]           # the rest when applied
+    segments: NotRequired[int]           # the rest when applied (or fitted and refused)
     segment_seconds: NotRequired[float]
     iterations: NotRequired[int]
     chi2_per_dof: NotRequired[float]
+    noise_chi2_per_dof: NotRequired[float]
+    noise: NotRequired[dict[str, NoiseLevel]]
+    covariance: NotRequired[Literal["misfit-scaled", "sandwich"]]
+    acceptance: NotRequired[AcceptanceInfo]
 
 
 class MethodInfo(TypedDict):

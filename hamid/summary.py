@@ -270,11 +270,7 @@ _ROUNDING, _LOW_R_SQUARED, _HIGH_AUTOCORRELATION = 1e-6, 0.5, 0.9
 
 def _misfit(stats: dict[str, Any], refinement: dict[str, Any] | None) -> list[str]:
     """Warnings that the model probably does not fit the recording."""
-    notes = []
-    if refinement is not None and refinement.get("reason", "").startswith(
-            "the integrated model does not fit"):
-        notes.append(f"the trajectory refinement failed ({refinement['reason']}); the "
-                     "linear fit is reported: the model may be wrong or incomplete")
+    notes = _refinement_notes(refinement)
     relative, r_squared = stats["relative_rms"], stats["r_squared"]
     autocorrelation = stats["lag1_autocorrelation"]
     if relative is None or relative < _ROUNDING:
@@ -288,6 +284,32 @@ def _misfit(stats: dict[str, Any], refinement: dict[str, Any] | None) -> list[st
                      f"{autocorrelation:.2f}): the model misses part of the motion (a term, "
                      "damping or forcing), or the units are inconsistent")
     return notes
+
+
+def _refinement_notes(refinement: dict[str, Any] | None) -> list[str]:
+    """Why the trajectory refinement was not kept, or, when it was kept although its misfit
+    exceeds the noise, what it weighted by and why it was kept."""
+    if refinement is None:
+        return []
+    if not refinement["applied"]:
+        if not refinement["reason"].startswith("the integrated model"):
+            return []   # left aside for an option or the model's form: said in kind_reason
+        return [f"the trajectory refinement was not kept: {refinement['reason']}; the "
+                "linear fit is reported: the model may be wrong or incomplete"]
+    raised = {name: entry["sigma"] for name, entry in refinement["noise"].items()
+              if entry["source"] == "residuals"}
+    if not raised:
+        return []
+    acceptance = refinement["acceptance"]
+    levels = ", ".join(f"{name} {sigma:.3g}" for name, sigma in raised.items())
+    return [f"the integrated model misses the recording by "
+            f"{refinement['noise_chi2_per_dof']:.3g} times the noise variance estimated "
+            "from differences (channels smoothed before recording, or physics the model "
+            f"lacks): the trajectory refinement weighted by the residual scale ({levels}), "
+            f"its standard errors are the sandwich over its {refinement['segments']} "
+            "segments, and it was kept because it predicts segments held out of its fit no "
+            f"worse than the linear fit (misfit {acceptance['held_out_refined']:.4g} against "
+            f"{acceptance['held_out_linear']:.4g} per value, t = {acceptance['t']:.2f})"]
 
 
 # Noise this large a share of a column's spread is about as large as the motion; a bias

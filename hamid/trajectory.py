@@ -14,14 +14,18 @@ M(q; theta) a = dL/dq - (d/dq dL/dv) v + F, every piece linear in (1, theta)
 (`hamid.dynamics`, with weights per state). Segments
 keep the integration short enough that a wrong start cannot wander off into another
 minimum, and the per-segment states are eliminated from the normal equations (Schur
-complement), so the work grows linearly with the record.
+complement), so the work grows linearly with the record. A `SegmentFit` also gives the
+parameters' covariance (misfit-scaled, or the sandwich over segments) and what the
+parameters predict for segments left out of the fit, for `hamid.refine` to judge it by.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from functools import cached_property
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -32,12 +36,11 @@ from hamid.dynamics import Dynamics, Motion
 from hamid.model import Model
 from hamid.records import Records
 
-__all__ = ["Refinement", "RefinementFailed", "refine"]
+__all__ = ["RefinementFailed", "SegmentFit", "fit", "refine", "refit", "segment_count"]
 
 SEGMENT_PERIODS = 4.0  # dominant periods per segment, halved down to one when it fails
 MIN_SEGMENT_PERIODS = 1.0
 MIN_SEGMENT_SAMPLES = 8
-CHI2_LIMIT = 1.5       # weighted misfit per degree of freedom that still counts as a fit
 MAX_ITERATIONS = 20
 # Segments integrated together as one vectorised system: as many as keep the integrated
 # values of a batch (copies x states x samples of a segment) within BATCH_VALUES.
@@ -56,23 +59,158 @@ class RefinementFailed(Exception):
     """The integrated model could not be fitted to the recording; the reason is the text."""
 
 
-@dataclass(frozen=True)
-class Refinement:
-    """The refined free parameters and what the report says of them."""
+@dataclass(frozen=True, eq=False)
+class _Problem:
+    """The segments of a recording at one length, and what integrating them needs."""
 
-    theta: npt.NDArray[np.float64]
-    covariance: npt.NDArray[np.float64]
-    dof: int
-    chi2_per_dof: float
-    segments: int
-    segment_seconds: float
-    iterations: int
+    dynamics: Dynamics
+    pieces: list[tuple[int, int]]             # each segment's rows (start, stop)
+    tau: list[npt.NDArray[np.float64]]        # each segment's times from its start
+    measured: list[npt.NDArray[np.float64]]   # each segment's samples (views)
+    x_step: npt.NDArray[np.float64]           # forward-difference step of each variable
+    resolution: float                         # times closer than this are one
+    weight: npt.NDArray[np.float64]           # 1 / noise of each variable
+    length: float                             # seconds per segment
+
+    @classmethod
+    def cut(cls, model: Model, records: Records, damping: Dissipation, length: float,
+            weight: npt.NDArray[np.float64]) -> _Problem:
+        """The records cut into segments of about `length` seconds."""
+        assert records.t is not None
+        t, X = records.t, records.X
+        pieces = _segments(records, t, length)
+        if not pieces:
+            raise _SegmentFitFailed(f"no trajectory holds {MIN_SEGMENT_SAMPLES} samples")
+        # t[i] - t[a] carries the rounding of both times: segments sampled alike then
+        # differ in their last bits, and would each add their own times to a batch's grid
+        resolution = TIME_ROUNDING * np.finfo(float).eps * float(np.max(np.abs(t)))
+        return cls(Dynamics(model, damping), pieces, [t[a:b] - t[a] for a, b in pieces],
+                   [X[a:b] for a, b in pieces],
+                   STEP * np.maximum(np.abs(X).max(axis=0), X.std(axis=0)), resolution,
+                   weight, length)
+
+    def reweighted(self, weight: npt.NDArray[np.float64]) -> _Problem:
+        """The same segments under other weights."""
+        return dataclasses.replace(self, weight=weight)
 
     @property
-    def description(self) -> str:
-        """What the covariance is, for the report."""
-        return ("Gauss-Newton covariance of the trajectory fit, scaled by its misfit per "
-                f"degree of freedom ({self.chi2_per_dof:.3g})")
+    def n_samples(self) -> int:
+        return sum(len(x) for x in self.tau)
+
+    @property
+    def n_used(self) -> int:
+        """Weighted values: samples times variables with a weight."""
+        return self.n_samples * int(np.count_nonzero(self.weight))
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentFit:
+    """A fit of the integrated segments at one set of weights: converged, or stopped
+    where its weights proved hopeless (`refine`'s `beyond`).
+
+    `theta` holds every parameter (fixed ones at their values), `states` each segment's
+    fitted initial state; `normal` are the Gauss-Newton normal equations at the last point
+    evaluated, from which the final step `shift` of the free parameters was taken.
+    """
+
+    problem: _Problem
+    theta: npt.NDArray[np.float64]
+    free: tuple[int, ...]
+    states: npt.NDArray[np.float64]
+    normal: _Normal
+    shift: npt.NDArray[np.float64]
+    iterations: int
+    rtol: float
+
+    @property
+    def segments(self) -> int:
+        return len(self.problem.tau)
+
+    @property
+    def dof(self) -> int:
+        """Weighted values less the free parameters and the segments' states."""
+        return max(self.problem.n_used - len(self.free) - self.states.size, 1)
+
+    @property
+    def chi2_per_dof(self) -> float:
+        return float(self.normal.cost.sum()) / self.dof
+
+    @property
+    def residual_rms(self) -> npt.NDArray[np.float64]:
+        """Root mean square residual of each variable, in its own units (NaN unweighted)."""
+        n = self.problem.n_samples
+        weight = self.problem.weight
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(weight > 0, np.sqrt(self.normal.cost.sum(axis=0) / n) / weight,
+                            np.nan)
+
+    @cached_property
+    def _reduced(self) -> tuple[npt.NDArray[np.float64], ...]:
+        """Each segment's misfit (S,), score (S, p) and Schur complement (S, p, p) at the
+        final parameters, its initial state eliminated: to second order (Gauss-Newton),
+        the misfit at the final parameters plus d, the state refitted, is
+        misfit - 2 score.d + d.schur.d. The scores sum to zero once converged."""
+        normal = self.normal
+        inverse = np.linalg.inv(normal.H_xx)
+        schur = normal.H_tt - np.einsum("sak,sab,sbl->skl", normal.H_xt, inverse, normal.H_xt)
+        score = normal.g_t - np.einsum("sak,sab,sb->sk", normal.H_xt, inverse, normal.g_x)
+        misfit = normal.cost.sum(axis=1) - np.einsum("sa,sab,sb->s", normal.g_x, inverse,
+                                                     normal.g_x)
+        # from the point the equations were made at to the final one
+        shift = self.shift
+        misfit = misfit - 2 * score @ shift + np.einsum("k,skl,l->s", shift, schur, shift)
+        return misfit, score - schur @ shift, schur
+
+    def covariance(self, kind: Literal["scaled", "sandwich"]) -> npt.NDArray[np.float64]:
+        """The free parameters' covariance: "scaled", the Gauss-Newton one times the misfit
+        per degree of freedom; "sandwich", robust to any error shared within a segment
+        (segments independent), with the small-sample factor S / (S - p)."""
+        _, score, schur = self._reduced
+        inverse = np.linalg.inv(schur.sum(axis=0))
+        if kind == "scaled":
+            return inverse * self.chi2_per_dof
+        S, p = score.shape
+        return inverse @ (score.T @ score) @ inverse * S / max(S - p, 1)
+
+    def held_out_folds(self, folds: npt.NDArray[np.intp]
+                       ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Every parameter refitted without each segment's fold, row by segment (S, P),
+        and each segment's misfit at its row, its initial state refitted (S,).
+
+        Both to second order from the converged fit (one Gauss-Newton step over the other
+        folds' segments): the refits move the parameters by about a standard error."""
+        misfit, score, schur = self._reduced
+        total = schur.sum(axis=0)
+        thetas = np.repeat(self.theta[None], self.segments, axis=0)
+        held_misfit = np.empty(self.segments)
+        for k in np.unique(folds):
+            held = folds == k
+            d = -np.linalg.solve(total - schur[held].sum(axis=0), score[held].sum(axis=0))
+            thetas[np.ix_(held, self.free)] += d
+            held_misfit[held] = (misfit[held] - 2 * score[held] @ d
+                                 + np.einsum("k,skl,l->s", d, schur[held], d))
+        return thetas, np.maximum(held_misfit, 0.0)
+
+    def held_out(self, thetas: npt.NDArray[np.float64],
+                 progress: Callable[[str], None] | None = None) -> npt.NDArray[np.float64]:
+        """Each segment's weighted misfit at other parameters (every parameter, row by
+        segment: (S, P)), its initial state refitted from the fitted one by a Gauss-Newton
+        step (the misfit that step predicts)."""
+        def batch_done(done: int) -> None:
+            if progress is not None:
+                progress(f"held-out check of the trajectory fit: {done:,} of "
+                         f"{self.segments:,} segments")
+
+        with np.errstate(all="ignore"):
+            normal = _normal_equations(self.problem, thetas, self.states, (), None,
+                                       self.rtol, batch_done)
+            misfit = normal.cost.sum(axis=1)
+            try:
+                step = np.linalg.solve(normal.H_xx, normal.g_x[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                return misfit
+        predicted = misfit - np.einsum("sa,sa->s", normal.g_x, step)
+        return np.where(np.isfinite(predicted), np.maximum(predicted, 0.0), misfit)
 
 
 def _segments(records: Records, t: npt.NDArray[np.float64],
@@ -90,80 +228,93 @@ def _segments(records: Records, t: npt.NDArray[np.float64],
     return pieces
 
 
+def segment_count(records: Records, length: float) -> int:
+    """How many segments of about `length` seconds the records are cut into."""
+    assert records.t is not None
+    return len(_segments(records, records.t, length))
+
+
 def refine(model: Model, records: Records, damping: Dissipation, theta_all: npt.ArrayLike,
            free: list[int], period: float, weight: npt.NDArray[np.float64],
-           progress: Callable[[str], None] | None = None) -> Refinement:
+           progress: Callable[[str], None] | None = None,
+           beyond: float | None = None) -> SegmentFit:
     """Parameters whose integrated segments fit the recording best (module docstring).
 
     `theta_all` holds every parameter (fixed ones at their values) and starts the search;
     only the indices in `free` are fitted. `weight` is 1 / noise std of each variable (0
     for a variable that carries no independent information, e.g. derived velocities).
-    Segments of four periods are tried first and halved while the misfit per degree of
-    freedom stays above CHI2_LIMIT or the integration fails; raises RefinementFailed when
-    even one period does not fit. `progress`, if given, hears of every batch of segments
-    integrated.
+    Segments of four periods are tried first and halved while the fit fails, down to
+    one period; raises RefinementFailed when even that fails. `progress`, if given, hears
+    of every batch of segments integrated. With `beyond`, Gauss-Newton stops where the
+    misfit per degree of freedom it heads for exceeds that: the weights are wrong, and
+    the point reached starts a fit under others.
     """
     periods = SEGMENT_PERIODS
     while True:
         try:
-            result = _fit_segments(model, records, damping, np.asarray(theta_all, float),
-                                   free, periods * period, weight, progress)
-        except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
-            failure = f"{exc}"
-        else:
-            if result.chi2_per_dof < CHI2_LIMIT:
-                return result
-            failure = (f"its misfit is {result.chi2_per_dof:.3g} times the noise variance")
-        if periods / 2 < MIN_SEGMENT_PERIODS:
-            raise RefinementFailed(f"{failure}, even over segments of {periods:g} period"
-                                   f"{'s' if periods != 1 else ''}")
+            return fit(model, records, damping, theta_all, free, periods * period, weight,
+                       progress, beyond=beyond)
+        except RefinementFailed as exc:
+            if periods / 2 < MIN_SEGMENT_PERIODS:
+                raise RefinementFailed(f"{exc}, even over segments of {periods:g} period"
+                                       f"{'s' if periods != 1 else ''}") from exc
         periods /= 2
+
+
+def fit(model: Model, records: Records, damping: Dissipation, theta_all: npt.ArrayLike,
+        free: list[int], length: float, weight: npt.NDArray[np.float64],
+        progress: Callable[[str], None] | None = None, stage: str = "",
+        beyond: float | None = None) -> SegmentFit:
+    """The fit over segments of about `length` seconds (`refine`); `stage` names it in
+    the progress messages. Raises RefinementFailed when it fails."""
+    try:
+        problem = _Problem.cut(model, records, damping, length, weight)
+        return _fit_segments(problem, np.array(theta_all, float), tuple(free), None,
+                             LOOSE_RTOL, progress, stage, beyond)
+    except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
+        raise RefinementFailed(f"{exc}") from exc
+
+
+def refit(fit: SegmentFit, weight: npt.NDArray[np.float64],
+          progress: Callable[[str], None] | None = None) -> SegmentFit:
+    """The same segments fitted again under other weights, from the fit's point."""
+    try:
+        return _fit_segments(fit.problem.reweighted(weight), fit.theta, fit.free,
+                             fit.states, fit.rtol, progress, "reweighted, ")
+    except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
+        raise RefinementFailed(f"{exc}, reweighted") from exc
 
 
 class _SegmentFitFailed(Exception):
     """One segment length did not give a fit; the reason is the text."""
 
 
-def _fit_segments(model: Model, records: Records, damping: Dissipation,
-                  theta_all: npt.NDArray[np.float64], free: list[int], length: float,
-                  weight: npt.NDArray[np.float64],
-                  progress: Callable[[str], None] | None) -> Refinement:
-    """Gauss-Newton over the free parameters and every segment's initial state."""
-    assert records.t is not None
-    t = records.t
-    pieces = _segments(records, t, length)
-    if not pieces:
-        raise _SegmentFitFailed(f"no trajectory holds {MIN_SEGMENT_SAMPLES} samples")
-    X = records.X
-    dynamics = Dynamics(model, damping)
-    n_states, p = X.shape[1], len(free)
-    tau = [t[a:b] - t[a] for a, b in pieces]
-    # t[i] - t[a] carries the rounding of both times: segments sampled alike then differ in
-    # their last bits, and would each add their own times to a batch's integration grid
-    resolution = TIME_ROUNDING * np.finfo(float).eps * float(np.max(np.abs(t)))
-    measured = [X[a:b] for a, b in pieces]    # views; weighted segment by segment
-    x_step = STEP * np.maximum(np.abs(X).max(axis=0), X.std(axis=0))
-    theta = theta_all.copy()
-    X0 = np.array([X[a] for a, _ in pieces])
-    n_used = sum(len(x) for x in tau) * int(np.count_nonzero(weight))
-    dof = max(n_used - p - n_states * len(pieces), 1)
-    rtol = LOOSE_RTOL
+def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple[int, ...],
+                  X0: npt.NDArray[np.float64] | None, rtol: float,
+                  progress: Callable[[str], None] | None, stage: str = "",
+                  beyond: float | None = None) -> SegmentFit:
+    """Gauss-Newton over the free parameters and every segment's initial state; stopped
+    early when the misfit per degree of freedom an undamped step heads for is over
+    `beyond`."""
+    free_list = list(free)
+    if X0 is None:
+        X0 = np.array([x[0] for x in problem.measured])
     damping_factor, best, converged = 0.0, None, False
     iterations = 0
+    length = problem.length
 
     def batch_done(done: int) -> None:   # during iteration number iterations + 1
         if progress is not None:
-            progress(f"trajectory fit over segments of {length:.3g} s: iteration "
-                     f"{iterations + 1}, {done:,} of {len(pieces):,} segments")
+            progress(f"trajectory fit over segments of {length:.3g} s: {stage}iteration "
+                     f"{iterations + 1}, {done:,} of {len(problem.tau):,} segments")
 
     with np.errstate(all="ignore"):
         for _ in range(MAX_ITERATIONS):
-            free_theta = theta[free]
+            free_theta = theta[free_list]
             theta_step = STEP * np.maximum(np.abs(free_theta), 1e-3 * np.abs(free_theta).max())
             theta_step[theta_step == 0] = STEP   # every start at zero: no scale to go by
-            normal = _normal_equations(dynamics, tau, measured, theta, X0, free, x_step,
-                                       theta_step, weight, rtol, resolution, batch_done)
-            if best is not None and normal.cost > best[0].cost * (1 + 1e-12):
+            normal = _normal_equations(problem, theta, X0, free, theta_step, rtol, batch_done)
+            if best is not None and normal.total > best[0].total * (1 + 1e-12):
                 # the step made it worse: return to the best point and damp the step
                 normal, theta, X0 = best
                 damping_factor = max(10 * damping_factor, 1e-3)
@@ -172,14 +323,21 @@ def _fit_segments(model: Model, records: Records, damping: Dissipation,
                 best = normal, theta, X0
             d_theta, d_x, schur = normal.step(damping_factor)
             theta = theta.copy()
-            theta[free] += d_theta
+            theta[free_list] += d_theta
             X0 = X0 + d_x
             iterations += 1
+            dof = max(problem.n_used - len(free) - X0.size, 1)
+            if beyond is not None and damping_factor == 0.0:
+                heading = normal.total - float(normal.g_t.sum(axis=0) @ d_theta
+                                               + np.einsum("sa,sa->", normal.g_x, d_x))
+                if heading > beyond * dof:   # stay at the point evaluated
+                    theta, X0, d_theta = best[1], best[2], np.zeros_like(d_theta)
+                    break
             # the parameters' spread, scaled by the misfit (the noise may be misjudged)
-            spread = np.sqrt(np.abs(np.diag(np.linalg.inv(schur))) * normal.cost / dof)
-            settled = np.all(np.abs(d_theta) <= 1e-9 * np.abs(theta[free]) + 1e-3 * spread)
+            spread = np.sqrt(np.abs(np.diag(np.linalg.inv(schur))) * normal.total / dof)
+            settled = np.all(np.abs(d_theta) <= 1e-9 * np.abs(theta[free_list]) + 1e-3 * spread)
             if damping_factor == 0.0 and settled:
-                relative_spread = spread / np.maximum(np.abs(theta[free]), 1e-300)
+                relative_spread = spread / np.maximum(np.abs(theta[free_list]), 1e-300)
                 if rtol > STRICT_RTOL and np.min(relative_spread) < 1e3 * rtol:
                     rtol, best = STRICT_RTOL, None
                     continue
@@ -187,75 +345,81 @@ def _fit_segments(model: Model, records: Records, damping: Dissipation,
                 break
     if best is None or (not converged and damping_factor != 0.0):
         raise _SegmentFitFailed(f"Gauss-Newton did not settle in {MAX_ITERATIONS} iterations")
-    chi2 = best[0].cost / dof
-    if not np.isfinite(chi2) or not np.all(np.isfinite(theta)):
+    fit = SegmentFit(problem, theta, free, X0, best[0], d_theta, iterations, rtol)
+    if not np.isfinite(fit.chi2_per_dof) or not np.all(np.isfinite(theta)):
         raise _SegmentFitFailed("the fit diverged")
-    covariance = np.linalg.inv(best[0].step(0.0)[2]) * chi2
-    return Refinement(theta[free], covariance, dof, float(chi2), len(pieces), float(length),
-                      iterations)
+    return fit
 
 
 @dataclass(frozen=True)
 class _Normal:
-    """Gauss-Newton normal equations, the segment states not yet eliminated."""
+    """Gauss-Newton normal equations of every segment, the states not yet eliminated."""
 
-    cost: float
-    H_tt: npt.NDArray[np.float64]   # (p, p)
-    g_t: npt.NDArray[np.float64]    # (p,)
+    cost: npt.NDArray[np.float64]   # (S, 2N): weighted squared residuals of each variable
+    H_tt: npt.NDArray[np.float64]   # (S, p, p)
+    g_t: npt.NDArray[np.float64]    # (S, p)
     H_xx: npt.NDArray[np.float64]   # (S, 2N, 2N)
     H_xt: npt.NDArray[np.float64]   # (S, 2N, p)
     g_x: npt.NDArray[np.float64]    # (S, 2N)
 
+    @property
+    def total(self) -> float:
+        return float(self.cost.sum())
+
     def step(self, damping: float) -> tuple[Any, Any, Any]:
         """Parameter step, segment-state steps and the Schur complement (Marquardt-damped)."""
         n = self.H_xx.shape[1]
+        H_tt = self.H_tt.sum(axis=0)
         H_xx = self.H_xx + damping * np.einsum("sii->si", self.H_xx)[:, :, None] * np.eye(n)
         inverse = np.linalg.inv(H_xx)
-        schur = (self.H_tt + damping * np.diag(np.diag(self.H_tt))
+        schur = (H_tt + damping * np.diag(np.diag(H_tt))
                  - np.einsum("sak,sab,sbl->kl", self.H_xt, inverse, self.H_xt))
-        rhs = self.g_t - np.einsum("sak,sab,sb->k", self.H_xt, inverse, self.g_x)
+        rhs = self.g_t.sum(axis=0) - np.einsum("sak,sab,sb->k", self.H_xt, inverse, self.g_x)
         d_theta = np.linalg.solve(schur, rhs)
         d_x = np.einsum("sab,sb->sa", inverse,
                         self.g_x - np.einsum("sak,k->sa", self.H_xt, d_theta))
         return d_theta, d_x, schur
 
 
-def _normal_equations(dynamics: Dynamics, tau: list[Any], measured: list[Any],
-                      theta: Any, X0: Any, free: list[int], x_step: Any, theta_step: Any,
-                      weight: Any, rtol: float, resolution: float,
-                      batch_done: Callable[[int], None]) -> _Normal:
-    """Residuals and forward-difference Jacobians of every segment, summed into _Normal.
+def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, ...],
+                      theta_step: Any, rtol: float, batch_done: Callable[[int], None],
+                      derivatives: bool = True) -> _Normal:
+    """Residuals and forward-difference Jacobians of every segment, into _Normal.
 
-    Each batch of segments is integrated as one system of 1 + 2N + p copies per segment
-    (as is, each initial-state component perturbed, each free parameter perturbed); the
-    copies share the adaptive steps, so their differences carry almost no integration error.
-    Sample times of the batch that differ by less than `resolution` are integrated to once;
-    `batch_done` hears how many segments are done after each batch.
+    `theta` holds every parameter, shared (P,) or one row per segment (S, P). Each batch of
+    segments is integrated as one system of 1 + 2N + p copies per segment (as is, each
+    initial-state component perturbed, each free parameter perturbed; only the first
+    without `derivatives`); the copies share the adaptive steps, so their differences carry
+    almost no integration error. Sample times of the batch that differ by less than the
+    problem's resolution are integrated to once; `batch_done` hears how many segments are
+    done after each batch.
     """
+    tau, measured, weight = problem.tau, problem.measured, problem.weight
     S, n_states, p = len(tau), X0.shape[1], len(free)
-    copies = 1 + n_states + p
-    H_tt, g_t = np.zeros((p, p)), np.zeros(p)
-    H_xx, H_xt = np.zeros((S, n_states, n_states)), np.zeros((S, n_states, p))
-    g_x = np.zeros((S, n_states))
-    cost = 0.0
-    parameters = np.concatenate([[1.0], theta])
-    shifted = np.repeat(parameters[:, None], copies, axis=1)
-    for k, index in enumerate(free):
-        shifted[1 + index, 1 + n_states + k] += theta_step[k]
-    steps = np.concatenate([x_step, theta_step])
+    n_x = n_states if derivatives else 0
+    copies = 1 + n_x + p
+    H_tt, g_t = np.zeros((S, p, p)), np.zeros((S, p))
+    H_xx, H_xt = np.zeros((S, n_x, n_x)), np.zeros((S, n_x, p))
+    g_x, cost = np.zeros((S, n_x)), np.zeros((S, n_states))
+    rows = np.broadcast_to(theta, (S, np.shape(theta)[-1]))
+    parameters = np.concatenate([np.ones((S, 1)), rows], axis=1).T     # (1 + P, S)
+    x_step = problem.x_step
+    steps = np.concatenate([x_step[:n_x], [] if theta_step is None else theta_step])
     batch_size = max(1, min(MAX_BATCH, BATCH_VALUES // (copies * n_states * max(map(len, tau)))))
     for lo in range(0, S, batch_size):
         batch = range(lo, min(lo + batch_size, S))
         B = len(batch)
         starts = np.repeat(X0[lo:lo + B][None], copies, axis=0)     # (copies, B, 2N)
-        starts[1 + np.arange(n_states), :, np.arange(n_states)] += x_step[:, None]
-        W = np.repeat(shifted, B, axis=1)                              # (1 + P, copies * B)
+        starts[1 + np.arange(n_x), :, np.arange(n_x)] += x_step[:n_x, None]
+        W = np.repeat(parameters[:, None, lo:lo + B], copies, axis=1)  # (1 + P, copies, B)
+        for k, index in enumerate(free):
+            W[1 + index, 1 + n_x + k] += theta_step[k]
         span = max(tau[s][-1] for s in batch)
-        grid, where = _common_times([tau[s] for s in batch], resolution)
+        grid, where = _common_times([tau[s] for s in batch], problem.resolution)
         budget = _EVALUATIONS_PER_STEP * (MAX_STEPS_PER_SAMPLE * len(grid) + MIN_STEP_BUDGET)
-        solution = solve_ivp(_rhs(dynamics.at(W), budget), (0.0, span),
-                             starts.reshape(-1, n_states).T.ravel(), method="DOP853",
-                             t_eval=grid, rtol=rtol,
+        solution = solve_ivp(_rhs(problem.dynamics.at(W.reshape(len(W), -1)), budget),
+                             (0.0, span), starts.reshape(-1, n_states).T.ravel(),
+                             method="DOP853", t_eval=grid, rtol=rtol,
                              atol=np.repeat(1e-2 * rtol / STEP * x_step, copies * B))
         if solution.status != 0:
             raise _SegmentFitFailed(f"the integration failed ({solution.message})")
@@ -268,16 +432,17 @@ def _normal_equations(dynamics: Dynamics, tau: list[Any], measured: list[Any],
             Y = values[:, :, b, where[offset:offset + m]] * weight[:, None, None]
             offset += m
             base = Y[:, 0]                                              # (2N, m)
-            residual = ((measured[s] * weight).T - base).ravel()
+            residual = (measured[s] * weight).T - base                  # (2N, m)
+            cost[s] = np.einsum("cm,cm->c", residual, residual)
+            if copies == 1:
+                continue
             J = ((Y[:, 1:] - base[:, None]) / steps[None, :, None])     # (2N, c, m)
             J = J.transpose(0, 2, 1).reshape(-1, copies - 1)
             H = J.T @ J
-            g = J.T @ residual
-            cost += float(residual @ residual)
-            H_xx[s], H_xt[s] = H[:n_states, :n_states], H[:n_states, n_states:]
-            g_x[s] = g[:n_states]
-            H_tt += H[n_states:, n_states:]
-            g_t += g[n_states:]
+            g = J.T @ residual.ravel()
+            H_xx[s], H_xt[s] = H[:n_x, :n_x], H[:n_x, n_x:]
+            g_x[s] = g[:n_x]
+            H_tt[s], g_t[s] = H[n_x:, n_x:], g[n_x:]
         batch_done(lo + B)
     return _Normal(cost, H_tt, g_t, H_xx, H_xt, g_x)
 

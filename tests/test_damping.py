@@ -114,11 +114,16 @@ def test_damping_needs_time(clean_records):
 
 
 def test_bundled_real_pendulum_gives_the_published_stiffness():
-    result = hamid.fit(PENDULUM_PIECE, PENDULUM_MODEL, damping="viscous")
-    assert result.method["kind"] == "joint"
-    assert result.estimates["K"] == pytest.approx(PUBLISHED_K, rel=0.01)
-    assert result.estimates["c_theta"] > 0
-    assert not any("drifts" in w for w in result.warnings)
+    """The energy balance of the joint fit closes over the record. The default refines it
+    on the recorded motion (test_refine.py): its damping, fitted segment by segment, is
+    two of its standard errors above, and the balance of the whole record no longer
+    closes within the drift check's 1%."""
+    joint = hamid.fit(PENDULUM_PIECE, PENDULUM_MODEL, damping="viscous", method="joint")
+    assert not any("drifts" in w for w in joint.warnings)
+    for result in (joint, hamid.fit(PENDULUM_PIECE, PENDULUM_MODEL, damping="viscous")):
+        assert result.method["kind"] == "joint"
+        assert result.estimates["K"] == pytest.approx(PUBLISHED_K, rel=0.01)
+        assert result.estimates["c_theta"] > 0
 
 
 def test_constant_energy_fit_of_the_real_pendulum_is_flagged():

@@ -34,7 +34,8 @@ def test_a_wrong_model_is_flagged_on_the_command_line(hamid_cli):
         capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert done.returncode == 0, done.stderr
     warnings = json.loads(done.stdout)["warnings"]
-    assert _has(warnings, "refinement failed", "does not fit the recording")
+    assert _has(warnings, "the integrated model misses the recording", "physics the model "
+                "lacks")
     assert _has(warnings, "strongly autocorrelated", "misses part of the motion")
     for warning in warnings:   # and each is on standard error
         assert f"warning: {warning}" in done.stderr

@@ -82,8 +82,14 @@ def test_a_file_read_in_chunks_is_refined_like_one_in_memory(clean_records, monk
     rounded = ("block_variance", "refinement")
     assert ({k: v for k, v in chunked.method.items() if k not in rounded}
             == {k: v for k, v in memory.method.items() if k not in rounded})
-    for key in rounded:
-        assert chunked.method[key] == pytest.approx(memory.method[key], rel=1e-8)
+    assert chunked.method["block_variance"] == pytest.approx(memory.method["block_variance"],
+                                                             rel=1e-8)
+    streamed, whole = chunked.method["refinement"], memory.method["refinement"]
+    numbers = [k for k, v in whole.items() if isinstance(v, float)]
+    assert [streamed[k] for k in numbers] == pytest.approx([whole[k] for k in numbers],
+                                                           rel=1e-8)
+    assert ({k: v for k, v in streamed.items() if k not in numbers}
+            == {k: v for k, v in whole.items() if k not in numbers})
     assert chunked.estimates == pytest.approx(memory.estimates, rel=1e-9)
     assert [p.stderr for p in chunked.parameters] == pytest.approx(
         [p.stderr for p in memory.parameters], rel=1e-6)
@@ -171,30 +177,21 @@ def test_derived_velocities_leave_the_trajectory_fit_to_the_positions(clean_reco
     assert refined_error < 1e-7 < joint_error
 
 
-def test_a_model_that_does_not_fit_keeps_the_linear_fit(clean_records):
-    """A damped record fitted as conservative: the integrated motion cannot follow it."""
+def test_a_damped_record_fitted_as_conservative_is_judged_on_held_out_segments():
+    """The integrated motion cannot follow the decay within the noise: the noise is raised
+    to the residual scale, and the held-out check decides; here the refined parameters
+    predict as well as the linear ones (the damping is slight over a period), and are
+    kept with the sandwich covariance and a warning that says so (the wrong model that is
+    refused is in test_refine.py)."""
     damped = hamid.simulate({**DUFFING, "damping": {"c_x": 0.05}})
     auto = hamid.fit(damped)
-    joint = hamid.fit(damped, method="joint")
     refinement = auto.method["refinement"]
-    assert refinement["applied"] is False
-    assert "does not fit the recording" in refinement["reason"]
-    assert "misfit" in refinement["reason"] and "1 period" in refinement["reason"]
-    assert auto.estimates == joint.estimates
-    assert [p.stderr for p in auto.parameters] == [p.stderr for p in joint.parameters]
-
-
-def test_a_model_that_does_not_fit_keeps_the_linear_fit_read_in_chunks(monkeypatch, tmp_path):
-    damped = hamid.simulate({**DUFFING, "damping": {"c_x": 0.05}})
-    path = str(tmp_path / "damped.parquet")
-    writing.write_table(damped, path, metadata=damped.attrs["hamid"])
-    monkeypatch.setattr(options, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
-    auto, joint = hamid.fit(path), hamid.fit(path, method="joint")
-    assert auto.samples is None
-    assert auto.method["refinement"]["applied"] is False
-    assert "does not fit the recording" in auto.method["refinement"]["reason"]
-    assert auto.estimates == joint.estimates
-    assert auto.residuals == joint.residuals
+    acceptance = refinement["acceptance"]
+    assert refinement["noise_chi2_per_dof"] > 1e3
+    assert refinement["applied"] == (acceptance["t"] <= acceptance["t_limit"]) is True
+    assert refinement["covariance"] == "sandwich"
+    assert "sandwich" in auto.method["covariance_description"]
+    assert any(w.startswith("the integrated model misses the recording") for w in auto.warnings)
 
 
 @pytest.mark.parametrize("options, reason", [
