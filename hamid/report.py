@@ -320,7 +320,9 @@ def _method_section(result: Mapping[str, Any]) -> _Section:
     elif refinement:
         rows.append(("refinement", f"none: {refinement['reason']}"))
     rows += _refinement_checks(refinement or {})
-    rows.append(("damping", ", ".join(method["damping"]) or "none"))
+    own = (result["model"].get("dissipation") or {}).get("function")
+    rows.append(("damping", ", ".join([*([f"R = {own}"] if own else []), *method["damping"]])
+                 or "none"))
     fixed = ", ".join(f"{name} = {_num(value)}" for name, value in method["fixed"].items())
     rows.append(("fixed", fixed or "none"))
     rows.append(("hamid version", result["hamid_version"]))

@@ -333,3 +333,12 @@ def test_joint_friction_intervals_cover_the_truth():
     for name in DP_TRUTH:
         coverage = np.mean([run[name] for run in runs])
         assert 0.90 <= coverage <= 0.98, (name, coverage)
+
+
+def test_the_table_names_the_dissipation_function(chain):
+    done = subprocess.run([*hamid_command(), "fit", str(chain / "chain.csv"), "--model",
+                           str(chain / "chain.toml"), "--method", "weak", "--damping",
+                           "coulomb"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    (row,) = [line for line in done.stdout.splitlines() if line.startswith("damping ")]
+    assert row.split(None, 1)[1] == "R = c1*v1**2/2 + c2*(v2 - v1)**2/2, coulomb"
