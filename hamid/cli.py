@@ -35,8 +35,9 @@ _debug = False
 _sources: tuple[str, ...] = ()
 # The report formats of `fit` and `report` (hamid.report.FORMATS, not imported for --help),
 # and the output extensions that choose them.
-_REPORT_FORMATS = ("table", "json", "csv", "markdown")
-_REPORT_SUFFIXES = {".json": "json", ".csv": "csv", ".md": "markdown", ".txt": "table"}
+_REPORT_FORMATS = ("table", "json", "csv", "markdown", "jsonl")
+_REPORT_SUFFIXES = {".json": "json", ".csv": "csv", ".md": "markdown", ".txt": "table",
+                    ".jsonl": "jsonl"}
 
 
 class _Terminated(BaseException):
@@ -129,7 +130,9 @@ def _stop(what: str, status: int) -> NoReturn:
     from hamid import writing
 
     writing.remove_temporaries()
-    click.echo(f"{what}; no output was written", err=True)
+    streamed = sys.modules.get("hamid.streamed")   # fit --each keeps its finished fits
+    kept = streamed.kept() if streamed is not None else None
+    click.echo(f"{what}; {kept or 'no output was written'}", err=True)
     sys.exit(status)
 
 
@@ -280,19 +283,22 @@ def _check_room(config: str, output: str, table_format: str, max_samples: int | 
 
 
 class _progress:
-    """A progress bar on standard error, shown only when it is a terminal."""
+    """A progress bar on standard error, shown only when it is a terminal; of a fraction, or
+    of items done out of `total`."""
 
-    def __init__(self, console: Any, label: str):
-        self.console, self.label, self.bar = console, label, None
+    def __init__(self, console: Any, label: str, total: int | None = None):
+        self.console, self.label, self.total, self.bar = console, label, total, None
 
     def __enter__(self) -> Any:
         if not self.console.is_terminal:
             return None
-        from rich.progress import Progress
+        from rich.progress import MofNCompleteColumn, Progress
 
-        self.bar = Progress(console=self.console, transient=True)
+        columns = Progress.get_default_columns()
+        self.bar = Progress(*columns, *([MofNCompleteColumn()] if self.total else []),
+                            console=self.console, transient=True)
         self.bar.start()
-        task = self.bar.add_task(self.label, total=1.0)
+        task = self.bar.add_task(self.label, total=self.total or 1.0)
         return lambda fraction: self.bar.update(task, completed=fraction)
 
     def __exit__(self, *exc: object) -> None:
@@ -425,6 +431,15 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
               help="Read the file in chunks of ROWS rows, in bounded memory; auto then "
                    "skips its trajectory refinement (default for files over 64 MB: chunks "
                    "of 262144 rows, and auto refines holding only the records).")
+@click.option("--each", is_flag=True,
+              help="Fit each file by itself (DATA: files, folders, glob patterns, URLs); "
+                   "one jsonl line, or CSV or table rows, per file.")
+@click.option("--jobs", type=click.IntRange(min=1), metavar="N",
+              help="With --each: local processes (default: one per core).")
+@click.option("--scheduler", metavar="tcp://HOST:PORT",
+              help="With --each: fit on this Dask cluster (default $DASK_SCHEDULER_ADDRESS).")
+@click.option("--ship-data", is_flag=True,
+              help="With --scheduler: send the files' bytes rather than their names.")
 def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         time_column: str | None, time_unit: str | None, scale: str | None, strict: bool,
         gaps: str,
@@ -435,7 +450,8 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         weak_window: float | None, damping: str, fix: str | None, cov: str, level: float,
         n_boot: int,
         seed: int | None, fmt: str | None, output: str, residuals: str | None,
-        chunk_rows: int | None) -> None:
+        chunk_rows: int | None, each: bool, jobs: int | None, scheduler: str | None,
+        ship_data: bool) -> None:
     """Fit the energy of the recorded motion in DATA (CSV, TSV, Parquet; '-' for stdin)."""
     from hamid import options, writing
     from hamid.api import fit as run_fit
@@ -446,6 +462,21 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         raise click.UsageError("--residuals needs the data in memory; leave out --chunk-rows")
     global _sources
     _sources = data
+    fit_options = dict(columns=None if columns is None else options.parse_mapping(
+                       columns, option="--columns"),
+                   time=time_column, trajectory=trajectory, velocity=velocity,
+                   window=window, order=order, noise=_parse_noise(noise),
+                   bias_correct=bias_correct, fix=_parse_floats(fix, "--fix"),
+                   method=method, weak_window=weak_window, damping=damping, cov=cov,
+                   level=level, bootstrap=n_boot, seed=seed, format=format_in,
+                   chunk_rows=chunk_rows, time_unit=time_unit,
+                   scale=_parse_floats(scale, "--scale"), gaps=gaps,
+                   delimiter=_DELIMITER_NAMES.get(delimiter or "", delimiter),
+                   decimal=decimal, skip_rows=skip_rows, units_row=units_row)
+    if each or jobs or scheduler or ship_data:
+        _fit_each(each, jobs, scheduler, ship_data, data, model, fit_options, fmt, output,
+                  strict, residuals)
+        return
     inputs = [*data, *([model] if model is not None and os.path.isfile(model) else [])]
     if residuals is not None:
         residuals_format = writing.table_format(residuals)
@@ -458,20 +489,11 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
                              "(-o FILE or --residuals FILE)")
     _check_output("-o", output, inputs)
     fmt = fmt or _report_format(output)
+    if fmt == "jsonl":
+        raise UsageError("--format jsonl writes one line per file: it needs --each")
     with _status("fitting") as status:
-        result = run_fit(list(data), model,
-                         columns=None if columns is None else options.parse_mapping(
-                             columns, option="--columns"),
-                         time=time_column, trajectory=trajectory, velocity=velocity,
-                         window=window, order=order, noise=_parse_noise(noise),
-                         bias_correct=bias_correct, fix=_parse_floats(fix, "--fix"),
-                         method=method, weak_window=weak_window, damping=damping, cov=cov,
-                         level=level, bootstrap=n_boot, seed=seed, format=format_in,
-                         chunk_rows=chunk_rows, in_memory=residuals is not None,
-                         progress=status, time_unit=time_unit,
-                         scale=_parse_floats(scale, "--scale"), gaps=gaps,
-                         delimiter=_DELIMITER_NAMES.get(delimiter or "", delimiter),
-                         decimal=decimal, skip_rows=skip_rows, units_row=units_row)
+        result = run_fit(list(data), model, **fit_options, in_memory=residuals is not None,
+                         progress=status)
     result = result.with_command(shlex.join(["hamid", *sys.argv[1:]]))
 
     def write_residuals() -> None:
@@ -483,6 +505,41 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
     if strict and result.warnings:
         click.echo(f"error: --strict: the fit has {len(result.warnings)} warning(s)", err=True)
         raise click.exceptions.Exit(3)
+
+
+def _fit_each(each: bool, jobs: int | None, scheduler: str | None, ship_data: bool,
+              data: tuple[str, ...], model: str | None, fit_options: dict[str, Any],
+              fmt: str | None, output: str, strict: bool, residuals: str | None) -> None:
+    """`fit --each`: a fit per file, written in their order as they end (hamid.batch)."""
+    from hamid import batch, streamed, writing
+    from hamid.executor import Workers
+
+    if not each:
+        raise UsageError("--jobs, --scheduler and --ship-data apply only to --each")
+    if residuals is not None:
+        raise UsageError("--residuals writes the samples of one fit; leave it out with --each")
+    sources = batch.expand_sources(data)
+    _check_output("-o", output, [*sources, *([model] if model and os.path.isfile(model) else [])])
+    fmt = fmt or _report_format(output)
+    if fmt not in streamed.EACH_FORMATS:
+        raise UsageError(f"--each writes one record per file: --format "
+                         f"{'|'.join(streamed.EACH_FORMATS)}, not {fmt}")
+    outcomes = batch.iter_fits(sources, model, fit_options,
+                               Workers.choose(jobs, scheduler, len(sources)), ship_data=ship_data)
+    out = streamed.EachOutput(fmt, output, fit_options["level"],
+                              shlex.join(["hamid", *sys.argv[1:]]), writing.is_terminal(output))
+    console = _stderr_console()
+    with _progress(console, "fitting", total=len(sources)) as bar:
+        def progress(done: int, outcome: object) -> None:
+            if bar is not None:
+                bar(done)
+            if isinstance(outcome, HamidError) and not (fmt == "table" and output == "-"):
+                console.print(_printable(f"error: {outcome}"), markup=False)
+
+        tally = streamed.write_each(sources, outcomes, out, progress=progress)
+    console.print(tally.line(), markup=False)
+    if tally.failed or (strict and tally.warned):
+        raise click.exceptions.Exit(1 if tally.failed else 3)
 
 
 @cli.command()
