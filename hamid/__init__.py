@@ -21,11 +21,14 @@ __all__ = [
     "UsageError",
     "__version__",
     "fit",
+    "fit_each",
     "load_model",
     "simulate",
+    "simulate_realizations",
 ]
 
-_LAZY = {"fit": "hamid.api", "simulate": "hamid.api", "load_model": "hamid.api"}
+_LAZY = {"fit": "hamid.api", "simulate": "hamid.api", "load_model": "hamid.api",
+         "fit_each": "hamid.batch", "simulate_realizations": "hamid.api"}
 
 
 def __getattr__(name: str) -> Any:

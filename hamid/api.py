@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from hamid import __version__, design, estimate, loading, plan, refine, summary
 from hamid.design import Block
-from hamid.errors import UsageError
+from hamid.errors import ModelError, UsageError
 from hamid.model import Model, load_model
 from hamid.options import SAVGOL_ORDER, FitOptions
 from hamid.result import FitResult
@@ -18,7 +18,7 @@ from hamid.unknowns import Unknowns
 if TYPE_CHECKING:
     import pandas as pd
 
-__all__ = ["fit", "load_model", "simulate"]
+__all__ = ["fit", "load_model", "simulate", "simulate_realizations"]
 
 
 def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | None = None,
@@ -30,11 +30,24 @@ def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | 
     velocities; ``frame.attrs["hamid"]`` holds its provenance (model, true parameters,
     initial states, energy drift, noise, seed, integrator, version).
     """
-    import dataclasses
+    return next(simulate_realizations(system, 1, seed=seed, max_samples=max_samples,
+                                      progress=progress))
 
+
+def simulate_realizations(system: str | os.PathLike[str] | Mapping[str, Any],
+                          realizations: int, *, seed: int | None = None,
+                          max_samples: int | None = None,
+                          progress: Callable[[float], None] | None = None
+                          ) -> Iterator[pd.DataFrame]:
+    """`realizations` noisy records of one system for Monte Carlo studies, one at a time.
+
+    The motion is integrated once; record k (from 0) has the noise of seed S + k, where S
+    is `seed`, else the system's ``[simulate] seed``, else drawn at random: the record that
+    ``simulate(system, seed=S + k)`` returns, which its metadata's ``seed`` says.
+    """
     import pandas as pd
 
-    from hamid.simulation import parse_system, run
+    from hamid import simulation
 
     if isinstance(system, Mapping):
         document, where = system, "system"
@@ -43,13 +56,17 @@ def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | 
 
         where = os.fspath(system)
         document = documents.read_toml(where)
-    parsed = parse_system(document, where=where)
+    parsed = simulation.parse_system(document, where=where)
     if max_samples is not None:
         parsed = dataclasses.replace(parsed, max_samples=max_samples)
-    columns, provenance = run(parsed, seed=seed, progress=progress)
-    frame = pd.DataFrame(columns)
-    frame.attrs["hamid"] = {**provenance, "hamid_version": __version__}
-    return frame
+    if realizations > 1 and not (any(parsed.noise.values()) or parsed.relative_noise):
+        raise ModelError(f"{where}: realizations differ only by their noise, and the system "
+                         "has none: give a [noise] table (relative = 0.01, or per column)")
+    for columns, provenance in simulation.realizations(parsed, realizations, seed=seed,
+                                                       progress=progress):
+        frame = pd.DataFrame(columns)
+        frame.attrs["hamid"] = {**provenance, "hamid_version": __version__}
+        yield frame
 
 
 def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,

@@ -11,6 +11,7 @@ imported inside the commands so that `hamid --help` starts fast.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 import shlex
 import sys
@@ -235,25 +236,45 @@ def _stderr_console() -> Any:
 @click.option("--no-meta", is_flag=True, help="Write no provenance metadata line.")
 @click.option("--max-samples", type=click.IntRange(min=1),
               help="Allow runs larger than the safety cap (default 20,000,000 samples).")
+@click.option("--realizations", type=click.IntRange(min=1), metavar="N",
+              help="Write N copies with their own noise (seeds S, S+1, ...), as OUT with "
+                   "-1, -2, ... before its extension.")
 def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_meta: bool,
-             max_samples: int | None) -> None:
+             max_samples: int | None, realizations: int | None) -> None:
     """Integrate a system from its initial states and write the sampled record."""
     from hamid import writing
-    from hamid.api import simulate as run_simulation
+    from hamid.api import simulate_realizations
 
     table_format = writing.table_format(output, fmt)
-    _check_output("-o", output, [config], binary=table_format == "parquet")
-    _check_room(config, output, table_format, max_samples)
+    outputs = [output] if realizations is None else _numbered(output, realizations)
+    for name in outputs:
+        _check_output("-o", name, [config], binary=table_format == "parquet")
+    _check_room(config, output, table_format, max_samples, len(outputs))
     console = _stderr_console()
     with _progress(console, "simulating") as progress:
-        frame = run_simulation(config, seed=seed, max_samples=max_samples, progress=progress)
-    meta = frame.attrs["hamid"]
-    writing.write_table(frame, output, format=fmt, metadata=None if no_meta else meta)
+        frames = simulate_realizations(config, len(outputs), seed=seed,
+                                       max_samples=max_samples, progress=progress)
+        first = next(frames)   # the integration; the other realizations only add noise
+    with writing.all_or_nothing():
+        for name, frame in zip(outputs, itertools.chain([first], frames), strict=True):
+            meta = frame.attrs["hamid"]
+            writing.write_table(frame, name, format=fmt, metadata=None if no_meta else meta)
     drift = max(t["energy_drift"] for t in meta["trajectories"])
     console.print(f"simulated {len(meta['trajectories'])} trajectories, {len(frame)} samples "
                   f"(t = 0..{frame['t'].iloc[-1]:g}, dt = {meta['dt']:g}); "
                   f"largest relative energy drift {drift:.2g}"
-                  + ("" if not meta["damping"] else " (energy plus dissipated work)"))
+                  + ("" if not meta["damping"] else " (energy plus dissipated work)")
+                  + ("" if realizations is None else
+                     f"; {realizations} realizations, {outputs[0]} to {outputs[-1]}"))
+
+
+def _numbered(output: str, count: int) -> list[str]:
+    """The files of `count` realizations: OUT with -1, -2, ... (zero-padded) before its
+    extension."""
+    if output == "-":
+        raise UsageError("--realizations writes a file per realization: give -o FILE")
+    stem, suffix = os.path.splitext(output)
+    return [f"{stem}-{k:0{len(str(count))}d}{suffix}" for k in range(1, count + 1)]
 
 
 # Bytes a value takes in a written table: CSV text of a double's shortest form and a
@@ -261,7 +282,8 @@ def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_met
 _VALUE_BYTES = {"csv": 20, "tsv": 20, "parquet": 8}
 
 
-def _check_room(config: str, output: str, table_format: str, max_samples: int | None) -> None:
+def _check_room(config: str, output: str, table_format: str, max_samples: int | None,
+                copies: int) -> None:
     """Refuse a simulation whose output would not fit on the disk it goes to, before the
     run (150 coordinates of 20 million samples, 48 GB, started writing before)."""
     import shutil
@@ -273,7 +295,7 @@ def _check_room(config: str, output: str, table_format: str, max_samples: int | 
     system = simulation.parse_system(documents.read_toml(config), where=config)
     if max_samples is not None:
         system = dataclasses.replace(system, max_samples=max_samples)
-    values = simulation.output_values(system)
+    values = simulation.output_values(system) * copies
     needed = values * _VALUE_BYTES[table_format]
     free = shutil.disk_usage(os.path.dirname(os.path.abspath(output))).free
     if needed > free:
@@ -543,20 +565,27 @@ def _fit_each(each: bool, jobs: int | None, scheduler: str | None, ship_data: bo
 
 
 @cli.command()
-@click.argument("result_file", metavar="RESULT.json")
+@click.argument("result_files", metavar="RESULT.json|RESULTS.jsonl...", nargs=-1,
+                required=True)
 @click.option("--format", "fmt", type=click.Choice(_REPORT_FORMATS),
-              help="Output format (default: from -o's extension: .json, .csv, .md, .txt; "
-                   "table for standard output and special files).")
+              help="Output format (default: from -o's extension: .json, .csv, .md, .txt, "
+                   ".jsonl; table for standard output and special files).")
 @click.option("-o", "--output", default="-", metavar="OUT", help="Write the report here.")
-def report(result_file: str, fmt: str | None, output: str) -> None:
-    """Render a saved fit result (JSON) as a table, JSON, CSV or markdown."""
-    from hamid import documents, io
+def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
+    """Render a saved fit result (JSON) as a table, JSON, CSV or markdown; several results
+    (or the lines of fit --each) side by side, a column per source."""
+    from hamid import comparison, documents, io, writing
     from hamid.result import FitResult
 
-    _check_output("-o", output, [result_file])
+    _check_output("-o", output, result_files)
     fmt = fmt or _report_format(output)
-    source = io.STDIN if io.is_stdio(result_file) else result_file
-    result = FitResult.from_dict(documents.read_json(result_file), source=source)
+    if len(result_files) > 1 or fmt == "jsonl" or result_files[0].lower().endswith(".jsonl"):
+        color = writing.is_terminal(output) and "NO_COLOR" not in os.environ
+        text = comparison.render(comparison.load(result_files), fmt, color=color)
+        writing.write_text(_printable_lines(text) if fmt == "csv" and color else text, output)
+        return
+    source = io.STDIN if io.is_stdio(result_files[0]) else result_files[0]
+    result = FitResult.from_dict(documents.read_json(result_files[0]), source=source)
     _emit(result.to_dict(), fmt, output)
 
 

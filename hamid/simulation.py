@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,7 +27,7 @@ from hamid.errors import ModelError
 from hamid.expr import Func
 from hamid.model import Model, damping_names, model_from_spec
 
-__all__ = ["INTEGRATORS", "System", "parse_system", "run"]
+__all__ = ["INTEGRATORS", "System", "parse_system", "realizations", "run"]
 
 INTEGRATORS = {"dop853": "DOP853", "rk45": "RK45", "rk23": "RK23", "radau": "Radau",
                "bdf": "BDF", "lsoda": "LSODA"}
@@ -160,6 +160,16 @@ def run(system: System, *, seed: int | None = None,
     provenance : dict
         What the metadata of the output records (README.md, "Simulating").
     """
+    return next(realizations(system, 1, seed=seed, progress=progress))
+
+
+def realizations(system: System, count: int, *, seed: int | None = None,
+                 progress: Callable[[float], None] | None = None
+                 ) -> Iterator[tuple[dict[str, np.ndarray], dict[str, Any]]]:
+    """`count` noisy copies of the system's motion, integrated once: copy k (from 0) has the
+    noise of seed S + k, the same as `run` with that seed; S is `seed`, else the system's,
+    else drawn at random. Each is (columns, provenance) as `run` returns it.
+    """
     from scipy.integrate import solve_ivp
 
     model = system.model
@@ -235,31 +245,32 @@ def run(system: System, *, seed: int | None = None,
     seed = system.seed if seed is None else seed
     if seed is None:
         seed = int(np.random.SeedSequence().entropy % 2**32)
-    columns = {"trajectory": np.repeat(np.arange(1, n_traj + 1), len(times)),
-               "t": np.tile(times, n_traj)}
-    columns.update({v: clean[i] for i, v in enumerate(model.variables)})
-    if any(sigma.values()):
-        # one draw of shape (n_rows, 2N), so a seed gives the same noise as it always has
-        rng = np.random.default_rng(seed)
-        draw = rng.standard_normal((clean.shape[1], 2 * n))
-        columns.update({v: clean[i] + draw[:, i] * sigma[v]
-                        for i, v in enumerate(model.variables)})
-    provenance = {
-        "model": model.info(),
-        "parameters": dict(system.theta),
-        "damping": dict(system.damping),
-        "initial": [dict(s) for s in system.initial],
-        "trajectories": [
-            {"trajectory": j + 1, "energy": float(energy[j, 0]),
-             "energy_drift": float(drift[j]), "energy_dissipated": float(lost[j])}
-            for j in range(n_traj)],
-        "noise": {v: s for v, s in sigma.items() if s > 0} or None,
-        "seed": seed,
-        "integrator": {"method": system.method, "rtol": system.rtol, "atol": system.atol},
-        "t_end": system.t_end,
-        "dt": system.dt,
-    }
-    return columns, provenance
+    for k in range(count):
+        columns = {"trajectory": np.repeat(np.arange(1, n_traj + 1), len(times)),
+                   "t": np.tile(times, n_traj)}
+        columns.update({v: clean[i] for i, v in enumerate(model.variables)})
+        if any(sigma.values()):
+            # one draw of shape (n_rows, 2N), so a seed gives the same noise as it always has
+            rng = np.random.default_rng(seed + k)
+            draw = rng.standard_normal((clean.shape[1], 2 * n))
+            columns.update({v: clean[i] + draw[:, i] * sigma[v]
+                            for i, v in enumerate(model.variables)})
+        yield columns, {
+            "model": model.info(),
+            "parameters": dict(system.theta),
+            "damping": dict(system.damping),
+            "initial": [dict(s) for s in system.initial],
+            "trajectories": [
+                {"trajectory": j + 1, "energy": float(energy[j, 0]),
+                 "energy_drift": float(drift[j]), "energy_dissipated": float(lost[j])}
+                for j in range(n_traj)],
+            "noise": {v: s for v, s in sigma.items() if s > 0} or None,
+            "seed": seed + k,
+            "integrator": {"method": system.method, "rtol": system.rtol,
+                           "atol": system.atol},
+            "t_end": system.t_end,
+            "dt": system.dt,
+        }
 
 
 # scipy's integrators raise a smaller rtol to this, with a warning.

@@ -103,10 +103,11 @@ def kept() -> str | None:
     """What an interrupted `write_each` leaves, in words, or None when it wrote nothing."""
     if _sink is None or not _sink.records:
         return None
-    fits = f"{_sink.records} finished fit{'' if _sink.records == 1 else 's'}"
+    n = _sink.records
+    fits = "the finished fit" if n == 1 else f"the {n} finished fits"
     if _sink.partial is not None:
-        return f"the {fits} are in {_sink.partial}"
-    return f"the {fits} were written"
+        return f"{fits} {'is' if n == 1 else 'are'} in {_sink.partial}"
+    return f"{fits} {'was' if n == 1 else 'were'} written"
 
 
 Lines = Callable[[dict[str, Any]], str]
@@ -185,7 +186,8 @@ class _Sink:
         self.partial: str | None = None
         if not _in_place(output):
             # beside the file a symlink leads to, which the rename then replaces
-            self.partial = os.path.realpath(output) + PARTIAL_SUFFIX
+            self.partial = (os.path.realpath(output) if os.path.islink(output)
+                            else output) + PARTIAL_SUFFIX
 
     def write(self, text: str) -> None:
         try:
