@@ -48,7 +48,8 @@ Outcome = FitResult | HamidError
 def expand_sources(patterns: Sequence[str | os.PathLike[str]]) -> list[str]:
     """The files to fit one by one: each file as given, a folder's data files (CSV, TSV,
     Parquet, compressed text, lab formats; not its hidden files nor its subfolders) and a
-    glob pattern's files (``**`` spans folders), each sorted by name; URLs as given.
+    glob pattern's files (``**`` spans folders), each in natural order (run2 before
+    run10); URLs as given.
 
     Raises
     ------
@@ -66,21 +67,27 @@ def expand_sources(patterns: Sequence[str | os.PathLike[str]]) -> list[str]:
         if _URL.match(pattern) or os.path.isfile(labfiles.split(pattern)[0]):
             files.append(pattern)
         elif os.path.isdir(pattern):
-            found = sorted(entry.path for entry in os.scandir(pattern)
-                           if entry.is_file() and not entry.name.startswith(".")
-                           and _is_data_file(entry.path))
+            found = sorted((entry.path for entry in os.scandir(pattern)
+                            if entry.is_file() and not entry.name.startswith(".")
+                            and _is_data_file(entry.path)), key=_natural)
             if not found:
                 raise DataError(f"{pattern}: the folder holds no data files (.csv, .tsv, "
                                 ".parquet, compressed or lab files)")
             files.extend(found)
         elif _GLOB.search(pattern):
-            found = sorted(p for p in glob.glob(pattern, recursive=True) if os.path.isfile(p))
+            found = sorted((p for p in glob.glob(pattern, recursive=True) if os.path.isfile(p)),
+                           key=_natural)
             if not found:
                 raise DataError(f"{pattern}: no file matches the pattern")
             files.extend(found)
         else:
             raise DataError(f"{pattern}: no such file or folder")
     return files
+
+
+def _natural(path: str) -> list[str | int]:
+    """Helper: a sort key that puts run2 before run10."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path)]
 
 
 def _is_data_file(path: str) -> bool:

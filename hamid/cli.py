@@ -546,6 +546,7 @@ def _fit_each(each: bool, jobs: int | None, scheduler: str | None, ship_data: bo
     if fmt not in streamed.EACH_FORMATS:
         raise UsageError(f"--each writes one record per file: --format "
                          f"{'|'.join(streamed.EACH_FORMATS)}, not {fmt}")
+    output = "-" if _to_stdout(output) else output   # /dev/stdout: one stream, not two
     outcomes = batch.iter_fits(sources, model, fit_options,
                                Workers.choose(jobs, scheduler, len(sources)), ship_data=ship_data)
     out = streamed.EachOutput(fmt, output, fit_options["level"],

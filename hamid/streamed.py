@@ -191,21 +191,18 @@ class _Sink:
 
     def write(self, text: str) -> None:
         try:
+            if self.output == "-":
+                _to_stdout(text)
+                return
             if self.stream is None:
-                self.stream = self._open()
+                self.stream = open(self.partial or self.output, "wb")  # noqa: SIM115
             self.stream.write(text.encode("utf-8"))
             self.stream.flush()
         except BrokenPipeError:
             raise
         except OSError as exc:
-            raise DataError(f"{self.partial or self.output}: cannot write: "
-                            f"{exc.strerror or exc}") from exc
-
-    def _open(self) -> IO[bytes]:
-        if self.output == "-":
-            sys.stdout.flush()
-            return open(sys.stdout.fileno(), "wb", closefd=False)  # noqa: SIM115
-        return open(self.partial or self.output, "wb")  # noqa: SIM115 (kept across records)
+            name = "<stdout>" if self.output == "-" else self.partial or self.output
+            raise DataError(f"{name}: cannot write: {exc.strerror or exc}") from exc
 
     def finish(self) -> None:
         """Close the output; a complete ``.partial`` file becomes the output."""
@@ -220,6 +217,17 @@ class _Sink:
                 self.partial = None
         except OSError as exc:
             raise DataError(f"{self.output}: cannot write: {exc.strerror or exc}") from exc
+
+
+def _to_stdout(text: str) -> None:
+    """Helper: text to standard output at once, through its bytes where it has them."""
+    sys.stdout.flush()
+    buffer = getattr(sys.stdout, "buffer", None)
+    if buffer is None:   # a text-only stream, as some embedding applications install
+        sys.stdout.write(text)
+    else:
+        buffer.write(text.encode("utf-8"))
+        buffer.flush()
 
 
 def _in_place(output: str) -> bool:
