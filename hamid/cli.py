@@ -242,11 +242,11 @@ def _stderr_console() -> Any:
 def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_meta: bool,
              max_samples: int | None, realizations: int | None) -> None:
     """Integrate a system from its initial states and write the sampled record."""
-    from hamid import writing
+    from hamid import simulation, writing
     from hamid.api import simulate_realizations
 
     table_format = writing.table_format(output, fmt)
-    outputs = [output] if realizations is None else _numbered(output, realizations)
+    outputs = [output] if realizations is None else simulation.numbered(output, realizations)
     for name in outputs:
         _check_output("-o", name, [config], binary=table_format == "parquet")
     _check_room(config, output, table_format, max_samples, len(outputs))
@@ -266,15 +266,6 @@ def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_met
                   + ("" if not meta["damping"] else " (energy plus dissipated work)")
                   + ("" if realizations is None else
                      f"; {realizations} realizations, {outputs[0]} to {outputs[-1]}"))
-
-
-def _numbered(output: str, count: int) -> list[str]:
-    """The files of `count` realizations: OUT with -1, -2, ... (zero-padded) before its
-    extension."""
-    if output == "-":
-        raise UsageError("--realizations writes a file per realization: give -o FILE")
-    stem, suffix = os.path.splitext(output)
-    return [f"{stem}-{k:0{len(str(count))}d}{suffix}" for k in range(1, count + 1)]
 
 
 # Bytes a value takes in a written table: CSV text of a double's shortest form and a
@@ -542,21 +533,17 @@ def _fit_each(each: bool, jobs: int | None, scheduler: str | None, ship_data: bo
         raise UsageError("--residuals writes the samples of one fit; leave it out with --each")
     sources = batch.expand_sources(data)
     _check_output("-o", output, [*sources, *([model] if model and os.path.isfile(model) else [])])
-    fmt = fmt or _report_format(output)
-    if fmt not in streamed.EACH_FORMATS:
-        raise UsageError(f"--each writes one record per file: --format "
-                         f"{'|'.join(streamed.EACH_FORMATS)}, not {fmt}")
     output = "-" if _to_stdout(output) else output   # /dev/stdout: one stream, not two
+    out = streamed.EachOutput(fmt or _report_format(output), output, fit_options["level"],
+                              shlex.join(["hamid", *sys.argv[1:]]), writing.is_terminal(output))
     outcomes = batch.iter_fits(sources, model, fit_options,
                                Workers.choose(jobs, scheduler, len(sources)), ship_data=ship_data)
-    out = streamed.EachOutput(fmt, output, fit_options["level"],
-                              shlex.join(["hamid", *sys.argv[1:]]), writing.is_terminal(output))
     console = _stderr_console()
     with _progress(console, "fitting", total=len(sources)) as bar:
         def progress(done: int, outcome: object) -> None:
             if bar is not None:
                 bar(done)
-            if isinstance(outcome, HamidError) and not (fmt == "table" and output == "-"):
+            if isinstance(outcome, HamidError) and not (out.format == "table" and output == "-"):
                 console.print(_printable(f"error: {outcome}"), markup=False)
 
         tally = streamed.write_each(sources, outcomes, out, progress=progress)
@@ -581,9 +568,11 @@ def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
     _check_output("-o", output, result_files)
     fmt = fmt or _report_format(output)
     if len(result_files) > 1 or fmt == "jsonl" or result_files[0].lower().endswith(".jsonl"):
-        color = writing.is_terminal(output) and "NO_COLOR" not in os.environ
-        text = comparison.render(comparison.load(result_files), fmt, color=color)
-        writing.write_text(_printable_lines(text) if fmt == "csv" and color else text, output)
+        to_terminal = writing.is_terminal(output)
+        text = comparison.render(comparison.load(result_files), fmt,
+                                 color=to_terminal and "NO_COLOR" not in os.environ)
+        writing.write_text(_printable_lines(text) if fmt == "csv" and to_terminal else text,
+                           output)
         return
     source = io.STDIN if io.is_stdio(result_files[0]) else result_files[0]
     result = FitResult.from_dict(documents.read_json(result_files[0]), source=source)

@@ -23,11 +23,11 @@ import numpy.typing as npt
 
 from hamid.config import check_keys, number, table
 from hamid.dynamics import Dynamics, Motion
-from hamid.errors import ModelError
+from hamid.errors import ModelError, UsageError
 from hamid.expr import Func
 from hamid.model import Model, damping_names, model_from_spec
 
-__all__ = ["INTEGRATORS", "System", "parse_system", "realizations", "run"]
+__all__ = ["INTEGRATORS", "System", "numbered", "parse_system", "realizations", "run"]
 
 INTEGRATORS = {"dop853": "DOP853", "rk45": "RK45", "rk23": "RK23", "radau": "Radau",
                "bdf": "BDF", "lsoda": "LSODA"}
@@ -271,6 +271,15 @@ def realizations(system: System, count: int, *, seed: int | None = None,
             "t_end": system.t_end,
             "dt": system.dt,
         }
+
+
+def numbered(output: str, count: int) -> list[str]:
+    """The files of `count` realizations: OUT with -1, -2, ... (zero-padded to the width of
+    `count`) before its extension."""
+    if output == "-":
+        raise UsageError("--realizations writes a file per realization: give -o FILE")
+    stem, suffix = os.path.splitext(output)
+    return [f"{stem}-{k:0{len(str(count))}d}{suffix}" for k in range(1, count + 1)]
 
 
 # scipy's integrators raise a smaller rtol to this, with a warning.

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import IO, Any
 
 from hamid import batch
-from hamid.errors import DataError, HamidError
+from hamid.errors import DataError, HamidError, UsageError
 from hamid.report import printable
 from hamid.result import percent
 
@@ -46,6 +46,11 @@ class EachOutput:
     level: float = 0.95
     command: str | None = None
     to_terminal: bool = False   # text is then shown with control characters escaped
+
+    def __post_init__(self) -> None:
+        if self.format not in EACH_FORMATS:
+            raise UsageError(f"--each writes one record per file: --format "
+                             f"{'|'.join(EACH_FORMATS)}, not {self.format}")
 
 
 @dataclass(slots=True)
