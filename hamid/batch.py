@@ -166,9 +166,9 @@ def iter_fits(sources: Sequence[str], model: str | os.PathLike[str] | Model | No
 
     from hamid.options import FitOptions
 
+    if "progress" in fit_options:
+        raise UsageError("fit_each: 'progress' is for one fit; fit_each's fits run elsewhere")
     try:
-        if "progress" in fit_options:
-            raise TypeError("got an unexpected keyword argument 'progress'")
         arguments = inspect.signature(fit).bind(None, model, **fit_options)
     except TypeError as exc:
         raise UsageError(f"fit_each: {exc}") from None

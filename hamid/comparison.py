@@ -87,7 +87,7 @@ def render(compared: Sequence[Compared], format: str, *, color: bool = False) ->
                          f"as {', '.join(COMPARISON_FORMATS)}")
     fits = [c.outcome for c in compared if isinstance(c.outcome, FitResult)]
     models = sorted({fit.model["name"] for fit in fits})
-    title = (f"hamid report — {len(compared)} fits" +
+    title = (f"hamid report — {len(compared)} fit{'' if len(compared) == 1 else 's'}" +
              (f" of {', '.join(models)}" if models else ""))
     names = list(dict.fromkeys(p.name for fit in fits for p in fit.parameters))
     parameters = [(name, [_cell(c.outcome, name) for c in compared]) for name in names]
