@@ -35,8 +35,9 @@ _debug = False
 # The data files of the running `fit`, named when it runs out of memory.
 _sources: tuple[str, ...] = ()
 # The report formats of `fit` and `report` (hamid.report.FORMATS, not imported for --help),
-# and the output extensions that choose them.
-_REPORT_FORMATS = ("table", "json", "csv", "markdown", "jsonl")
+# jsonl for many fits (fit --each, report of several), and the extensions that choose them.
+_REPORT_FORMATS = ("table", "json", "csv", "markdown")
+_FORMATS = click.Choice([*_REPORT_FORMATS, "jsonl"])
 _REPORT_SUFFIXES = {".json": "json", ".csv": "csv", ".md": "markdown", ".txt": "table",
                     ".jsonl": "jsonl"}
 
@@ -434,7 +435,7 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--bootstrap", "n_boot", default=200, show_default=True,
               type=click.IntRange(min=10), help="Replicates for --cov bootstrap.")
 @click.option("--seed", type=click.IntRange(min=0), help="Seed for --cov bootstrap.")
-@click.option("--format", "fmt", type=click.Choice(_REPORT_FORMATS),
+@click.option("--format", "fmt", type=_FORMATS,
               help="Report format (default: from -o's extension: .json, .csv, .md, .txt; "
                    "table for standard output and special files).")
 @click.option("-o", "--output", default="-", metavar="FILE", help="Write the report here.")
@@ -555,19 +556,21 @@ def _fit_each(each: bool, jobs: int | None, scheduler: str | None, ship_data: bo
 @cli.command()
 @click.argument("result_files", metavar="RESULT.json|RESULTS.jsonl...", nargs=-1,
                 required=True)
-@click.option("--format", "fmt", type=click.Choice(_REPORT_FORMATS),
+@click.option("--format", "fmt", type=_FORMATS,
               help="Output format (default: from -o's extension: .json, .csv, .md, .txt, "
                    ".jsonl; table for standard output and special files).")
 @click.option("-o", "--output", default="-", metavar="OUT", help="Write the report here.")
 def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
     """Render a saved fit result (JSON) as a table, JSON, CSV or markdown; several results
     (or the lines of fit --each) side by side, a column per source."""
-    from hamid import comparison, documents, io, writing
+    from hamid import documents, io, writing
     from hamid.result import FitResult
 
     _check_output("-o", output, result_files)
     fmt = fmt or _report_format(output)
     if len(result_files) > 1 or fmt == "jsonl" or result_files[0].lower().endswith(".jsonl"):
+        from hamid import comparison
+
         to_terminal = writing.is_terminal(output)
         text = comparison.render(comparison.load(result_files), fmt,
                                  color=to_terminal and "NO_COLOR" not in os.environ)

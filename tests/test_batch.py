@@ -303,6 +303,7 @@ def test_output_file_is_complete_and_no_partial_file_is_left(tmp_path, sources):
     (["fit", "{runs}/run2.csv", "--format", "jsonl"], 2, ["needs --each"]),
     (["fit", "--each", "{runs}", "--residuals", "r.csv"], 2, ["--residuals"]),
     (["fit", "--each", "-"], 2, ["standard input"]),
+    (["fit", "--each", "{runs}", "-o", "{runs}/no/r.jsonl"], 1, ["does not exist"]),
 ])
 def test_usage_errors_of_fit_each(runs, args, code, words):
     _fails(invoke([a.format(runs=runs) for a in args]), code, *words)
