@@ -21,13 +21,16 @@ __all__ = [
     "UsageError",
     "__version__",
     "fit",
+    "fit_each",
     "load_model",
     "select",
     "simulate",
+    "simulate_realizations",
 ]
 
 _LAZY = {"fit": "hamid.api", "simulate": "hamid.api", "load_model": "hamid.api",
-         "select": "hamid.selecting"}
+         "select": "hamid.selecting", "fit_each": "hamid.batch",
+         "simulate_realizations": "hamid.api"}
 
 
 def __getattr__(name: str) -> Any:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from hamid import estimate, loading, plan, refine, summary
@@ -19,7 +19,7 @@ from hamid.unknowns import Unknowns
 if TYPE_CHECKING:
     import pandas as pd
 
-__all__ = ["fit", "load_model", "simulate"]
+__all__ = ["fit", "load_model", "simulate", "simulate_realizations"]
 
 
 def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | None = None,
@@ -31,6 +31,21 @@ def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | 
     velocities; ``frame.attrs["hamid"]`` holds its provenance (model, true parameters,
     initial states, energy drift, noise, seed, integrator, version).
     """
+    return next(simulate_realizations(system, 1, seed=seed, max_samples=max_samples,
+                                      progress=progress))
+
+
+def simulate_realizations(system: str | os.PathLike[str] | Mapping[str, Any],
+                          realizations: int, *, seed: int | None = None,
+                          max_samples: int | None = None,
+                          progress: Callable[[float], None] | None = None
+                          ) -> Iterator[pd.DataFrame]:
+    """`realizations` noisy records of one system for Monte Carlo studies, one at a time.
+
+    The motion is integrated once; record k (from 0) has the noise of seed S + k, where S
+    is `seed`, else the system's ``[simulate] seed``, else drawn at random: the record that
+    ``simulate(system, seed=S + k)`` returns, which its metadata's ``seed`` says.
+    """
     from hamid import simulation
 
     if isinstance(system, Mapping):
@@ -40,8 +55,8 @@ def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | 
 
         where = os.fspath(system)
         document = documents.read_toml(where)
-    return simulation.sampled(document, where=where, seed=seed, max_samples=max_samples,
-                              progress=progress)
+    return simulation.sampled(document, realizations, where=where, seed=seed,
+                              max_samples=max_samples, progress=progress)
 
 
 def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,

@@ -11,6 +11,7 @@ imported inside the commands so that `hamid --help` starts fast.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 import shlex
 import sys
@@ -20,13 +21,13 @@ from typing import Any, NoReturn
 
 import click
 
-from hamid import __version__
+from hamid import __version__, console
+from hamid.cli_select import select
 from hamid.errors import DataError, HamidError, UsageError
 from hamid.options import (
     COVARIANCE_KINDS,
     GAP_POLICIES,
     METHODS,
-    SELECTION_CRITERIA,
     TIME_UNITS,
     VELOCITY_SOURCES,
 )
@@ -35,9 +36,11 @@ _debug = False
 # The data files of the running `fit`, named when it runs out of memory.
 _sources: tuple[str, ...] = ()
 # The report formats of `fit` and `report` (hamid.report.FORMATS, not imported for --help),
-# and the output extensions that choose them.
+# jsonl for many fits (fit --each, report of several), and the extensions that choose them.
 _REPORT_FORMATS = ("table", "json", "csv", "markdown")
-_REPORT_SUFFIXES = {".json": "json", ".csv": "csv", ".md": "markdown", ".txt": "table"}
+_FORMATS = click.Choice([*_REPORT_FORMATS, "jsonl"])
+_REPORT_SUFFIXES = {".json": "json", ".csv": "csv", ".md": "markdown", ".txt": "table",
+                    ".jsonl": "jsonl"}
 
 
 class _Terminated(BaseException):
@@ -88,11 +91,11 @@ class _HamidGroup(_StreamsChecked, click.Group):
             return super().invoke(ctx)
         except UsageError as exc:
             # Raised inside a subcommand, whose context is gone by now: no usage line.
-            raise click.UsageError(_printable(str(exc))) from exc
+            raise click.UsageError(console.printable(str(exc))) from exc
         except HamidError as exc:
             if isinstance(exc.__cause__, MemoryError):  # e.g. pyarrow's failed malloc
                 raise _out_of_memory(exc.__cause__, ctx.invoked_subcommand) from exc
-            raise click.ClickException(_printable(str(exc))) from exc
+            raise click.ClickException(console.printable(str(exc))) from exc
         except (click.ClickException, click.exceptions.Exit, click.Abort):
             raise
         except BrokenPipeError:
@@ -106,23 +109,9 @@ class _HamidGroup(_StreamsChecked, click.Group):
         except Exception as exc:
             if _debug:
                 raise
-            raise click.ClickException(_printable(
+            raise click.ClickException(console.printable(
                 f"internal error ({type(exc).__name__}: {exc}); this is a bug in hamid. "
                 "Rerun with --debug for the traceback")) from exc
-
-
-def _printable(text: str) -> str:
-    """A message with the control characters of any text from data shown escaped."""
-    from hamid.report import printable
-
-    return printable(text)
-
-
-def _printable_lines(text: str) -> str:
-    """Text of several lines, with the control characters of each line escaped."""
-    from hamid.report import printable
-
-    return printable(text, keep="\n")
 
 
 def _stop(what: str, status: int) -> NoReturn:
@@ -130,7 +119,9 @@ def _stop(what: str, status: int) -> NoReturn:
     from hamid import writing
 
     writing.remove_temporaries()
-    click.echo(f"{what}; no output was written", err=True)
+    streamed = sys.modules.get("hamid.streamed")   # fit --each keeps its finished fits
+    kept = streamed.kept() if streamed is not None else None
+    click.echo(f"{what}; {kept or 'no output was written'}", err=True)
     sys.exit(status)
 
 
@@ -167,7 +158,7 @@ def _out_of_memory(exc: BaseException, command: str | None) -> click.ClickExcept
                                            if len(_sources) > 3 else "")
         activity += f" {shown}" + (f" ({size / 1e6:,.0f} MB)" if size >= 1e6 else "")
     hint = _MEMORY_HINTS.get(command or "", "try a smaller input")
-    return click.ClickException(_printable(f"out of memory while {activity}; {hint}"))
+    return click.ClickException(console.printable(f"out of memory while {activity}; {hint}"))
 
 
 def _quiet_broken_pipe() -> NoReturn:
@@ -201,25 +192,7 @@ def cli(debug: bool) -> None:
     _debug = debug
 
 
-def _check_output(option: str, output: str, inputs: Sequence[str], *,
-                  binary: bool = False) -> None:
-    """Before any work: refuse an output that would replace an input, and one that cannot
-    be written (a missing or read-only folder, a read-only file, a closed standard output,
-    Parquet bound for a terminal)."""
-    from hamid import writing
-
-    for source in inputs:
-        if writing.overwrites(output, source):
-            shown = "standard input" if source == "-" else f"the input file {source!r}"
-            raise UsageError(f"{option} {output!r} is {shown}; writing it would destroy the "
-                             "input: choose another output")
-    writing.check_destination(output, binary=binary)
-
-
-def _stderr_console() -> Any:
-    from rich.console import Console
-
-    return Console(stderr=True, highlight=False, soft_wrap=True)
+cli.add_command(select)
 
 
 @cli.command()
@@ -233,25 +206,36 @@ def _stderr_console() -> Any:
 @click.option("--no-meta", is_flag=True, help="Write no provenance metadata line.")
 @click.option("--max-samples", type=click.IntRange(min=1),
               help="Allow runs larger than the safety cap (default 20,000,000 samples).")
+@click.option("--realizations", type=click.IntRange(min=1), metavar="N",
+              help="Write N copies with their own noise (seeds S, S+1, ...), as OUT with "
+                   "-1, -2, ... before its extension.")
 def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_meta: bool,
-             max_samples: int | None) -> None:
+             max_samples: int | None, realizations: int | None) -> None:
     """Integrate a system from its initial states and write the sampled record."""
-    from hamid import writing
-    from hamid.api import simulate as run_simulation
+    from hamid import simulation, writing
+    from hamid.api import simulate_realizations
 
     table_format = writing.table_format(output, fmt)
-    _check_output("-o", output, [config], binary=table_format == "parquet")
-    _check_room(config, output, table_format, max_samples)
-    console = _stderr_console()
-    with _progress(console, "simulating") as progress:
-        frame = run_simulation(config, seed=seed, max_samples=max_samples, progress=progress)
-    meta = frame.attrs["hamid"]
-    writing.write_table(frame, output, format=fmt, metadata=None if no_meta else meta)
+    outputs = [output] if realizations is None else simulation.numbered(output, realizations)
+    for name in outputs:
+        console.check_output("-o", name, [config], binary=table_format == "parquet")
+    _check_room(config, output, table_format, max_samples, len(outputs))
+    stderr = console.stderr_console()
+    with console.Progress(stderr, "simulating") as progress:
+        frames = simulate_realizations(config, len(outputs), seed=seed,
+                                       max_samples=max_samples, progress=progress)
+        first = next(frames)   # the integration; the other realizations only add noise
+    with writing.all_or_nothing():
+        for name, frame in zip(outputs, itertools.chain([first], frames), strict=True):
+            meta = frame.attrs["hamid"]
+            writing.write_table(frame, name, format=fmt, metadata=None if no_meta else meta)
     drift = max(t["energy_drift"] for t in meta["trajectories"])
-    console.print(f"simulated {len(meta['trajectories'])} trajectories, {len(frame)} samples "
-                  f"(t = 0..{frame['t'].iloc[-1]:g}, dt = {meta['dt']:g}); "
-                  f"largest relative energy drift {drift:.2g}"
-                  + ("" if not meta["damping"] else " (energy plus dissipated work)"))
+    stderr.print(f"simulated {len(meta['trajectories'])} trajectories, {len(frame)} samples "
+                 f"(t = 0..{frame['t'].iloc[-1]:g}, dt = {meta['dt']:g}); "
+                 f"largest relative energy drift {drift:.2g}"
+                 + ("" if not meta["damping"] else " (energy plus dissipated work)")
+                 + ("" if realizations is None else
+                    f"; {realizations} realizations, {outputs[0]} to {outputs[-1]}"))
 
 
 # Bytes a value takes in a written table: CSV text of a double's shortest form and a
@@ -259,7 +243,8 @@ def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_met
 _VALUE_BYTES = {"csv": 20, "tsv": 20, "parquet": 8}
 
 
-def _check_room(config: str, output: str, table_format: str, max_samples: int | None) -> None:
+def _check_room(config: str, output: str, table_format: str, max_samples: int | None,
+                copies: int) -> None:
     """Refuse a simulation whose output would not fit on the disk it goes to, before the
     run (150 coordinates of 20 million samples, 48 GB, started writing before)."""
     import shutil
@@ -271,56 +256,13 @@ def _check_room(config: str, output: str, table_format: str, max_samples: int | 
     system = simulation.parse_system(documents.read_toml(config), where=config)
     if max_samples is not None:
         system = dataclasses.replace(system, max_samples=max_samples)
-    values = simulation.output_values(system)
+    values = simulation.output_values(system) * copies
     needed = values * _VALUE_BYTES[table_format]
     free = shutil.disk_usage(os.path.dirname(os.path.abspath(output))).free
     if needed > free:
         raise DataError(f"{output}: the run would write about {needed / 2**30:,.1f} GiB "
                         f"({values:,.0f} values), more than the {free / 2**30:,.1f} GiB "
                         "free on its disk; simulate less, or write elsewhere")
-
-
-class _progress:
-    """A progress bar on standard error, shown only when it is a terminal."""
-
-    def __init__(self, console: Any, label: str):
-        self.console, self.label, self.bar = console, label, None
-
-    def __enter__(self) -> Any:
-        if not self.console.is_terminal:
-            return None
-        from rich.progress import Progress
-
-        self.bar = Progress(console=self.console, transient=True)
-        self.bar.start()
-        task = self.bar.add_task(self.label, total=1.0)
-        return lambda fraction: self.bar.update(task, completed=fraction)
-
-    def __exit__(self, *exc: object) -> None:
-        if self.bar is not None:
-            self.bar.stop()
-
-
-class _status:
-    """A status line on standard error that a long command updates, shown only when it is
-    a terminal (checked before rich is imported, which a pipe then never pays for)."""
-
-    def __init__(self, label: str):
-        self.label, self.line = label, None
-
-    def __enter__(self) -> Any:
-        if sys.stderr is None or not sys.stderr.isatty():
-            return None
-        from rich.markup import escape
-
-        self.line = _stderr_console().status(self.label)
-        self.line.start()
-        # the text names files, whose names may hold control characters or rich markup
-        return lambda text: self.line.update(escape(f"{self.label}: {_printable(text)}"))
-
-    def __exit__(self, *exc: object) -> None:
-        if self.line is not None:
-            self.line.stop()
 
 
 # Spellings of a tab on the command line, where a literal tab is awkward to type.
@@ -416,7 +358,7 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--bootstrap", "n_boot", default=200, show_default=True,
               type=click.IntRange(min=10), help="Replicates for --cov bootstrap.")
 @click.option("--seed", type=click.IntRange(min=0), help="Seed for --cov bootstrap.")
-@click.option("--format", "fmt", type=click.Choice(_REPORT_FORMATS),
+@click.option("--format", "fmt", type=_FORMATS,
               help="Report format (default: from -o's extension: .json, .csv, .md, .txt; "
                    "table for standard output and special files).")
 @click.option("-o", "--output", default="-", metavar="FILE", help="Write the report here.")
@@ -429,6 +371,15 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @click.option("--plot", "figure", metavar="FIG",
               help="Also draw the fit (hamid plot): FIG.png or .svg, a file per panel, or "
                    ".pdf, a page per panel.")
+@click.option("--each", is_flag=True,
+              help="Fit each file by itself (DATA: files, folders, glob patterns, URLs); "
+                   "one jsonl line, or CSV or table rows, per file.")
+@click.option("--jobs", type=click.IntRange(min=1), metavar="N",
+              help="With --each: local processes (default: one per core).")
+@click.option("--scheduler", metavar="tcp://HOST:PORT",
+              help="With --each: fit on this Dask cluster (default $DASK_SCHEDULER_ADDRESS).")
+@click.option("--ship-data", is_flag=True,
+              help="With --scheduler: send the files' bytes rather than their names.")
 def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         time_column: str | None, time_unit: str | None, scale: str | None, strict: bool,
         gaps: str,
@@ -439,7 +390,8 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         weak_window: float | None, damping: str, fix: str | None, cov: str, level: float,
         n_boot: int,
         seed: int | None, fmt: str | None, output: str, residuals: str | None,
-        chunk_rows: int | None, figure: str | None) -> None:
+        chunk_rows: int | None, figure: str | None, each: bool, jobs: int | None,
+        scheduler: str | None, ship_data: bool) -> None:
     """Fit the energy of the recorded motion in DATA (CSV, TSV, Parquet; '-' for stdin)."""
     from hamid import options, writing
     from hamid.api import fit as run_fit
@@ -450,34 +402,43 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         raise click.UsageError("--residuals needs the data in memory; leave out --chunk-rows")
     global _sources
     _sources = data
+    fit_options = dict(columns=None if columns is None else options.parse_mapping(
+                       columns, option="--columns"),
+                   time=time_column, trajectory=trajectory, velocity=velocity,
+                   window=window, order=order, noise=_parse_noise(noise),
+                   bias_correct=bias_correct, fix=_parse_floats(fix, "--fix"),
+                   method=method, weak_window=weak_window, damping=damping, cov=cov,
+                   level=level, bootstrap=n_boot, seed=seed, format=format_in,
+                   chunk_rows=chunk_rows, time_unit=time_unit,
+                   scale=_parse_floats(scale, "--scale"), gaps=gaps,
+                   delimiter=_DELIMITER_NAMES.get(delimiter or "", delimiter),
+                   decimal=decimal, skip_rows=skip_rows, units_row=units_row)
+    if each or jobs or scheduler or ship_data:
+        if figure is not None:
+            raise UsageError("--plot draws one fit: it does not combine with --each")
+        _fit_each(each, jobs, scheduler, ship_data, data, model, fit_options, fmt, output,
+                  strict, residuals)
+        return
     inputs = [*data, *([model] if model is not None and os.path.isfile(model) else [])]
     if residuals is not None:
         residuals_format = writing.table_format(residuals)
         if output != "-" and writing.overwrites(residuals, output):
             raise UsageError(f"-o and --residuals name the same file {output!r}")
-        _check_output("--residuals", residuals, inputs, binary=residuals_format == "parquet")
+        console.check_output("--residuals", residuals, inputs,
+                             binary=residuals_format == "parquet")
         if _to_stdout(residuals) and _to_stdout(output):
             raise UsageError("--residuals and the report would both go to standard output, "
                              "where they would interleave; write one of them to a file "
                              "(-o FILE or --residuals FILE)")
-    _check_output("-o", output, inputs)
+    console.check_output("-o", output, inputs)
     if figure is not None:
         _check_figure("--plot", figure, inputs)
     fmt = fmt or _report_format(output)
-    with _status("fitting") as status:
-        result = run_fit(list(data), model,
-                         columns=None if columns is None else options.parse_mapping(
-                             columns, option="--columns"),
-                         time=time_column, trajectory=trajectory, velocity=velocity,
-                         window=window, order=order, noise=_parse_noise(noise),
-                         bias_correct=bias_correct, fix=_parse_floats(fix, "--fix"),
-                         method=method, weak_window=weak_window, damping=damping, cov=cov,
-                         level=level, bootstrap=n_boot, seed=seed, format=format_in,
-                         chunk_rows=chunk_rows, in_memory=residuals is not None,
-                         progress=status, time_unit=time_unit,
-                         scale=_parse_floats(scale, "--scale"), gaps=gaps,
-                         delimiter=_DELIMITER_NAMES.get(delimiter or "", delimiter),
-                         decimal=decimal, skip_rows=skip_rows, units_row=units_row)
+    if fmt == "jsonl":
+        raise UsageError("--format jsonl writes one line per file: it needs --each")
+    with console.Status("fitting") as status:
+        result = run_fit(list(data), model, **fit_options, in_memory=residuals is not None,
+                         progress=status)
     result = result.with_command(shlex.join(["hamid", *sys.argv[1:]]))
 
     notes: list[str] = []
@@ -494,27 +455,71 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
 
     _emit(result.to_dict(), fmt, output, also=write_files)
     for note in notes:
-        click.echo(_printable(note), err=True)
+        click.echo(console.printable(note), err=True)
     if strict and result.warnings:
         click.echo(f"error: --strict: the fit has {len(result.warnings)} warning(s)", err=True)
         raise click.exceptions.Exit(3)
 
 
+def _fit_each(each: bool, jobs: int | None, scheduler: str | None, ship_data: bool,
+              data: tuple[str, ...], model: str | None, fit_options: dict[str, Any],
+              fmt: str | None, output: str, strict: bool, residuals: str | None) -> None:
+    """`fit --each`: a fit per file, written in their order as they end (hamid.batch)."""
+    from hamid import batch, streamed, writing
+    from hamid.executor import Workers
+
+    if not each:
+        raise UsageError("--jobs, --scheduler and --ship-data apply only to --each")
+    if residuals is not None:
+        raise UsageError("--residuals writes the samples of one fit; leave it out with --each")
+    sources = batch.expand_sources(data)
+    console.check_output("-o", output,
+                         [*sources, *([model] if model and os.path.isfile(model) else [])])
+    output = "-" if _to_stdout(output) else output   # /dev/stdout: one stream, not two
+    out = streamed.EachOutput(fmt or _report_format(output), output, fit_options["level"],
+                              shlex.join(["hamid", *sys.argv[1:]]), writing.is_terminal(output))
+    outcomes = batch.iter_fits(sources, model, fit_options,
+                               Workers.choose(jobs, scheduler, len(sources)), ship_data=ship_data)
+    stderr = console.stderr_console()
+    with console.Progress(stderr, "fitting", total=len(sources)) as bar:
+        def progress(done: int, outcome: object) -> None:
+            if bar is not None:
+                bar(done)
+            if isinstance(outcome, HamidError) and not (out.format == "table" and output == "-"):
+                stderr.print(console.printable(f"error: {outcome}"), markup=False)
+
+        tally = streamed.write_each(sources, outcomes, out, progress=progress)
+    stderr.print(tally.line(), markup=False)
+    if tally.failed or (strict and tally.warned):
+        raise click.exceptions.Exit(1 if tally.failed else 3)
+
+
 @cli.command()
-@click.argument("result_file", metavar="RESULT.json")
-@click.option("--format", "fmt", type=click.Choice(_REPORT_FORMATS),
-              help="Output format (default: from -o's extension: .json, .csv, .md, .txt; "
-                   "table for standard output and special files).")
+@click.argument("result_files", metavar="RESULT.json|RESULTS.jsonl...", nargs=-1,
+                required=True)
+@click.option("--format", "fmt", type=_FORMATS,
+              help="Output format (default: from -o's extension: .json, .csv, .md, .txt, "
+                   ".jsonl; table for standard output and special files).")
 @click.option("-o", "--output", default="-", metavar="OUT", help="Write the report here.")
-def report(result_file: str, fmt: str | None, output: str) -> None:
-    """Render a saved fit result (JSON) as a table, JSON, CSV or markdown."""
-    from hamid import documents, io
+def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
+    """Render a saved fit result (JSON) as a table, JSON, CSV or markdown; several results
+    (or the lines of fit --each) side by side, a column per source."""
+    from hamid import documents, io, writing
     from hamid.result import FitResult
 
-    _check_output("-o", output, [result_file])
+    console.check_output("-o", output, result_files)
     fmt = fmt or _report_format(output)
-    source = io.STDIN if io.is_stdio(result_file) else result_file
-    result = FitResult.from_dict(documents.read_json(result_file), source=source)
+    if len(result_files) > 1 or fmt == "jsonl" or result_files[0].lower().endswith(".jsonl"):
+        from hamid import comparison
+
+        to_terminal = writing.is_terminal(output)
+        text = comparison.render(comparison.load(result_files), fmt,
+                                 color=to_terminal and "NO_COLOR" not in os.environ)
+        writing.write_text(console.printable_lines(text) if fmt == "csv" and to_terminal else text,
+                           output)
+        return
+    source = io.STDIN if io.is_stdio(result_files[0]) else result_files[0]
+    result = FitResult.from_dict(documents.read_json(result_files[0]), source=source)
     _emit(result.to_dict(), fmt, output)
 
 
@@ -539,7 +544,7 @@ def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | Non
     with writing.all_or_nothing():
         notes = figures.save(report, recording, output, panels)
     for note in notes:
-        click.echo(_printable(note), err=True)
+        click.echo(console.printable(note), err=True)
 
 
 def _check_figure(option: str, figure: str, inputs: Sequence[str]) -> None:
@@ -550,63 +555,7 @@ def _check_figure(option: str, figure: str, inputs: Sequence[str]) -> None:
         figures.check_output(figure)
     except UsageError as exc:
         raise UsageError(f"{option} {exc}") from None
-    _check_output(option, figure, inputs, binary=True)
-
-
-@cli.command()
-@click.argument("data", nargs=-1, required=True)
-@click.option("--library", metavar="poly:N:D|MODEL.toml",
-              help="Candidate terms: monomials of degree 2..D, or each parameter's term of "
-                   "a model file (default poly:N:4 over the data's coordinates).")
-@click.option("--keep", metavar="TERM,...", help="Terms always in (u1**2, or a parameter).")
-@click.option("--criterion", default="bic", show_default=True,
-              type=click.Choice(SELECTION_CRITERIA), help="How candidate models are scored.")
-@click.option("--stability", default=0, type=click.IntRange(min=0), metavar="N",
-              help="Inclusion probabilities from N moving-block bootstrap replicates.")
-@click.option("--seed", type=click.IntRange(min=0),
-              help="Seed of the --stability replicates (default 0).")
-@click.option("--columns", metavar="NAME=COL,...", help="Map model names to file columns.")
-@click.option("--damping", default="none", show_default=True,
-              metavar="none|viscous|coulomb|quadratic[,...]",
-              help="Dissipative forces, always in the model.")
-@click.option("--write-model", metavar="FILE.toml", help="Write the chosen model here.")
-@click.option("--format", "fmt", type=click.Choice(["table", "json"]),
-              help="Report format (default: json for -o *.json, else table).")
-@click.option("-o", "--output", default="-", metavar="FILE", help="Write the report here.")
-def select(data: tuple[str, ...], library: str | None, keep: str | None, criterion: str,
-           stability: int, seed: int | None, columns: str | None, damping: str,
-           write_model: str | None, fmt: str | None, output: str) -> None:
-    """Choose the terms of the energy of DATA from a library, and refit the chosen model."""
-    from hamid import options, select_report, writing
-    from hamid.selecting import select as run_select
-
-    if seed is not None and not stability:
-        raise click.UsageError("--seed applies only to --stability")
-    inputs = [*data, *([library] if library is not None and os.path.isfile(library) else [])]
-    _check_output("-o", output, inputs)
-    if write_model is not None:
-        if not write_model.endswith(".toml"):
-            raise UsageError(f"--write-model {write_model!r}: give a FILE.toml (hamid fit "
-                             "--model reads model files by that extension)")
-        if writing.overwrites(write_model, output):
-            raise UsageError(f"-o and --write-model name the same file {output!r}")
-        _check_output("--write-model", write_model, inputs)
-    with _status("selecting") as status:
-        chosen = run_select(list(data), library, keep=(keep or "").split(",") if keep else (),
-                            criterion=criterion, stability=stability, seed=seed or 0,
-                            columns=columns and options.parse_mapping(columns, option="--columns"),
-                            damping=damping, progress=status)
-    document = chosen.to_dict()
-    fmt = fmt or ("json" if output.lower().endswith(".json") else "table")
-    text = select_report.render(document, fmt, color=writing.is_terminal(output)
-                                and "NO_COLOR" not in os.environ)
-    with writing.all_or_nothing():
-        if write_model is not None:
-            writing.write_text(chosen.model_file(), write_model)
-        writing.write_text(text, output)
-    if not (fmt == "table" and output == "-"):
-        for warning in [*document["warnings"], *document["fit"]["warnings"]]:
-            click.echo(_printable(f"warning: {warning}"), err=True)
+    console.check_output(option, figure, inputs, binary=True)
 
 
 def _report_format(output: str) -> str:
@@ -646,7 +595,7 @@ def _emit(result: dict[str, Any], fmt: str, output: str, *,
     text = render(result, fmt, color=color)
     if fmt == "csv" and to_terminal:
         # CSV is data, written exactly; on a terminal its names are shown escaped
-        text = _printable_lines(text)
+        text = console.printable_lines(text)
     # Written last, after the files: a stream (standard output, a FIFO) cannot be taken back.
     with writing.all_or_nothing():
         if also is not None:
@@ -654,7 +603,7 @@ def _emit(result: dict[str, Any], fmt: str, output: str, *,
         writing.write_text(text, output)
     if not (fmt == "table" and output == "-"):
         for warning in result["warnings"]:
-            click.echo(_printable(f"warning: {warning}"), err=True)
+            click.echo(console.printable(f"warning: {warning}"), err=True)
 
 
 @cli.command()
@@ -685,7 +634,7 @@ def models(name: str | None) -> None:
              f"energy:      E = {m.energy}",
              f"natural:     {'yes (E = T + V)' if m.is_natural else 'no'}"]
     # a model file's name and description are text from a file: shown escaped
-    writing.write_text("\n".join(_printable(line) for line in lines) + "\n", "-")
+    writing.write_text("\n".join(console.printable(line) for line in lines) + "\n", "-")
 
 
 def main() -> None:

@@ -10,7 +10,7 @@ from typing import Any
 from hamid.errors import DataError, ModelError
 from hamid.io import json_kind, not_utf8, read_bytes
 
-__all__ = ["read_json", "read_toml"]
+__all__ = ["read_json", "read_jsonl", "read_toml"]
 
 
 def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -64,9 +64,41 @@ def read_json(path: str | os.PathLike[str]) -> dict[str, Any]:
     """
     data, name = read_bytes(path)
     try:
-        document = json.loads(data.decode("utf-8-sig"))
+        text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise not_utf8(data, name, "not valid JSON: ") from exc
+    return _json_object(text, name)
+
+
+def read_jsonl(path: str | os.PathLike[str]) -> list[tuple[str, dict[str, Any]]]:
+    """Read JSON lines (one object per line, blank lines skipped), such as the results of
+    `hamid fit --each --format jsonl`.
+
+    Returns
+    -------
+    lines : list of (where, document)
+        Each object with the file and line it came from (``results.jsonl, line 3``), for
+        messages.
+
+    Raises
+    ------
+    DataError
+        The file cannot be read, or a line is not JSON or not a JSON object.
+    """
+    data, name = read_bytes(path)
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise not_utf8(data, name, "not valid JSON lines: ") from exc
+    return [(f"{name}, line {n}", _json_object(line, f"{name}, line {n}"))
+            # "\n" only: str.splitlines would also split at U+2028 inside a string
+            for n, line in enumerate(text.split("\n"), 1) if line.strip()]
+
+
+def _json_object(text: str, name: str) -> dict[str, Any]:
+    """Helper: the JSON object of a text, or an error naming `name`."""
+    try:
+        document = json.loads(text)
     except json.JSONDecodeError as exc:
         raise DataError(
             f"{name}: not valid JSON (line {exc.lineno}, column {exc.colno}): {exc.msg}"

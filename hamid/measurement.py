@@ -108,6 +108,7 @@ VELOCITY_SPAN = 8       # samples over which the positions' change is compared
 # about pi * lag / period (v(t - lag) = v - lag a, and a = -w^2 q for an oscillation); one
 # that would add more than this to the damping ratio is said.
 LAG_DAMPING_RATIO = 5e-4
+LAG_SIGNIFICANCE = 4.0   # standard errors: a lag the noise could fake is not said
 
 
 def velocity_check(records: Records, coordinates: Sequence[str], velocities: Sequence[str],
@@ -120,7 +121,8 @@ def velocity_check(records: Records, coordinates: Sequence[str], velocities: Seq
     the integral of its velocity and on the change of the velocity: x(t+s) - x(t) =
     ratio * integral(v) + lag * (v(t+s) - v(t)) to first order in a lag. A ratio beyond
     `VELOCITY_RATIO` either way is said, and so is a lag that acts like damping of ratio
-    over `LAG_DAMPING_RATIO` at the dominant period. Integrals rather than differences keep
+    over `LAG_DAMPING_RATIO` at the dominant period and is `LAG_SIGNIFICANCE` standard
+    errors from zero. Integrals rather than differences keep
     the position noise from being amplified.
     """
     assert records.t is not None
@@ -128,7 +130,7 @@ def velocity_check(records: Records, coordinates: Sequence[str], velocities: Seq
     period = dominant_period(records, N)
     warnings = []
     for k, (q, v) in enumerate(zip(coordinates, velocities, strict=True)):
-        normal, right = np.zeros((2, 2)), np.zeros(2)
+        normal, right, squares, count = np.zeros((2, 2)), np.zeros(2), 0.0, 0
         for start, stop in records.bounds():
             t, x = records.t[start:stop], records.X[start:stop, k]
             rate = records.X[start:stop, N + k]
@@ -141,6 +143,7 @@ def velocity_check(records: Records, coordinates: Sequence[str], velocities: Seq
             B = np.column_stack([integral[span:] - integral[:-span], rate[span:] - rate[:-span]])
             normal += B.T @ B
             right += B.T @ a
+            squares, count = squares + float(a @ a), count + len(a)
         if normal[0, 0] <= 0 or not np.all(np.isfinite(normal)):
             continue
         with np.errstate(all="ignore"):
@@ -156,7 +159,12 @@ def velocity_check(records: Records, coordinates: Sequence[str], velocities: Seq
                 "the time unit wrong? Give --time-unit, or --scale COL=FACTOR")
             continue
         lag = float(fit[1] / fit[0])
-        if period and np.isfinite(lag) and math.pi * abs(lag) / period > LAG_DAMPING_RATIO:
+        # the lag's standard error from the residuals, the overlap of the spans counted
+        residual = max(squares - float(fit @ right), 0.0) / max(count - 2, 1)
+        with np.errstate(all="ignore"):
+            spread = math.sqrt(residual * abs(np.linalg.pinv(normal)[1, 1]) * span) / abs(fit[0])
+        if (period and np.isfinite(lag) and abs(lag) > LAG_SIGNIFICANCE * spread
+                and math.pi * abs(lag) / period > LAG_DAMPING_RATIO):
             warnings.append(
                 f"the velocities {name_v!r} {'lag behind' if lag > 0 else 'run ahead of'} "
                 f"the positions {name_q!r} by {abs(lag):.3g} s ({abs(lag) / period:.2g} of a "

@@ -22,7 +22,7 @@ from hamid.errors import UsageError
 from hamid.options import percent
 from hamid.validation import SCHEMA
 
-__all__ = ["FORMATS", "SCHEMA", "printable", "render"]
+__all__ = ["FORMATS", "SCHEMA", "printable", "render", "render_grid"]
 
 ReportFormat = Literal["table", "json", "markdown", "csv", "summary", "html"]
 
@@ -455,7 +455,11 @@ def _markdown_table(table: _Table) -> list[str]:
 
 def _render_markdown(result: Mapping[str, Any], *, color: bool, width: int | None) -> str:
     """Helper: the report as GitHub markdown."""
-    view = _view(result)
+    return _markdown_text(_view(result))
+
+
+def _markdown_text(view: _View, *, color: bool = False, width: int | None = None) -> str:
+    """Helper: a view as GitHub markdown."""
     blocks = [f"**{view.title}**", *view.intro]
     for section in view.sections:
         if section.heading:
@@ -504,10 +508,14 @@ def _rich_table(spec: _Table, width: int) -> Any:
 
 def _render_table(result: Mapping[str, Any], *, color: bool, width: int | None) -> str:
     """Helper: the report as text tables drawn by rich."""
+    return _table_text(_view(result), color=color, width=width)
+
+
+def _table_text(view: _View, *, color: bool, width: int | None) -> str:
+    """Helper: a view as text tables drawn by rich."""
     from rich.console import Console
     from rich.text import Text
 
-    view = _view(result)
     buffer = io.StringIO()
     # Text objects throughout and markup/emoji off: names like "k[1]" are not rich markup.
     console = Console(
@@ -644,6 +652,28 @@ FORMATS: tuple[str, ...] = tuple(_RENDERERS)   # those of `hamid fit` and `hamid
 # Python's own: `FitResult.summary()` and a notebook's display of a result
 _PYTHON_RENDERERS: dict[str, Callable[..., str]] = {"summary": _render_summary,
                                                     "html": _render_html}
+
+
+def render_grid(title: str, header: Sequence[str],
+                groups: Sequence[tuple[str, Sequence[Sequence[str]]]], lines: Sequence[str],
+                format: Literal["table", "markdown"], *, color: bool = False) -> str:
+    """Render one table under a title, then lines of text (e.g. errors), as the report's
+    table or markdown; for tables of several fits side by side (`hamid.comparison`).
+
+    `groups` are (label, rows); each group after the first starts a section under its
+    label. The table is as wide as its cells: a column per fit does not fold.
+    """
+    table = _Table(tuple(header), tuple((label, tuple(map(tuple, rows)))
+                                        for label, rows in groups))
+    sections = (_Section("", tables=(table,)),
+                *([_Section("", lines=tuple(lines), style="yellow")] if lines else []))
+    view = _printable_view(_View(title, (), sections))
+    natural = sum(max(len(cell) for cell in column) + 3 for column in zip(
+        view.sections[0].tables[0].header,
+        *(row for _, rows in view.sections[0].tables[0].groups for row in rows),
+        strict=True))
+    text = {"table": _table_text, "markdown": _markdown_text}[format]
+    return text(view, color=color, width=max(100, natural))
 
 
 def render(

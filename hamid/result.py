@@ -369,7 +369,7 @@ class FitResult:
             else [dict(state) for state in initial],
             "simulate": {"t_end": float(times[-1]), "dt": float(steps[0])},
         }
-        return simulation.sampled(system, where="the fitted model")
+        return next(simulation.sampled(system, where="the fitted model"))
 
     @property
     def estimates(self) -> dict[str, float]:

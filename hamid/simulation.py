@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -23,14 +23,15 @@ import numpy.typing as npt
 
 from hamid.config import check_keys, number, table
 from hamid.dynamics import Dynamics, Motion
-from hamid.errors import ModelError
+from hamid.errors import ModelError, UsageError
 from hamid.expr import Func
 from hamid.model import Model, damping_table, model_from_spec
 
 if TYPE_CHECKING:
     import pandas as pd
 
-__all__ = ["INTEGRATORS", "System", "parse_system", "run", "sampled"]
+__all__ = ["INTEGRATORS", "System", "numbered", "parse_system", "realizations", "run",
+           "sampled"]
 
 INTEGRATORS = {"dop853": "DOP853", "rk45": "RK45", "rk23": "RK23", "radau": "Radau",
                "bdf": "BDF", "lsoda": "LSODA"}
@@ -133,11 +134,12 @@ def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:
                   noise, relative, damping, max_samples)
 
 
-def sampled(document: Mapping[str, Any], *, where: str = "system", seed: int | None = None,
-            max_samples: int | None = None,
-            progress: Callable[[float], None] | None = None) -> pd.DataFrame:
-    """The sampled record of a system dict (`hamid.simulate`): columns ``trajectory``,
-    ``t``, the coordinates and the velocities; ``attrs["hamid"]`` holds its provenance."""
+def sampled(document: Mapping[str, Any], count: int = 1, *, where: str = "system",
+            seed: int | None = None, max_samples: int | None = None,
+            progress: Callable[[float], None] | None = None) -> Iterator[pd.DataFrame]:
+    """The sampled records of a system dict (`hamid.simulate_realizations`), `count`
+    realizations: columns ``trajectory``, ``t``, the coordinates and the velocities;
+    ``attrs["hamid"]`` holds each one's provenance."""
     import dataclasses
 
     import pandas as pd
@@ -147,10 +149,13 @@ def sampled(document: Mapping[str, Any], *, where: str = "system", seed: int | N
     system = parse_system(document, where=where)
     if max_samples is not None:
         system = dataclasses.replace(system, max_samples=max_samples)
-    columns, provenance = run(system, seed=seed, progress=progress)
-    frame = pd.DataFrame(columns)
-    frame.attrs["hamid"] = {**provenance, "hamid_version": __version__}
-    return frame
+    if count > 1 and not (any(system.noise.values()) or system.relative_noise):
+        raise ModelError(f"{where}: realizations differ only by their noise, and the system "
+                         "has none: give a [noise] table (relative = 0.01, or per column)")
+    for columns, provenance in realizations(system, count, seed=seed, progress=progress):
+        frame = pd.DataFrame(columns)
+        frame.attrs["hamid"] = {**provenance, "hamid_version": __version__}
+        yield frame
 
 
 def output_values(system: System) -> float:
@@ -184,6 +189,16 @@ def run(system: System, *, seed: int | None = None,
         ``trajectory``, ``t``, the coordinates, then the velocities.
     provenance : dict
         What the metadata of the output records (README.md, "Simulating").
+    """
+    return next(realizations(system, 1, seed=seed, progress=progress))
+
+
+def realizations(system: System, count: int, *, seed: int | None = None,
+                 progress: Callable[[float], None] | None = None
+                 ) -> Iterator[tuple[dict[str, np.ndarray], dict[str, Any]]]:
+    """`count` noisy copies of the system's motion, integrated once: copy k (from 0) has the
+    noise of seed S + k, the same as `run` with that seed; S is `seed`, else the system's,
+    else drawn at random. Each is (columns, provenance) as `run` returns it.
     """
     from scipy.integrate import solve_ivp
 
@@ -263,31 +278,41 @@ def run(system: System, *, seed: int | None = None,
     seed = system.seed if seed is None else seed
     if seed is None:
         seed = int(np.random.SeedSequence().entropy % 2**32)
-    columns = {"trajectory": np.repeat(np.arange(1, n_traj + 1), len(times)),
-               "t": np.tile(times, n_traj)}
-    columns.update({v: clean[i] for i, v in enumerate(model.variables)})
-    if any(sigma.values()):
-        # one draw of shape (n_rows, 2N), so a seed gives the same noise as it always has
-        rng = np.random.default_rng(seed)
-        draw = rng.standard_normal((clean.shape[1], 2 * n))
-        columns.update({v: clean[i] + draw[:, i] * sigma[v]
-                        for i, v in enumerate(model.variables)})
-    provenance = {
-        "model": model.info(),
-        "parameters": dict(system.theta),
-        "damping": dict(system.damping),
-        "initial": [dict(s) for s in system.initial],
-        "trajectories": [
-            {"trajectory": j + 1, "energy": float(energy[j, 0]),
-             "energy_drift": float(drift[j]), "energy_dissipated": float(lost[j])}
-            for j in range(n_traj)],
-        "noise": {v: s for v, s in sigma.items() if s > 0} or None,
-        "seed": seed,
-        "integrator": {"method": system.method, "rtol": system.rtol, "atol": system.atol},
-        "t_end": system.t_end,
-        "dt": system.dt,
-    }
-    return columns, provenance
+    for k in range(count):
+        columns = {"trajectory": np.repeat(np.arange(1, n_traj + 1), len(times)),
+                   "t": np.tile(times, n_traj)}
+        columns.update({v: clean[i] for i, v in enumerate(model.variables)})
+        if any(sigma.values()):
+            # one draw of shape (n_rows, 2N), so a seed gives the same noise as it always has
+            rng = np.random.default_rng(seed + k)
+            draw = rng.standard_normal((clean.shape[1], 2 * n))
+            columns.update({v: clean[i] + draw[:, i] * sigma[v]
+                            for i, v in enumerate(model.variables)})
+        yield columns, {
+            "model": model.info(),
+            "parameters": dict(system.theta),
+            "damping": dict(system.damping),
+            "initial": [dict(s) for s in system.initial],
+            "trajectories": [
+                {"trajectory": j + 1, "energy": float(energy[j, 0]),
+                 "energy_drift": float(drift[j]), "energy_dissipated": float(lost[j])}
+                for j in range(n_traj)],
+            "noise": {v: s for v, s in sigma.items() if s > 0} or None,
+            "seed": seed + k,
+            "integrator": {"method": system.method, "rtol": system.rtol,
+                           "atol": system.atol},
+            "t_end": system.t_end,
+            "dt": system.dt,
+        }
+
+
+def numbered(output: str, count: int) -> list[str]:
+    """The files of `count` realizations: OUT with -1, -2, ... (zero-padded to the width of
+    `count`) before its extension."""
+    if output == "-":
+        raise UsageError("--realizations writes a file per realization: give -o FILE")
+    stem, suffix = os.path.splitext(output)
+    return [f"{stem}-{k:0{len(str(count))}d}{suffix}" for k in range(1, count + 1)]
 
 
 # scipy's integrators raise a smaller rtol to this, with a warning.

@@ -881,7 +881,7 @@ def test_fit_noise_options_reach_the_report(runner, tmp_path):
 def test_fit_status_line_only_on_a_terminal(runner, simulated_duffing, monkeypatch):
     """Piped or redirected, standard error gets no status line; on a terminal, the fit's
     steps reach rich's status line, and it is stopped at the end."""
-    import hamid.cli
+    import hamid.console
 
     done = invoke(runner, ["fit", "-", "--format", "json"], input=simulated_duffing)
     assert_ok(done)
@@ -904,8 +904,8 @@ def test_fit_status_line_only_on_a_terminal(runner, simulated_duffing, monkeypat
             shown.append(label)
             return Status()
 
-    monkeypatch.setattr(hamid.cli, "_stderr_console", Console)
+    monkeypatch.setattr(hamid.console, "stderr_console", Console)
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
-    with hamid.cli._status("fitting") as status:
+    with hamid.console.Status("fitting") as status:
         status("step 1")
     assert shown == ["fitting", "started", "fitting: step 1", "stopped"]

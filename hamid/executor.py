@@ -1,0 +1,160 @@
+"""Running one function over many items, in this process, in local processes or on a Dask
+cluster, with the results in the order of the items.
+
+`Workers` says where (a small frozen config); `ordered_map` runs a picklable function over
+the items there and yields each result as soon as it and those before it are done. Only a
+bounded number of items is in flight at once, so 10^5 items take the memory of a few dozen.
+`hamid fit --each` maps its fits with it; any work split into independent pieces can.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+import signal
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+from hamid.errors import HamidError, UsageError
+
+__all__ = ["DASK_EXTRA", "SCHEDULER_VARIABLE", "Workers", "available_cores", "ordered_map"]
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+DASK_EXTRA = "pip install 'hamid[dask]'"
+# Dask's own variable for the scheduler's address (dask.config's scheduler-address).
+SCHEDULER_VARIABLE = "DASK_SCHEDULER_ADDRESS"
+# Items in flight per worker: enough to keep every worker busy while an earlier, slower
+# item holds back the results behind it.
+_IN_FLIGHT_PER_WORKER = 4
+# Seconds to wait for a Dask scheduler to answer.
+_CONNECT_TIMEOUT = 10
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its affinity, not the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+@dataclass(frozen=True, slots=True)
+class Workers:
+    """Where work runs: `jobs` local processes (1: this process), or the Dask cluster
+    whose scheduler is at `scheduler` (``tcp://HOST:PORT``)."""
+
+    jobs: int = 1
+    scheduler: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.jobs < 1:
+            raise UsageError(f"--jobs must be at least 1, found {self.jobs}")
+        if self.scheduler is not None and not self.scheduler.strip():
+            raise UsageError("--scheduler: empty address; expected tcp://HOST:PORT")
+
+    @classmethod
+    def choose(cls, jobs: int | None, scheduler: str | None, n_items: int) -> Workers:
+        """The workers for `n_items` items: a scheduler given, else `jobs` processes, else
+        the scheduler of DASK_SCHEDULER_ADDRESS, else one process per core (never more
+        than items)."""
+        if jobs is not None and scheduler is not None:
+            raise UsageError("--jobs and --scheduler exclude each other: --jobs runs local "
+                             "processes, a cluster has its own workers")
+        if jobs is None and scheduler is None:
+            scheduler = os.environ.get(SCHEDULER_VARIABLE) or None
+        if scheduler is not None:
+            return cls(scheduler=scheduler)
+        return cls(jobs=max(1, min(jobs or available_cores(), n_items)))
+
+
+def ordered_map(function: Callable[[T], R], items: Iterable[T],
+                workers: Workers) -> Iterator[R]:
+    """``function(item)`` for each item, run by `workers`, yielded in the order of the items.
+
+    `function` and the items must be picklable unless the work stays in this process
+    (``Workers(jobs=1)``); an exception that `function` raises is raised here when its
+    item's turn comes. Closing the iterator early, Ctrl-C or a signal cancels what has not
+    run and stops the local processes.
+    """
+    if workers.scheduler is None and workers.jobs == 1:
+        yield from map(function, items)
+        return
+    pool = _dask_pool if workers.scheduler is not None else _local_pool
+    with pool(workers, function) as (submit, capacity):
+        queue = iter(items)
+        pending = deque(submit(function, item)
+                        for item in itertools.islice(queue, _IN_FLIGHT_PER_WORKER * capacity))
+        while pending:
+            result = pending.popleft().result()
+            for item in itertools.islice(queue, 1):
+                pending.append(submit(function, item))
+            yield result
+
+
+Submit = Callable[[Callable[[Any], Any], Any], Any]
+
+
+@contextlib.contextmanager
+def _local_pool(workers: Workers, function: Callable[[Any], Any]
+                ) -> Iterator[tuple[Submit, int]]:
+    """Helper: local worker processes, started by forkserver where there is one, else spawn
+    (never fork, which copies the threads' locks of a running program)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        context = multiprocessing.get_context("forkserver")
+        # The server imports the function's module once (numpy, scipy: about a second) and
+        # each worker starts as a copy of it, rather than importing them all again.
+        context.set_forkserver_preload([function.__module__])
+    else:
+        context = multiprocessing.get_context("spawn")
+    pool = ProcessPoolExecutor(workers.jobs, mp_context=context,
+                               initializer=_leave_interrupts_to_the_parent)
+    try:
+        yield pool.submit, workers.jobs
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        # Running items would otherwise finish before the program can exit (Python 3.14
+        # has pool.terminate_workers() for this).
+        for process in list((getattr(pool, "_processes", None) or {}).values()):
+            process.terminate()
+        raise
+    pool.shutdown()
+
+
+def _leave_interrupts_to_the_parent() -> None:
+    """Helper run in each worker process: Ctrl-C reaches the whole process group on a
+    terminal; the parent stops the workers, which would otherwise each print a traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def _dask_pool(workers: Workers, function: Callable[[Any], Any]
+               ) -> Iterator[tuple[Submit, int]]:
+    """Helper: a client of the Dask scheduler at `workers.scheduler`."""
+    try:
+        import distributed
+    except ImportError as exc:
+        raise HamidError(f"--scheduler needs Dask's distributed scheduler: {DASK_EXTRA}") \
+            from exc
+    address = workers.scheduler
+    try:
+        client = distributed.Client(address, timeout=_CONNECT_TIMEOUT,
+                                    set_as_default=False)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise HamidError(f"--scheduler {address}: cannot connect to a Dask scheduler "
+                         f"({exc})") from exc
+    with client:
+        capacity = max(1, sum(client.nthreads().values()))
+
+        def submit(function: Callable[[Any], Any], item: Any) -> Any:
+            # pure=False: two equal items (the same file given twice) are two tasks
+            return client.submit(function, item, pure=False)
+
+        yield submit, capacity
