@@ -809,7 +809,7 @@ def test_internal_error_in_a_real_process_is_one_line(tmp_path):
     code = ("import hamid.api, sys\n"
             "def boom(*a, **k):\n"
             "    raise ZeroDivisionError('the warp core breached')\n"
-            "hamid.api.simulate = boom\n"
+            "hamid.api.simulate_realizations = boom\n"
             "from hamid.cli import main\n"
             "sys.argv = ['hamid', 'simulate', '--config', sys.argv[1]]\n"
             "main()\n")
