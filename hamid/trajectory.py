@@ -336,13 +336,16 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
             # the parameters' spread, scaled by the misfit (the noise may be misjudged)
             spread = np.sqrt(np.abs(np.diag(np.linalg.inv(schur))) * normal.total / dof)
             settled = np.all(np.abs(d_theta) <= 1e-9 * np.abs(theta[free_list]) + 1e-3 * spread)
-            if damping_factor == 0.0 and settled:
+            if damping_factor == 0.0:
+                # clean data show at the first undamped step: tighten there rather than
+                # settle at the loose tolerance first (an evaluation less)
                 relative_spread = spread / np.maximum(np.abs(theta[free_list]), 1e-300)
                 if rtol > STRICT_RTOL and np.min(relative_spread) < 1e3 * rtol:
                     rtol, best = STRICT_RTOL, None
                     continue
-                converged = True
-                break
+                if settled:
+                    converged = True
+                    break
     if best is None or (not converged and damping_factor != 0.0):
         raise _SegmentFitFailed(f"Gauss-Newton did not settle in {MAX_ITERATIONS} iterations")
     fit = SegmentFit(problem, theta, free, X0, best[0], d_theta, iterations, rtol)
