@@ -49,8 +49,9 @@ STEP = 1e-7            # relative forward-difference step of the Jacobian
 # Integration steps allowed per sample time (and a floor): smooth motion needs about one;
 # a motion that is stiff or blows up would otherwise crawl on for hours.
 MAX_STEPS_PER_SAMPLE, MIN_STEP_BUDGET = 50, 1000
-# Gauss-Newton runs at the loose tolerance until it settles, then tightens to the strict
-# one only when the parameters are determined finely enough for it to matter (clean data).
+# Gauss-Newton runs at the loose tolerance, and tightens to the strict one at the first
+# undamped step that shows the parameters determined finely enough for it to matter
+# (clean data), without settling at the loose one first.
 LOOSE_RTOL, STRICT_RTOL = 1e-8, 1e-11
 TIME_ROUNDING = 16     # in units of the rounding of the largest time: times that close are one
 
