@@ -49,8 +49,9 @@ STEP = 1e-7            # relative forward-difference step of the Jacobian
 # Integration steps allowed per sample time (and a floor): smooth motion needs about one;
 # a motion that is stiff or blows up would otherwise crawl on for hours.
 MAX_STEPS_PER_SAMPLE, MIN_STEP_BUDGET = 50, 1000
-# Gauss-Newton runs at the loose tolerance until it settles, then tightens to the strict
-# one only when the parameters are determined finely enough for it to matter (clean data).
+# Gauss-Newton runs at the loose tolerance, and tightens to the strict one at the first
+# undamped step that shows the parameters determined finely enough for it to matter
+# (clean data), without settling at the loose one first.
 LOOSE_RTOL, STRICT_RTOL = 1e-8, 1e-11
 TIME_ROUNDING = 16     # in units of the rounding of the largest time: times that close are one
 
@@ -336,13 +337,16 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
             # the parameters' spread, scaled by the misfit (the noise may be misjudged)
             spread = np.sqrt(np.abs(np.diag(np.linalg.inv(schur))) * normal.total / dof)
             settled = np.all(np.abs(d_theta) <= 1e-9 * np.abs(theta[free_list]) + 1e-3 * spread)
-            if damping_factor == 0.0 and settled:
+            if damping_factor == 0.0:
+                # clean data show at the first undamped step: tighten there rather than
+                # settle at the loose tolerance first (an evaluation less)
                 relative_spread = spread / np.maximum(np.abs(theta[free_list]), 1e-300)
                 if rtol > STRICT_RTOL and np.min(relative_spread) < 1e3 * rtol:
                     rtol, best = STRICT_RTOL, None
                     continue
-                converged = True
-                break
+                if settled:
+                    converged = True
+                    break
     if best is None or (not converged and damping_factor != 0.0):
         raise _SegmentFitFailed(f"Gauss-Newton did not settle in {MAX_ITERATIONS} iterations")
     fit = SegmentFit(problem, theta, free, X0, best[0], d_theta, iterations, rtol)

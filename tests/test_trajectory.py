@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from conftest import DUFFING, ELASTIC_PENDULUM, PENG, TWO_MASS, with_noise
 
 import hamid
-from hamid import options, plan, writing
+from hamid import options, plan, trajectory, writing
 from hamid.cli import cli
 from hamid.trajectory import _common_times
 
@@ -26,6 +26,23 @@ def test_clean_records_are_recovered_exactly(clean_records, name):
     assert result.method["refinement"]["applied"] is True
     assert "refined by fitting the integrated trajectories" in result.method["kind_reason"]
     assert result.estimates == pytest.approx(CLEAN[name]["parameters"], rel=1e-8)
+
+
+def test_clean_data_tighten_at_the_first_step_that_shows_them_clean(clean_records,
+                                                                    monkeypatch):
+    """On clean data one integration at the loose tolerance, not a settling at it first;
+    the estimates reach the truth to the strict tolerance's accuracy."""
+    tolerances = []
+    solve = trajectory.solve_ivp
+
+    def counted(*args, **kwargs):
+        tolerances.append(kwargs["rtol"])
+        return solve(*args, **kwargs)
+    monkeypatch.setattr(trajectory, "solve_ivp", counted)
+    result = hamid.fit(clean_records["peng-quadratic"])
+    assert tolerances[0] == trajectory.LOOSE_RTOL
+    assert set(tolerances[1:]) == {trajectory.STRICT_RTOL}
+    assert result.estimates == pytest.approx(PENG["parameters"], rel=1e-9)
 
 
 def test_segments_sampled_alike_share_their_integration_times():

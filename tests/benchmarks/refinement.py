@@ -1,0 +1,175 @@
+"""What the trajectory refinement costs per sample, and against what a user would write
+instead, as ratios measured in the same process.
+
+    python tests/benchmarks/refinement.py [--repeats 3] [--noise 0.01]
+
+Records: Duffing (1 DOF), peng-quadratic (2 DOF) and a 3-DOF spring chain with a quartic
+spring (a model given as a TOML [model] table), simulated at `--noise` relative
+noise; peng-quadratic also at 10x the record length (the per-sample cost must not grow
+with it), and clean (the strict-tolerance pass).
+
+For each record the default fit runs `--repeats` times; the time spent in the trajectory
+fits (`hamid.trajectory.refine`, `fit`, `refit`) is taken from wrappers around them and
+printed in µs per sample. The peer is `scipy.optimize.least_squares` over `solve_ivp`
+(DOP853) with the same segments, weights and start: the free parameters and every
+segment's initial state, the equations of motion written by hand, the Jacobian by
+finite differences grouped by its block sparsity (`jac_sparsity`), as a careful user
+would. Its estimates are compared to hamid's: the largest relative difference, and in
+hamid's standard errors (hamid stops within 1e-3 standard errors of its minimum).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+from scipy.integrate import solve_ivp
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+
+import hamid
+from hamid import trajectory
+from hamid.model import model_from_spec
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "tests"))
+from conftest import DUFFING, PENG, with_noise  # noqa: E402
+
+CHAIN_SYSTEM = {
+    "model": {"name": "chain3", "coordinates": ["x1", "x2", "x3"],
+              "velocities": ["v1", "v2", "v3"],
+              "energy": "(v1**2 + v2**2 + v3**2)/2 + k1*x1**2/2 + k2*(x2 - x1)**2/2"
+                        " + k3*(x3 - x2)**2/2 + b*x1**4/4",
+              "parameters": ["k1", "k2", "k3", "b"]},
+    "parameters": {"k1": 1.0, "k2": 1.5, "k3": 0.8, "b": 0.3},
+    "initial": [{"x1": 0.8, "x2": -0.3, "x3": 0.2, "v1": 0.0, "v2": 0.1, "v3": 0.0},
+                {"x1": -0.4, "x2": 0.5, "x3": -0.6, "v1": 0.2, "v2": 0.0, "v3": -0.1}],
+    "simulate": {"t_end": 40.0, "dt": 0.05, "seed": 2},
+}
+
+
+def _duffing(theta, y):
+    k, k3 = theta
+    x, v = y
+    return np.array([v, -k * x - k3 * x**3])
+
+
+def _peng(theta, y):
+    w1sq, w2sq, a1, a2, a3, a6 = theta
+    u1, u2, v1, v2 = y
+    return np.array([v1, v2, -w1sq * u1 + a1 * u1**2 + a2 * u1 * u2 + a3 * u2**2,
+                     -w2sq * u2 + a2 * u1**2 / 2 + 2 * a3 * u1 * u2 + a6 * u2**2])
+
+
+def _chain(theta, y):
+    k1, k2, k3, b = theta
+    x1, x2, x3, v1, v2, v3 = y
+    return np.array([v1, v2, v3, -k1 * x1 - b * x1**3 + k2 * (x2 - x1),
+                     -k2 * (x2 - x1) + k3 * (x3 - x2), -k3 * (x3 - x2)])
+
+
+def _peer(rhs, fit, t, X, theta0, rtol: float):
+    """least_squares over solve_ivp on the fit's segments, weights and start."""
+    pieces, weight = fit.problem.pieces, fit.problem.weight
+    p, n = len(theta0), X.shape[1]
+    rows = sum(b - a for a, b in pieces) * n
+    sparsity = lil_matrix((rows, p + n * len(pieces)), dtype=int)
+    offset = 0
+    for s, (a, b) in enumerate(pieces):
+        sparsity[offset:offset + (b - a) * n, :p] = 1
+        sparsity[offset:offset + (b - a) * n, p + n * s:p + n * (s + 1)] = 1
+        offset += (b - a) * n
+
+    def residuals(z):
+        theta, states = z[:p], z[p:].reshape(-1, n)
+        out = []
+        for (a, b), x0 in zip(pieces, states, strict=True):
+            tau = t[a:b] - t[a]
+            y = solve_ivp(lambda _t, y: rhs(theta, y), (0.0, tau[-1]), x0, method="DOP853",
+                          t_eval=tau, rtol=rtol, atol=1e-3 * rtol).y
+            out.append(((X[a:b] - y.T) * weight).ravel())
+        return np.concatenate(out)
+
+    start = np.concatenate([theta0, np.concatenate([X[a] for a, _ in pieces])])
+    return least_squares(residuals, start, jac_sparsity=sparsity, x_scale="jac",
+                         xtol=1e-12, ftol=1e-12, gtol=1e-12).x[:p]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--noise", type=float, default=0.01)
+    args = parser.parse_args()
+    chain = model_from_spec(CHAIN_SYSTEM["model"], where="chain3")
+    long_peng = {**PENG, "simulate": {**PENG["simulate"], "t_end": 400.0}}
+    cases = {   # label: (system, model file, rhs, run the peer)
+        "duffing (1 DOF)": (DUFFING, None, _duffing, True),
+        "peng-quadratic (2 DOF)": (PENG, None, _peng, True),
+        "chain3 TOML (3 DOF)": (CHAIN_SYSTEM, chain, _chain, True),
+        "peng-quadratic 10x longer": (long_peng, None, _peng, False),
+    }
+    spent: dict[str, float] = defaultdict(float)
+    fits: list = []
+    starts: list = []
+    depth = [0]
+    for name in ("refine", "fit", "refit"):
+        original = getattr(trajectory, name)
+
+        def wrapper(*a, _original=original, _name=name, **k):
+            depth[0] += 1   # refine calls fit: its time counted once
+            begin = time.perf_counter()
+            try:
+                result = _original(*a, **k)
+            finally:
+                depth[0] -= 1
+            if depth[0] == 0:
+                spent["trajectory"] += time.perf_counter() - begin
+            if _name == "refine":
+                starts.append(np.array(a[3], float)[list(a[4])])
+            fits.append(result)
+            return result
+        setattr(trajectory, name, wrapper)
+
+    print(f"{'record':28} {'samples':>8} {'hamid µs/sample':>16} {'peer µs/sample':>15} "
+          f"{'peer / hamid':>13} {'max rel diff':>13} {'in stderrs':>12}")
+    per_sample = {}
+    for label, (system, model, rhs, peer) in cases.items():
+        for noisy in (True, False) if label.startswith("peng-quadratic (") else (True,):
+            frame = hamid.simulate(system)
+            if noisy:
+                frame = with_noise(frame, args.noise, 5)
+            hamid.fit(frame, model)   # warm: compiled functions
+            spent.clear()
+            for _ in range(args.repeats):
+                fits.clear()
+                starts.clear()
+                hamid.fit(frame, model)
+            samples = len(frame)
+            hamid_us = 1e6 * spent["trajectory"] / args.repeats / samples
+            name = label + ("" if noisy else ", clean")
+            per_sample[name] = hamid_us
+            line = f"{name:28} {samples:8d} {hamid_us:16.2f}"
+            if peer and noisy:
+                fit = fits[-1]
+                t, X = frame["t"].to_numpy(), frame.iloc[:, 2:].to_numpy()
+                begin = time.perf_counter()
+                theta = _peer(rhs, fit, t, X, starts[0], rtol=1e-10)
+                peer_us = 1e6 * (time.perf_counter() - begin) / samples
+                mine = fit.theta[list(fit.free)]
+                diff = np.abs(theta - mine)
+                stderr = np.sqrt(np.diag(fit.covariance("scaled")))
+                line += (f" {peer_us:15.2f} {peer_us / hamid_us:13.1f} "
+                         f"{np.max(diff / np.abs(mine)):13.1e} {np.max(diff / stderr):12.1e}")
+            print(line)
+    two = per_sample["peng-quadratic (2 DOF)"]
+    print(f"per-sample cost at 10x the length: "
+          f"{per_sample['peng-quadratic 10x longer'] / two:.2f}x; clean / noisy: "
+          f"{per_sample['peng-quadratic (2 DOF), clean'] / two:.2f}x")
+
+
+if __name__ == "__main__":
+    main()
