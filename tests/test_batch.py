@@ -246,7 +246,7 @@ def test_one_corrupt_file_among_20_is_one_error_line_and_exit_1(runs, sources, s
         if line["status"] == "ok":
             assert line["schema"] == "hamid.fit/1"
             _same_fit(hamid.result.FitResult.from_dict(line), single)
-            assert line["provenance"]["command"].startswith("hamid ")   # the command line
+            assert line["provenance"]["command"].startswith("hamid")   # the command line
     stderr = result.stderr.strip().splitlines()
     warned = sum(bool(s.warnings) for s in singles if not isinstance(s, HamidError))
     assert stderr[-1] == f"20 files: 1 failed, 19 fitted, {warned} warned"

@@ -268,7 +268,7 @@ def test_out_of_memory_reading_dev_zero():
 @pytest.mark.parametrize(("args", "target", "names"), [
     (["fit", DUFFING_CSV], "fit", ["out of memory while fitting", "duffing.csv",
                                    "--chunk-rows"]),
-    (["simulate", "--config", DUFFING_TOML], "simulate",
+    (["simulate", "--config", DUFFING_TOML], "simulate_realizations",
      ["out of memory while simulating", "smaller", "t_end"]),
 ], ids=["fit", "simulate"])
 def test_out_of_memory_in_the_work(monkeypatch, args, target, names):
