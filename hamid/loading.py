@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from hamid import design, io, measurement, naming
+from hamid import design, inputs, io, measurement, naming
 from hamid.dissipation import shorthand_names
 from hamid.errors import DataError, UsageError
 from hamid.model import (
@@ -82,8 +82,9 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
         paths = [data] if isinstance(data, str | os.PathLike) else list(data)
         if not paths:
             raise UsageError("no data given")
-        tables = [(os.fspath(p) if os.fspath(p) != "-" else io.STDIN,
-                   *io.read_columns(p, format=options.format, text=options.text))
+        tables = [(inputs.name_of(p), *io.read_columns(p, format=options.format,
+                                                        text=options.text,
+                                                        name=inputs.name_of(p)))
                   for p in paths]
     first_name, first_table, metadata = tables[0]
     if model is None:
@@ -361,12 +362,13 @@ class Chunked:
                           self.reader.mapping, options, self.units)
 
 
-def open_chunks(path: str, model: str | os.PathLike[str] | Model | None,
+def open_chunks(path: str | os.PathLike[str], model: str | os.PathLike[str] | Model | None,
                 options: FitOptions, chunk_rows: int,
                 progress: Callable[[str], None] | None) -> Chunked:
     """A file to read in chunks of `chunk_rows` rows: its model and columns, settled as
     `load` settles them."""
-    table = io.TableChunks(path, format=options.format, text=options.text)
+    table = io.TableChunks(path, format=options.format, text=options.text,
+                           name=inputs.name_of(path))
     m, notes = _settle_model(model, table.metadata, table.columns, table.name, options)
     if m.dissipation:
         raise UsageError(f"{table.name}: the model's dissipation function needs the data in "
