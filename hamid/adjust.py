@@ -25,6 +25,7 @@ with A_H the columns built from H[f]; the same holds for A'Wb.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -32,13 +33,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from hamid import solve
 from hamid.design import Block, Windows
 from hamid.errors import UsageError
 from hamid.expr import Polynomial
 from hamid.model import Model
 from hamid.records import Records
 
-__all__ = ["Moments", "adjusted_moments", "unbiased"]
+__all__ = ["Moments", "adjusted_energy", "adjusted_moments", "unbiased"]
 
 
 def _hermite_table(y: npt.NDArray[np.float64], sigma: float, top: int) -> list[Any]:
@@ -51,7 +53,20 @@ def _hermite_table(y: npt.NDArray[np.float64], sigma: float, top: int) -> list[A
 
 def unbiased(poly: Polynomial, Y: npt.NDArray[np.float64],
              sigma: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    """Unbiased estimate of poly(x) from y = x + Gaussian noise of std sigma (per variable)."""
+    """Unbiased estimate of poly(x) from y = x + Gaussian noise of std sigma (per variable).
+
+    Its tables of Hermite polynomials are made for `solve.PIECE_ROWS` samples at a time
+    (one per power of each variable: for a product of cubics, 28 columns of the samples)."""
+    out = np.zeros(len(Y))
+    for start in range(0, len(Y), solve.PIECE_ROWS):
+        rows = slice(start, start + solve.PIECE_ROWS)
+        out[rows] = _unbiased(poly, Y[rows], sigma)
+    return out
+
+
+def _unbiased(poly: Polynomial, Y: npt.NDArray[np.float64],
+              sigma: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Helper: `unbiased` of one piece of samples."""
     out = np.zeros(len(Y))
     if not len(poly.coefficients):
         return out
@@ -118,47 +133,88 @@ def adjusted_moments(block: Block, model: Model, records: Records, sigma: np.nda
     """
     Y = records.X
     index = [model.parameters.index(p) for p in parameters]
+    known = _known_side(model, fixed)
+    if block.kind == "energy":
+        phi, minus_E0 = _energy_functions(model, parameters, fixed)
+        return _energy_moments(block, phi, minus_E0, None if windows is None
+                               else windows.means, Y, sigma, records.group)
+    assert windows is not None
+    lag = model.lagrangian
+    parts = (lag.L0, *lag.L)
+    functions, target = [], []
+    for i in range(len(model.coordinates)):
+        dv = [f.diff(model.velocities[i]) for f in parts]
+        dq = [f.diff(model.coordinates[i]) for f in parts]
+        functions.append(([dv[k + 1] for k in index], [dq[k + 1] for k in index]))
+        target.append((known(dv[0], dv[1:]), known(dq[0], dq[1:])))
+    return _weak_moments(block, functions, target, [windows.Q_dpsi, windows.Q_psi], Y, sigma)
+
+
+def adjusted_energy(block: Block, model: Model, records: Records, sigma: np.ndarray,
+                    parameters: Sequence[str], fixed: dict[str, float]) -> solve.Solution:
+    """The adjusted least-squares solution of energy rows of single samples, in memory
+    that does not grow with the record: the unbiased columns are made a piece of samples
+    at a time, twice (for each trajectory's means, then for the centred sums of
+    products), never held whole as `adjusted_moments` holds them. The same solution as
+    `adjusted_moments` then `hamid.solve.solve_adjusted` (the same arithmetic on records
+    of one piece); a FitError when the correction leaves it undetermined.
+    """
+    Y, w, group = records.X, block.weight, block.group
+    phi, minus_E0 = _energy_functions(model, parameters, fixed)
+    J = records.n_trajectories
+    W = np.bincount(group, weights=w, minlength=J)
+    AA, Ab = _corrections(phi, minus_E0, Y, sigma, w * (1 - w / W[group]))
+
+    def rows(start: int) -> Block:
+        piece = slice(start, start + solve.PIECE_ROWS)
+        A = np.empty((len(Y[piece]), len(phi)))
+        for k, f in enumerate(phi):
+            A[:, k] = unbiased(f, Y[piece], sigma)
+        return dataclasses.replace(block.slice(start, start + solve.PIECE_ROWS), A=A,
+                                   b=unbiased(minus_E0, Y[piece], sigma))
+
+    starts = range(0, len(Y), solve.PIECE_ROWS)
+    sums_A, sums_b = np.zeros((J, len(phi))), np.zeros(J)
+    for start in starts:
+        piece = rows(start)
+        sums_b += np.bincount(piece.group, weights=piece.weight * piece.b, minlength=J)
+        for k in range(len(phi)):
+            sums_A[:, k] += np.bincount(piece.group, weights=piece.weight * piece.A[:, k],
+                                        minlength=J)
+    inverse = np.divide(1.0, W, out=np.full(J, np.nan), where=W > 0)
+    means = (sums_A * inverse[:, None], sums_b * inverse)
+    pieces = ([solve.centred_piece(piece, means)] if len(starts) == 1   # as made above
+              else (solve.centred_piece(rows(start), means) for start in starts))
+    return solve.solve_adjusted(pieces, AA, Ab, list(parameters))
+
+
+def _known_side(model: Model, fixed: dict[str, float]) -> Any:
+    """-(base + sum of the fixed parameters' terms), the known side of the rows, of a
+    function `base` and the parameters' terms `parts`."""
     held = [(model.parameters.index(name), value) for name, value in fixed.items()]
 
     def known(base: Any, parts: Sequence[Any]) -> Polynomial:
-        """-(base + sum of the fixed parameters' terms), the known side of the rows."""
         funcs = [base, *(parts[k] for k, _ in held)]
-        return _negate(Polynomial.combine(funcs, [1.0, *(v for _, v in held)]))
+        f = Polynomial.combine(funcs, [1.0, *(v for _, v in held)])
+        return Polynomial(f.variables, f.exponents, -f.coefficients)
 
-    if block.kind == "energy":
-        functions = [[model.phi[k] for k in index]]
-        target = [known(model.E0, model.phi)]
-        operators = [None if windows is None else windows.means]
-        coordinates = [None]
-    else:
-        assert windows is not None
-        lag = model.lagrangian
-        parts = (lag.L0, *lag.L)
-        coordinates = list(range(len(model.coordinates)))
-        functions, target, operators = [], [], [windows.Q_dpsi, windows.Q_psi]
-        for i in coordinates:
-            dv = [f.diff(model.velocities[i]) for f in parts]
-            dq = [f.diff(model.coordinates[i]) for f in parts]
-            functions.append(([dv[k + 1] for k in index], [dq[k + 1] for k in index]))
-            target.append((known(dv[0], dv[1:]), known(dq[0], dq[1:])))
-    if block.kind == "energy":
-        return _energy_moments(block, functions[0], target[0], operators[0], Y, sigma,
-                               records.group)
-    return _weak_moments(block, functions, target, operators, Y, sigma)
+    return known
 
 
-def _negate(f: Any) -> Polynomial:
-    return Polynomial(f.variables, f.exponents, -f.coefficients)
+def _energy_functions(model: Model, parameters: Sequence[str],
+                      fixed: dict[str, float]) -> tuple[list[Polynomial], Polynomial]:
+    """Helper: the energy's terms of `parameters`, and minus its known part."""
+    return ([model.phi[model.parameters.index(p)] for p in parameters],
+            _known_side(model, fixed)(model.E0, model.phi))
 
 
 def _energy_moments(block: Block, phi: list[Polynomial], minus_E0: Polynomial,
                     P: Any, Y: np.ndarray, sigma: np.ndarray,
                     sample_group: np.ndarray) -> Moments:
     """Energy rows (per sample, or window means P), centred within each trajectory."""
-    import dataclasses
-
-    columns = np.column_stack([unbiased(f, Y, sigma) for f in phi]) if phi else \
-        np.zeros((len(Y), 0))
+    columns = np.empty((len(Y), len(phi)))
+    for k, f in enumerate(phi):   # a column at a time: no list of them stacked
+        columns[:, k] = unbiased(f, Y, sigma)
     target = unbiased(minus_E0, Y, sigma)
     w = block.weight
     n_groups = int(sample_group.max()) + 1  # every trajectory, with windows or not
@@ -171,16 +227,26 @@ def _energy_moments(block: Block, phi: list[Polynomial], minus_E0: Polynomial,
         # c_s = sum_r w_r P_rs^2 - W_j (u'P)_s^2, u = w / W_j within the trajectory
         shares = P.T @ (w / W[block.group])
         self_weight = P.multiply(P).T @ w - W[sample_group] * shares**2
-    AA = np.array([[self_weight @ _self_pair(p, q, Y, sigma) for q in phi] for p in phi])
-    Ab = np.array([self_weight @ _self_pair(p, minus_E0, Y, sigma) for p in phi])
-    return Moments(dataclasses.replace(block, A=A, b=b), AA.reshape(len(phi), len(phi)), Ab)
+    return Moments(dataclasses.replace(block, A=A, b=b),
+                   *_corrections(phi, minus_E0, Y, sigma, self_weight))
+
+
+def _corrections(phi: list[Polynomial], minus_E0: Polynomial, Y: np.ndarray,
+                 sigma: np.ndarray, self_weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Helper: the self-pair corrections AA, Ab of energy rows, a piece of samples at a
+    time, with each sample's weight in them (c_s)."""
+    AA, Ab = np.zeros((len(phi), len(phi))), np.zeros(len(phi))
+    for start in range(0, len(Y), solve.PIECE_ROWS):
+        rows = slice(start, start + solve.PIECE_ROWS)
+        AA += [[self_weight[rows] @ _self_pair(p, q, Y[rows], sigma) for q in phi]
+               for p in phi]
+        Ab += [self_weight[rows] @ _self_pair(p, minus_E0, Y[rows], sigma) for p in phi]
+    return AA, Ab
 
 
 def _weak_moments(block: Block, functions: list[Any], target: list[Any], operators: list[Any],
                   Y: np.ndarray, sigma: np.ndarray) -> Moments:
     """Weak rows (window, coordinate) = sum over operators (psi', psi) of Q f(y)."""
-    import dataclasses
-
     N = len(functions)
     p = len(functions[0][0])
     n_windows = operators[0].shape[0]

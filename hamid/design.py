@@ -43,6 +43,12 @@ class Block:
     def n_rows(self) -> int:
         return len(self.b)
 
+    def slice(self, start: int, stop: int | None) -> Block:
+        """Rows start:stop (views)."""
+        return Block(self.kind, self.A[start:stop], self.b[start:stop],
+                     self.group[start:stop], self.time[start:stop], self.weight[start:stop],
+                     self.has_level)
+
 
 def _dissipated_work(records: Records, dissipation: Dissipation) -> npt.NDArray[np.float64]:
     """Work done against each dissipative term since the start of its trajectory.

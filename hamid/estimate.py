@@ -83,7 +83,7 @@ class Solved:
     theta: Any
     h: Any
     residual: Any      # unweighted, all blocks stacked
-    centred: Any
+    centred: solve.Centred
     solution: Any
     df_resid: int
 
@@ -92,11 +92,11 @@ def least_squares(blocks: list[Block], names: list[str], J: int,
                   correction: tuple[Any, Any] | None = None) -> Solved:
     """Solve stacked blocks; with `correction` (noise-bias terms), adjusted least squares."""
     has_levels = any(b.has_level for b in blocks)
-    centred = solve.centre(blocks, J)
+    centred = solve.Centred.of(blocks, J)
     if correction is None:
         solution = solve.solve(centred, names, n_levels=J if has_levels else 0)
     else:
-        solution = solve.solve_adjusted(centred, *correction, names)
+        solution = solve.solve_adjusted(centred.pieces(), *correction, names)
     theta = solution.theta
     h = centred.level_means_A @ theta - centred.level_means_b
     residual = np.concatenate([b.A @ theta - b.b - (h[b.group] if b.has_level else 0.0)
@@ -133,22 +133,22 @@ class Scores:
             window_scores = np.zeros((len(window_group), p + 1))
         stats = []
         for block, scale in zip(blocks, scales, strict=True):
-            w = scale * block.weight
-            r = block.A @ self.theta - block.b
-            if block.has_level:
-                r -= self.h[block.group]
-                G = w[:, None] * ((block.A - self.means_A[block.group]) @ self.inverse)
-                lam = w / self.total_weight[block.group]
-            else:
-                G, lam = w[:, None] * (block.A @ self.inverse), np.zeros(len(w))
-            z = np.column_stack([G, lam])
-            stats.append((len(r), float(r @ r), float(np.max(np.abs(r), initial=0.0))))
-            if window_group is not None:
-                window_scores += (z * r[:, None]).reshape(len(window_group), -1,
-                                                          p + 1).sum(axis=1)
-            else:
-                for j, start, stop in runs(block.group):
-                    sums.add(j, z[start:stop], r[start:stop], w[start:stop])
+            # rows of windows whole (their scores are summed by window), energy rows of
+            # samples a piece at a time: their scores are as many as the samples
+            step = max(block.n_rows, 1) if window_group is not None else solve.PIECE_ROWS
+            n, squares, largest = 0, 0.0, 0.0
+            for start in range(0, max(block.n_rows, 1), step):
+                piece = block.slice(start, start + step)
+                z, r, w = self._scores(piece, scale)
+                n, squares = n + len(r), squares + float(r @ r)
+                largest = max(largest, float(np.max(np.abs(r), initial=0.0)))
+                if window_group is not None:
+                    window_scores += (z * r[:, None]).reshape(len(window_group), -1,
+                                                              p + 1).sum(axis=1)
+                else:
+                    for j, first, stop in runs(piece.group):
+                        sums.add(j, z[first:stop], r[first:stop], w[first:stop])
+            stats.append((n, squares, largest))
         if window_group is not None:
             for j, start, stop in runs(window_group):
                 sums.add(j, window_scores[start:stop], np.ones(stop - start),
@@ -156,6 +156,18 @@ class Scores:
                 if stop < len(window_group):   # the trajectory ended inside this piece
                     sums.close(j)
         return stats
+
+    def _scores(self, block: Block, scale: float) -> tuple[Any, Any, Any]:
+        """Helper: the rows' influences z = [G, lam], residuals and weights."""
+        w = scale * block.weight
+        r = block.A @ self.theta - block.b
+        if block.has_level:
+            r -= self.h[block.group]
+            G = w[:, None] * ((block.A - self.means_A[block.group]) @ self.inverse)
+            lam = w / self.total_weight[block.group]
+        else:
+            G, lam = w[:, None] * (block.A @ self.inverse), np.zeros(len(w))
+        return np.column_stack([G, lam]), r, w
 
 
 def windows_covariance(c: uncertainty.Covariance, n_windows: int) -> uncertainty.Covariance:
@@ -184,7 +196,7 @@ def covariance(kind: str, fit: Solved, blocks: list[Block],
     fed = window_group if by_window else None
     sums, automatic = uncertainty.fed_sums(
         kind, p, J, lambda s: scores.feed(s, blocks, [1.0] * len(blocks), fed))
-    fitted = fit.centred.A.shape[0] - fit.df_resid
+    fitted = fit.centred.n_rows - fit.df_resid
     if not by_window:
         return sums.covariance(fit.df_resid, automatic=automatic)
     n_windows = len(window_group)
@@ -413,7 +425,8 @@ def _with_propagated_noise(theta_cov: Any, text: str, fit: Solved, blocks: list[
 
     if sigma is None:
         sigma = measurement.estimate_noise(records.X, records.bounds())
-    propagated = design.propagated_covariance(blocks, fit.solution.G, model, records,
+    G = fit.centred.influence(fit.solution.inverse)
+    propagated = design.propagated_covariance(blocks, G, model, records,
                                               unknowns.full(fit.theta), sigma, spans, damping)
     old = np.sqrt(np.clip(np.diag(theta_cov), 0, None))
     new = np.sqrt(np.maximum(np.diag(theta_cov), np.diag(propagated)))
@@ -561,7 +574,7 @@ def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unk
             sigma = measurement.estimate_noise(records.X, records.bounds())
         except DataError:   # trajectories too short to tell the noise: nothing to check
             return None
-    spread = records.X.std(axis=0)
+    spread = [records.X[:, k].std() for k in range(records.X.shape[1])]   # no copy of X
     ratio = {name: float(s / d) if d > 0 else 0.0
              for name, s, d in zip(m.variables, sigma, spread, strict=True)}
     # Weak-form windows and window means average the noise before it enters the squares
@@ -571,16 +584,13 @@ def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unk
             or not m.is_polynomial or options.velocity == "savgol"
             or damping or max(ratio.values()) < _NOISE_LOOKED_AT):
         return NoiseCheck(ratio)
-    names = unknowns.free_names
-    moments = [adjust.adjusted_moments(b, m, records, sigma, rows.windows, names,
-                                       dict(unknowns.fixed)) for b in rows.blocks]
+    block, = rows.blocks   # energy rows of single samples
     try:
-        adjusted = least_squares([mo.block for mo in moments], names,
-                                 records.n_trajectories,
-                                 (sum(mo.AA for mo in moments), sum(mo.Ab for mo in moments)))
+        adjusted = adjust.adjusted_energy(block, m, records, sigma, unknowns.free_names,
+                                          dict(unknowns.fixed))
     except FitError:
         return NoiseCheck(ratio, uncorrectable=True)
     stderr = np.sqrt(np.clip(np.diag(fit.covariance), 0, None))
     shift = np.divide(fit.theta - adjusted.theta, stderr,
                       out=np.zeros_like(stderr), where=stderr > 0)
-    return NoiseCheck(ratio, dict(zip(names, shift.tolist(), strict=True)))
+    return NoiseCheck(ratio, dict(zip(unknowns.free_names, shift.tolist(), strict=True)))

@@ -29,19 +29,9 @@ if TYPE_CHECKING:
     import pandas as pd
     import pyarrow as pa
 
-__all__ = [
-    "as_numpy",
-    "column_values",
-    "file_digest",
-    "is_missing",
-    "is_parquet",
-    "numeric_column",
-    "not_utf8",
-    "numeric_values",
-    "read_bytes",
-    "read_columns",
-    "read_table",
-]
+__all__ = ["as_numpy", "column_values", "file_digest", "is_missing", "is_parquet",
+           "numeric_column", "not_utf8", "numeric_values", "read_bytes", "read_columns",
+           "read_table"]
 
 Format = Literal["csv", "tsv", "parquet"]
 
@@ -127,7 +117,10 @@ def read_columns(
     if _stores_pandas_index(table):
         frame = _to_pandas(table, name)
         return {column: frame[column].to_numpy() for column in frame.columns}, metadata
-    return {column: as_numpy(table.column(column)) for column in table.column_names}, metadata
+    columns = {}
+    while table.num_columns:   # a column's chunks go once copied: not all twice at once
+        columns[table.column_names[0]], table = as_numpy(table.column(0)), table.remove_column(0)
+    return columns, metadata
 
 
 def _read_arrow(source: str | os.PathLike[str], format: str | None,

@@ -73,7 +73,7 @@ class Design:
     @classmethod
     def of(cls, fit: estimate.Solved, blocks: Sequence[Block], fraction: float) -> Design:
         """The design of a least-squares fit of `blocks` (every term free)."""
-        A, b = fit.centred.A, fit.centred.b
+        A, b = fit.centred.arrays()
         M = np.column_stack([A / np.linalg.norm(A, axis=0), b])
         group = np.concatenate([blk.group for blk in blocks])
         time = np.concatenate([blk.time for blk in blocks])
