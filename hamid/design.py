@@ -8,9 +8,8 @@ column; the solver and the covariance estimators only see blocks.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -91,7 +90,7 @@ def energy_block(model: Model, records: Records,
 def window_means(block: Block, windows: Windows) -> Block:
     """Energy rows as psi-weighted window means, one row per window: averaging the noise of
     the measured terms before they enter the fit (the energy rows of a joint fit)."""
-    return Block(block.kind, windows.means @ block.A, windows.means @ block.b, windows.group,
+    return Block(block.kind, windows.mean_of(block.A), windows.mean_of(block.b), windows.group,
                  windows.centre, np.ones(windows.n_windows), has_level=True)
 
 
@@ -221,13 +220,42 @@ class Windows:
     def n_windows(self) -> int:
         return len(self.centre)
 
-    @cached_property
+    @property
     def means(self) -> Any:
-        """Operator of the psi-weighted window means: rows of Q_psi divided by their sums."""
+        """Operator of the psi-weighted window means: rows of Q_psi divided by their sums.
+
+        Made on each use, not kept: it is as large as Q_psi (a record of 3 million samples
+        has 12 million nodes in its windows)."""
+        return self._means(0, self.n_windows, 0, self.Q_psi.shape[1])
+
+    def _means(self, lo: int, hi: int, a: int, b: int) -> Any:
+        """Helper: the rows lo:hi of `means`, its columns (samples) a:b."""
         from scipy import sparse
 
-        mass = self.Q_psi @ np.ones(self.Q_psi.shape[1])
-        return sparse.diags(1.0 / mass) @ self.Q_psi
+        rows = self.Q_psi[lo:hi, a:b]
+        mass = rows @ np.ones(b - a)
+        return sparse.diags(1.0 / mass) @ rows
+
+    def _blocks(self) -> Iterator[tuple[int, int, int, int]]:
+        """Helper: blocks of windows lo:hi and the samples a:b they cover."""
+        for lo in range(0, self.n_windows, _WINDOW_BLOCK):
+            hi = min(lo + _WINDOW_BLOCK, self.n_windows)
+            yield lo, hi, int(self.first[lo]), int(self.last[hi - 1]) + 1
+
+    def mean_of(self, values: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """`means @ values`, a block of windows and their samples at a time (each window's
+        sum as in one product; the operator and the values of all samples are not copied,
+        as a product with all of them would copy values not in C order)."""
+        return np.concatenate([np.zeros((0, *values.shape[1:]))] + [
+            self._means(lo, hi, a, b) @ values[a:b] for lo, hi, a, b in self._blocks()])
+
+    def spread(self, values: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """`means.T @ values`: values of the windows spread over their samples, a block of
+        windows at a time."""
+        total = np.zeros((self.Q_psi.shape[1], *values.shape[1:]))
+        for lo, hi, a, b in self._blocks():
+            total[a:b] += self._means(lo, hi, a, b).T @ values[lo:hi]
+        return total
 
     def psi_at(self, t: npt.NDArray[np.float64], interval: npt.NDArray[np.int64],
                weights: npt.NDArray[np.float64], times: npt.NDArray[np.float64]) -> Any:
@@ -543,4 +571,4 @@ def sample_weights(kind: str, blocks: list[Block], energy_rows: Block, spans: An
         return blocks[0].weight
     if kind == "weak":
         return np.zeros(energy_rows.n_rows)
-    return spans.means.T @ blocks[0].weight
+    return spans.spread(blocks[0].weight)
