@@ -189,8 +189,8 @@ def adjusted_energy(block: Block, model: Model, records: Records, sigma: np.ndar
 
 
 def _known_side(model: Model, fixed: dict[str, float]) -> Any:
-    """-(base + sum of the fixed parameters' terms), the known side of the rows, of a
-    function `base` and the parameters' terms `parts`."""
+    """Helper: known(base, parts) = -(base + the fixed parameters' terms among `parts`),
+    the known side of rows built from `base` and every parameter's term `parts`."""
     held = [(model.parameters.index(name), value) for name, value in fixed.items()]
 
     def known(base: Any, parts: Sequence[Any]) -> Polynomial:

@@ -18,9 +18,8 @@ from hamid.design import Block
 from hamid.errors import FitError
 from hamid.records import runs
 
-__all__ = ["Centred", "Conditioning", "Factor", "Solution", "conditioning",
-           "centred_piece", "factor_conditioning", "level_means", "solve", "solve_adjusted",
-           "solve_factor"]
+__all__ = ["Centred", "Conditioning", "Factor", "Solution", "centred_piece", "conditioning",
+           "factor_conditioning", "level_means", "solve", "solve_adjusted", "solve_factor"]
 
 # A scaled singular value below this (a condition number above 1e10) leaves a direction
 # undetermined at double precision for any data with noise in them.

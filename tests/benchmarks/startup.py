@@ -9,7 +9,8 @@ runs of a command and of its baseline alternating, and the median wall time is r
     hamid fit DATA.csv              against   python -c "import numpy, scipy.linalg, pyarrow.csv"
 
 Then where a fit's time above the floor goes: the imports of a linear fit (hamid's
-modules, scipy.special for the t quantiles, scipy.sparse for the windows, click and rich),
+modules, scipy.special for the t quantiles, scipy.sparse for the windows, pyarrow's
+reader, click and rich),
 the linear fit itself (the joint fit's time less those imports), and the trajectory
 refinement of auto (auto's time less the joint fit's), of which importing
 scipy.integrate (with the scipy.optimize it imports) is measured alone.
@@ -140,7 +141,8 @@ def main():
     hamid_cmd = hamid_command()
     click_cmd = [py, "-c", "import click"]
     fit_base_cmd = [py, "-c", "import numpy, scipy.linalg, pyarrow.csv"]
-    modules = "import hamid.api, hamid.cli, hamid.report, rich.console"
+    # with what a fit imports on its way: pyarrow's reader, scipy.sparse for the windows
+    modules = "import hamid.api, hamid.cli, hamid.report, rich.console, pyarrow.csv, scipy.sparse"
     imports = {"imports of a linear fit": [py, "-c", modules],
                "the same and scipy.integrate": [py, "-c", modules + ", scipy.integrate"]}
     with tempfile.TemporaryDirectory() as folder:
