@@ -117,10 +117,9 @@ def read_columns(
     if _stores_pandas_index(table):
         frame = _to_pandas(table, name)
         return {column: frame[column].to_numpy() for column in frame.columns}, metadata
-    columns = {}
-    while table.num_columns:   # a column's chunks go once copied: not all twice at once
-        columns[table.column_names[0]], table = as_numpy(table.column(0)), table.remove_column(0)
-    return columns, metadata
+    names, arrays = table.column_names, table.columns[::-1]
+    del table   # each column's chunks go once copied: not all of them twice at once
+    return {name: as_numpy(arrays.pop()) for name in names}, metadata
 
 
 def _read_arrow(source: str | os.PathLike[str], format: str | None,
