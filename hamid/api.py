@@ -119,10 +119,11 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     chunk_rows : int, optional
         Read the file in chunks of this many rows, in memory that does not grow with the
         file's length (`hamid.stream`); ``auto`` then skips its trajectory refinement.
-        By default a file over 64 MB is read in chunks of 2^18 rows (the same answer,
-        faster), and ``auto`` refines holding only the records in memory (up to 1 GiB of
-        them). Needs one file, measured velocities, no noise weighting or damping, and an
-        analytic `cov`.
+        By default a file that takes over 64 MB once decoded (8 bytes a cell, whatever
+        its size on disk; standard input too) is read in chunks of 2^18 rows (the same
+        answer, faster), and ``auto`` refines holding only the records in memory (up to
+        1 GiB of them). Needs one file or standard input, measured velocities, no noise
+        weighting or damping, and an analytic `cov`.
     in_memory : bool
         Read the data into memory whatever the file's size: ``result.samples`` then holds
         the per-sample residuals.
