@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import shutil
 import sys
 import tempfile
 from collections.abc import Iterator
@@ -159,14 +158,41 @@ def spooled(data: Any) -> Iterator[Any]:
         return
     if sys.stdin is None:   # a process started without one (pythonw, a closed fd 0)
         raise DataError(f"{io.STDIN}: cannot read: standard input is closed")
-    with tempfile.TemporaryDirectory(prefix="hamid-stdin-") as folder:
-        path = os.path.join(folder, "stdin")
-        try:
-            with open(path, "wb") as copy:
-                shutil.copyfileobj(sys.stdin.buffer, copy, 1 << 20)
-        except OSError as exc:
-            raise DataError(f"{io.STDIN}: cannot read: {io.os_reason(exc)}") from exc
+    try:
+        folder = tempfile.TemporaryDirectory(prefix="hamid-stdin-")
+    except OSError as exc:
+        raise _unkept(exc) from exc
+    with folder:
+        path = os.path.join(folder.name, "stdin")
+        _copy_stdin(path)
         spool = Spooled(path)
         items = [spool if isinstance(item, str) and io.is_stdio(item) else item
                  for item in items]
         yield items if isinstance(data, list | tuple) else items[0]
+
+
+def _copy_stdin(path: str) -> None:
+    """Helper: standard input into the file `path`, 1 MiB at a time."""
+    try:
+        copy = open(path, "wb")  # noqa: SIM115 (closed below)
+    except OSError as exc:
+        raise _unkept(exc) from exc
+    with copy:
+        while True:
+            try:
+                block = sys.stdin.buffer.read(1 << 20)
+            except OSError as exc:
+                raise DataError(f"{io.STDIN}: cannot read: {io.os_reason(exc)}") from exc
+            if not block:
+                return
+            try:
+                copy.write(block)
+            except OSError as exc:
+                raise _unkept(exc) from exc
+
+
+def _unkept(exc: OSError) -> DataError:
+    """Helper: the error when standard input cannot be kept in a temporary file."""
+    return DataError(f"{io.STDIN}: cannot keep it in a temporary file in "
+                     f"{tempfile.gettempdir()} ({io.os_reason(exc)}); set TMPDIR to a "
+                     "folder with room, or give a file")

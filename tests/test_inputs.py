@@ -159,6 +159,20 @@ def test_standard_input_in_chunks_is_named_in_errors_and_leaves_no_file(
     assert list(tmp_path.iterdir()) == []   # the spooled copy is gone
 
 
+def test_standard_input_that_cannot_be_kept_is_an_error_naming_the_folder(tmp_path,
+                                                                         monkeypatch):
+    import tempfile
+
+    not_a_folder = tmp_path / "file"
+    not_a_folder.write_text("")
+    monkeypatch.setattr(tempfile, "tempdir", str(not_a_folder))
+    done = CliRunner().invoke(cli, ["fit", "-", "--model", "duffing"], input="x,v\n1,2\n")
+    assert done.exit_code == 1 and done.stdout == ""
+    assert done.stderr.startswith(f"Error: <stdin>: cannot keep it in a temporary file in "
+                                  f"{not_a_folder} ("), done.stderr
+    assert "set TMPDIR" in done.stderr and "Traceback" not in done.stderr
+
+
 def test_standard_input_closed_is_an_error(monkeypatch):
     monkeypatch.setattr(sys, "stdin", None)
     with pytest.raises(DataError, match="<stdin>: cannot read: standard input is closed"):
