@@ -35,6 +35,7 @@ carry the self-pair bias as a mean, which the sandwich counts as variance.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -42,13 +43,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from hamid import solve
 from hamid.design import Block, Windows
 from hamid.errors import UsageError
 from hamid.expr import Polynomial
 from hamid.model import Model
 from hamid.records import Records
 
-__all__ = ["Moments", "adjusted_moments", "unbiased"]
+__all__ = ["Moments", "adjusted_energy", "adjusted_moments", "unbiased"]
 
 
 class _Hermite:
@@ -98,8 +100,15 @@ class _Hermite:
 
 def unbiased(poly: Polynomial, Y: npt.NDArray[np.float64],
              sigma: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    """Unbiased estimate of poly(x) from y = x + Gaussian noise of std sigma (per variable)."""
-    return _Hermite(Y, sigma).of(poly)
+    """Unbiased estimate of poly(x) from y = x + Gaussian noise of std sigma (per variable).
+
+    Its tables of Hermite polynomials are made for `solve.PIECE_ROWS` samples at a time
+    (one per power of each variable: for a product of cubics, 28 columns of the samples)."""
+    out = np.zeros(len(Y))
+    for start in range(0, len(Y), solve.PIECE_ROWS):
+        rows = slice(start, start + solve.PIECE_ROWS)
+        out[rows] = _Hermite(Y[rows], sigma).of(poly)
+    return out
 
 
 def _product(p: Polynomial, q: Polynomial) -> Polynomial:
@@ -152,16 +161,10 @@ def adjusted_moments(block: Block, model: Model, records: Records, sigma: np.nda
     taken as given.
     """
     index = [model.parameters.index(p) for p in parameters]
-    held = [(model.parameters.index(name), value) for name, value in fixed.items()]
-
-    def known(base: Any, parts: Sequence[Any]) -> Polynomial:
-        """-(base + sum of the fixed parameters' terms), the known side of the rows."""
-        funcs = [base, *(parts[k] for k, _ in held)]
-        return _negate(Polynomial.combine(funcs, [1.0, *(v for _, v in held)]))
-
+    known = _known_side(model, fixed)
     if block.kind == "energy":
-        functions = [[model.phi[k] for k in index]]
-        target = [known(model.E0, model.phi)]
+        phi, minus_E0 = _energy_functions(model, parameters, fixed)
+        functions, target = [phi], [minus_E0]
         operators = [None if windows is None else windows.means]
         coordinates = [None]
     else:
@@ -181,8 +184,75 @@ def adjusted_moments(block: Block, model: Model, records: Records, sigma: np.nda
     return _weak_moments(block, functions, target, operators, H)
 
 
-def _negate(f: Any) -> Polynomial:
-    return Polynomial(f.variables, f.exponents, -f.coefficients)
+def adjusted_energy(block: Block, model: Model, records: Records, sigma: np.ndarray,
+                    parameters: Sequence[str], fixed: dict[str, float]) -> solve.Solution:
+    """The adjusted least-squares solution of energy rows of single samples, in memory
+    that does not grow with the record: the unbiased columns are made a piece of samples
+    at a time, twice (for each trajectory's means, then for the centred sums of
+    products), never held whole as `adjusted_moments` holds them. The same solution as
+    `adjusted_moments` then `hamid.solve.solve_adjusted` (the same arithmetic on records
+    of one piece); a FitError when the correction leaves it undetermined.
+    """
+    Y, w, group = records.X, block.weight, block.group
+    phi, minus_E0 = _energy_functions(model, parameters, fixed)
+    J = records.n_trajectories
+    W = np.bincount(group, weights=w, minlength=J)
+    AA, Ab = _corrections(phi, minus_E0, Y, sigma, w * (1 - w / W[group]))
+
+    def rows(start: int) -> Block:
+        piece = slice(start, start + solve.PIECE_ROWS)
+        A = np.empty((len(Y[piece]), len(phi)))
+        for k, f in enumerate(phi):
+            A[:, k] = unbiased(f, Y[piece], sigma)
+        return dataclasses.replace(block.slice(start, start + solve.PIECE_ROWS), A=A,
+                                   b=unbiased(minus_E0, Y[piece], sigma))
+
+    starts = range(0, len(Y), solve.PIECE_ROWS)
+    sums_A, sums_b = np.zeros((J, len(phi))), np.zeros(J)
+    for start in starts:
+        piece = rows(start)
+        sums_b += np.bincount(piece.group, weights=piece.weight * piece.b, minlength=J)
+        for k in range(len(phi)):
+            sums_A[:, k] += np.bincount(piece.group, weights=piece.weight * piece.A[:, k],
+                                        minlength=J)
+    inverse = np.divide(1.0, W, out=np.full(J, np.nan), where=W > 0)
+    means = (sums_A * inverse[:, None], sums_b * inverse)
+    pieces = ([solve.centred_piece(piece, means)] if len(starts) == 1   # as made above
+              else (solve.centred_piece(rows(start), means) for start in starts))
+    return solve.solve_adjusted(pieces, AA, Ab, list(parameters))
+
+
+def _known_side(model: Model, fixed: dict[str, float]) -> Any:
+    """Helper: known(base, parts) = -(base + the fixed parameters' terms among `parts`),
+    the known side of rows built from `base` and every parameter's term `parts`."""
+    held = [(model.parameters.index(name), value) for name, value in fixed.items()]
+
+    def known(base: Any, parts: Sequence[Any]) -> Polynomial:
+        funcs = [base, *(parts[k] for k, _ in held)]
+        f = Polynomial.combine(funcs, [1.0, *(v for _, v in held)])
+        return Polynomial(f.variables, f.exponents, -f.coefficients)
+
+    return known
+
+
+def _energy_functions(model: Model, parameters: Sequence[str],
+                      fixed: dict[str, float]) -> tuple[list[Polynomial], Polynomial]:
+    """Helper: the energy's terms of `parameters`, and minus its known part."""
+    return ([model.phi[model.parameters.index(p)] for p in parameters],
+            _known_side(model, fixed)(model.E0, model.phi))
+
+
+def _corrections(phi: list[Polynomial], minus_E0: Polynomial, Y: np.ndarray,
+                 sigma: np.ndarray, self_weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Helper: the self-pair corrections AA, Ab of energy rows, a piece of samples at a
+    time, with each sample's weight in them (c_s)."""
+    AA, Ab = np.zeros((len(phi), len(phi))), np.zeros(len(phi))
+    for start in range(0, len(Y), solve.PIECE_ROWS):
+        rows = slice(start, start + solve.PIECE_ROWS)
+        H = _Hermite(Y[rows], sigma)
+        AA += [[self_weight[rows] @ H.self_pair(p, q) for q in phi] for p in phi]
+        Ab += [self_weight[rows] @ H.self_pair(p, minus_E0) for p in phi]
+    return AA, Ab
 
 
 def _at(functions: Sequence[Polynomial], target: Polynomial, theta: Any) -> Polynomial:
@@ -199,8 +269,6 @@ def _pairs_at(functions: Sequence[Polynomial], g: Polynomial, H: _Hermite) -> np
 def _energy_moments(block: Block, phi: list[Polynomial], minus_E0: Polynomial,
                     P: Any, H: _Hermite, sample_group: np.ndarray) -> Moments:
     """Energy rows (per sample, or window means P), centred within each trajectory."""
-    import dataclasses
-
     columns = np.column_stack([H.of(f) for f in phi]) if phi else np.zeros((len(H.Y), 0))
     target = H.of(minus_E0)
     w = block.weight
@@ -238,8 +306,6 @@ def _energy_moments(block: Block, phi: list[Polynomial], minus_E0: Polynomial,
 def _weak_moments(block: Block, functions: list[Any], target: list[Any], operators: list[Any],
                   H: _Hermite) -> Moments:
     """Weak rows (window, coordinate) = sum over operators (psi', psi) of Q f(y)."""
-    import dataclasses
-
     N = len(functions)
     p = len(functions[0][0])
     n_windows = operators[0].shape[0]

@@ -7,13 +7,13 @@ import os
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
-from hamid import estimate, loading, plan, refine, summary
+from hamid import estimate, inputs, loading, plan, refine, summary
 from hamid.design import Block
 from hamid.errors import UsageError
 from hamid.fitted import Recording
 from hamid.model import Model, load_model
 from hamid.options import SAVGOL_ORDER, FitOptions
-from hamid.result import FitResult
+from hamid.result import FitResult, ProvenanceInfo
 from hamid.unknowns import Unknowns
 
 if TYPE_CHECKING:
@@ -134,10 +134,11 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     chunk_rows : int, optional
         Read the file in chunks of this many rows, in memory that does not grow with the
         file's length (`hamid.stream`); ``auto`` then skips its trajectory refinement.
-        By default a file over 64 MB is read in chunks of 2^18 rows (the same answer,
-        faster), and ``auto`` refines holding only the records in memory (up to 1 GiB of
-        them). Needs one file, measured velocities, no noise weighting or damping, and an
-        analytic `cov`.
+        By default a file that takes over 64 MB once decoded (8 bytes a cell, whatever
+        its size on disk; standard input too) is read in chunks of 2^18 rows (the same
+        answer, faster), and ``auto`` refines holding only the records in memory (up to
+        1 GiB of them). Needs one file or standard input, measured velocities, no noise
+        weighting or damping, and an analytic `cov`.
     in_memory : bool
         Read the data into memory whatever the file's size: ``result.samples`` then holds
         the per-sample residuals.
@@ -165,8 +166,16 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                       skip_rows=skip_rows, units_row=units_row)
     if isinstance(data, list | tuple) and len(data) == 1:
         data = data[0]
-    chunks = opts.chunking(data, loading.dissipative(model))
-    run = summary.run_provenance(data, opts)   # inputs hashed before they are read
+    with inputs.spooled(data) as readable:   # standard input in a file, read like one
+        chunks = opts.chunking(readable, loading.dissipative(model))
+        run = summary.run_provenance(data, opts)   # inputs hashed before they are read
+        return _fit(readable, model, opts, chunks, run, progress)
+
+
+def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptions,
+         chunks: int | None, run: ProvenanceInfo,
+         progress: Callable[[str], None] | None) -> FitResult:
+    """The fit of `fit`, its options checked and standard input in a file."""
     # records: whole, or a file to pass over in chunks
     if chunks is None:
         source = loading.load(data, model, opts)

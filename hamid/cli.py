@@ -366,8 +366,9 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
               help="Write per-sample residuals (CSV/Parquet); reads the data into memory.")
 @click.option("--chunk-rows", type=click.IntRange(min=1), metavar="ROWS",
               help="Read the file in chunks of ROWS rows, in bounded memory; auto then "
-                   "skips its trajectory refinement (default for files over 64 MB: chunks "
-                   "of 262144 rows, and auto refines holding only the records).")
+                   "skips its trajectory refinement (default for files over 64 MB once "
+                   "decoded: chunks of 262144 rows, and auto refines holding only the "
+                   "records).")
 @click.option("--plot", "figure", metavar="FIG",
               help="Also draw the fit (hamid plot): FIG.png or .svg, a file per panel, or "
                    ".pdf, a page per panel.")

@@ -8,9 +8,8 @@ column; the solver and the covariance estimators only see blocks.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -42,6 +41,12 @@ class Block:
     @property
     def n_rows(self) -> int:
         return len(self.b)
+
+    def slice(self, start: int, stop: int | None) -> Block:
+        """Rows start:stop (views)."""
+        return Block(self.kind, self.A[start:stop], self.b[start:stop],
+                     self.group[start:stop], self.time[start:stop], self.weight[start:stop],
+                     self.has_level)
 
 
 def _dissipated_work(records: Records, dissipation: Dissipation) -> npt.NDArray[np.float64]:
@@ -75,17 +80,18 @@ def energy_block(model: Model, records: Records,
     With a `dissipation`, the energy balance: the work dissipated since the start of the
     trajectory is added, one column per dissipative coefficient.
     """
-    E0, Phi = model.energy_basis(records.X)
+    E0, Phi = model.energy_basis(records.X)   # rows of one array, which Phi keeps
     if dissipation:
         Phi = np.hstack([Phi, _dissipated_work(records, dissipation)])
     time = records.t if records.t is not None else _sample_index(records)
-    return Block("energy", Phi, -E0, records.group, time, np.ones(len(E0)), has_level=True)
+    b = np.negative(E0, out=E0)   # in its row: no other array of the record's length
+    return Block("energy", Phi, b, records.group, time, np.ones(len(E0)), has_level=True)
 
 
 def window_means(block: Block, windows: Windows) -> Block:
     """Energy rows as psi-weighted window means, one row per window: averaging the noise of
     the measured terms before they enter the fit (the energy rows of a joint fit)."""
-    return Block(block.kind, windows.means @ block.A, windows.means @ block.b, windows.group,
+    return Block(block.kind, windows.mean_of(block.A), windows.mean_of(block.b), windows.group,
                  windows.centre, np.ones(windows.n_windows), has_level=True)
 
 
@@ -200,28 +206,111 @@ class Windows:
     ``Q_psi @ f`` is the integral of psi_w(t) f(t) over each window w, ``Q_dpsi @ f`` that of
     psi_w'(t) f(t); both are sparse, shape (n_windows, n_samples). Windows come in the
     order of their samples (first and last nondecreasing), as `window_ranges` gives them.
+    The operators' values are made on use, a block of windows at a time (`operators`),
+    not held: a record of 3 million samples has 12 million nodes in its windows, and the
+    two operators took 1.7 times the memory of the record's columns.
     """
 
-    Q_psi: Any
-    Q_dpsi: Any
+    t: npt.NDArray[np.float64]     # every sample's time (the records', not a copy)
     centre: npt.NDArray[np.float64]
     group: npt.NDArray[np.int64]
     length: float
     first: npt.NDArray[np.int64]   # first and last sample (row index) of each window
     last: npt.NDArray[np.int64]
     order: int
+    uneven: npt.NDArray[np.bool_]   # windows sampled unevenly (Simpson's weights)
 
     @property
     def n_windows(self) -> int:
         return len(self.centre)
 
-    @cached_property
-    def means(self) -> Any:
-        """Operator of the psi-weighted window means: rows of Q_psi divided by their sums."""
+    @property
+    def Q_psi(self) -> Any:
+        """The operator of psi (all windows; made on each use)."""
+        return self._whole(0)
+
+    @property
+    def Q_dpsi(self) -> Any:
+        """The operator of psi' (all windows; made on each use)."""
+        return self._whole(1)
+
+    def _whole(self, which: int) -> Any:
         from scipy import sparse
 
-        mass = self.Q_psi @ np.ones(self.Q_psi.shape[1])
-        return sparse.diags(1.0 / mass) @ self.Q_psi
+        if not self.n_windows:
+            return sparse.csr_matrix((0, len(self.t)))
+        return sparse.vstack([self.operators(lo, hi, derivative=bool(which))[which]
+                              for lo, hi, _, _ in self._blocks()], format="csr")
+
+    def operators(self, lo: int, hi: int, derivative: bool = True) -> tuple[Any, Any]:
+        """The rows lo:hi of Q_psi and of Q_dpsi (None unless `derivative`), CSR matrices
+        over all samples.
+
+        Each window's nodes are consecutive samples; the integrals use the trapezoid rule
+        on the recorded times, with Simpson's where a window is sampled unevenly; psi and
+        psi' share base^(order - 1) times the weights.
+        """
+        from scipy import sparse
+
+        first, last = self.first[lo:hi], self.last[lo:hi]
+        a = int(first[0]) if hi > lo else 0
+        t = self.t[a:int(last[-1]) + 1] if hi > lo else self.t[:0]
+        sizes = last - first + 1
+        # 32-bit indices where they fit (scipy's own choice)
+        index = np.int32 if max(int(sizes.sum()), len(self.t)) < 2**31 else np.int64
+        indptr = np.concatenate([[0], np.cumsum(sizes)]).astype(index)
+        row = np.repeat(np.arange(hi - lo), sizes)
+        col = np.arange(indptr[-1]) - indptr[:-1][row] + (first - a)[row]   # in t
+        lo_t, hi_t = t[first - a], t[last - a]
+        half = ((hi_t - lo_t) / 2)[row]
+        s = (t[col] - ((lo_t + hi_t) / 2)[row]) / half
+        base = np.clip(1 - s**2, 0.0, None)  # rounding can put s a hair past 1
+        weights = _window_weights(t, np.diff(t), first - a, last - a, row, col,
+                                  self.uneven[lo:hi])
+        lower = weights.copy()   # base^(order - 1) * weights: serves psi and its derivative
+        for _ in range(self.order - 1):   # products: numpy's power is ten times slower
+            lower *= base
+        shape, col = (hi - lo, len(self.t)), (col + a).astype(index)
+        psi = sparse.csr_matrix((base * lower, col, indptr), shape=shape)
+        if not derivative:
+            return psi, None
+        values = -2 * self.order * s / half * lower
+        return psi, sparse.csr_matrix((values, col, indptr), shape=shape)
+
+    @property
+    def means(self) -> Any:
+        """Operator of the psi-weighted window means: rows of Q_psi divided by their sums
+        (made on each use)."""
+        return self._means(0, self.n_windows, 0, len(self.t))
+
+    def _means(self, lo: int, hi: int, a: int, b: int) -> Any:
+        """Helper: the rows lo:hi of `means`, its columns (samples) a:b."""
+        from scipy import sparse
+
+        rows = self.operators(lo, hi, derivative=False)[0][:, a:b]
+        mass = rows @ np.ones(b - a)
+        return sparse.diags(1.0 / mass) @ rows
+
+    def _blocks(self) -> Iterator[tuple[int, int, int, int]]:
+        """Helper: blocks of windows lo:hi and the samples a:b they cover."""
+        for lo in range(0, self.n_windows, _WINDOW_BLOCK):
+            hi = min(lo + _WINDOW_BLOCK, self.n_windows)
+            yield lo, hi, int(self.first[lo]), int(self.last[hi - 1]) + 1
+
+    def mean_of(self, values: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """`means @ values`, a block of windows and their samples at a time (each window's
+        sum as in one product; the operator and the values of all samples are not copied,
+        as a product with all of them would copy values not in C order)."""
+        return np.concatenate([np.zeros((0, *values.shape[1:]))] + [
+            self._means(lo, hi, a, b) @ values[a:b] for lo, hi, a, b in self._blocks()])
+
+    def spread(self, values: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """`means.T @ values`: values of the windows spread over their samples, a block of
+        windows at a time."""
+        total = np.zeros((len(self.t), *values.shape[1:]))
+        for lo, hi, a, b in self._blocks():
+            total[a:b] += self._means(lo, hi, a, b).T @ values[lo:hi]
+        return total
 
     def psi_at(self, t: npt.NDArray[np.float64], interval: npt.NDArray[np.int64],
                weights: npt.NDArray[np.float64], times: npt.NDArray[np.float64]) -> Any:
@@ -287,46 +376,15 @@ def windows(records: Records, length: float, order: int | None = None) -> Window
 
 def windows_at(records: Records, first: npt.NDArray[np.int64], last: npt.NDArray[np.int64],
                group: npt.NDArray[np.int64], length: float, order: int | None = None) -> Windows:
-    """Windows over given sample ranges (`window_ranges`): a long record holds hundreds of
-    thousands, built a block of windows at a time into the operators' arrays."""
-    from scipy import sparse
-
+    """Windows over given sample ranges (`window_ranges`); their operators are made on use,
+    a block of windows at a time (a long record holds hundreds of thousands)."""
     assert records.t is not None
     t_all = records.t
-    order = BUMP_ORDER if order is None else order
-    sizes = last - first + 1
-    # each window's nodes are consecutive samples: the rows of CSR matrices as they are
-    # 32-bit indices where they fit, which both operators then share (scipy's own choice)
-    index = np.int32 if max(int(sizes.sum()), len(records.group)) < 2**31 else np.int64
-    indptr = np.concatenate([[0], np.cumsum(sizes)]).astype(index)
-    col = np.empty(indptr[-1], dtype=index)
-    values_psi, values_dpsi = np.empty(indptr[-1]), np.empty(indptr[-1])
     # once for all windows: per block of windows these passes over every sample made the
     # build quadratic in the record's length
-    step = np.diff(t_all)
-    uneven = _uneven_windows(step, first, last)
-    for lo in range(0, len(first), _WINDOW_BLOCK):
-        hi = min(lo + _WINDOW_BLOCK, len(first))
-        a, b = indptr[lo], indptr[hi]
-        block_first, block_last = first[lo:hi], last[lo:hi]
-        row = np.repeat(np.arange(hi - lo), sizes[lo:hi])
-        col[a:b] = np.arange(a, b) - indptr[lo:hi][row] + block_first[row]
-        lo_t, hi_t = t_all[block_first], t_all[block_last]
-        half = ((hi_t - lo_t) / 2)[row]
-        s = (t_all[col[a:b]] - ((lo_t + hi_t) / 2)[row]) / half
-        base = np.clip(1 - s**2, 0.0, None)  # rounding can put s a hair past 1
-        weights = _window_weights(t_all, step, block_first, block_last, row, col[a:b],
-                                  uneven[lo:hi])
-        lower = weights.copy()   # base^(order - 1) * weights: serves psi and its derivative
-        for _ in range(order - 1):   # products: numpy's power is ten times slower
-            lower *= base
-        values_psi[a:b] = base * lower
-        values_dpsi[a:b] = -2 * order * s / half * lower
-    shape = (len(first), len(records.group))
-    operator = [sparse.csr_matrix((v, col, indptr), shape=shape)
-                for v in (values_psi, values_dpsi)]
-    return Windows(operator[0], operator[1], (t_all[first] + t_all[last]) / 2, group, length,
-                   first, last, order)
+    uneven = _uneven_windows(t_all, first, last)
+    return Windows(t_all, (t_all[first] + t_all[last]) / 2, group, length, first, last,
+                   BUMP_ORDER if order is None else order, uneven)
 
 
 _WINDOW_BLOCK = 4096   # windows built at once: their temporaries stay small
@@ -344,14 +402,15 @@ def _window_weights(t: np.ndarray, step: np.ndarray, first: np.ndarray, last: np
     return weights
 
 
-def _uneven_windows(step: np.ndarray, first: np.ndarray, last: np.ndarray) -> np.ndarray:
+def _uneven_windows(t: np.ndarray, first: np.ndarray, last: np.ndarray) -> np.ndarray:
     """Whether the time step changes (beyond rounding) anywhere inside each window."""
-    changes = np.zeros(len(step) + 1)
-    if len(step) > 1:
-        changes[2:] = np.abs(np.diff(step)) > 1e-9 * np.abs(step[1:])
-    count = np.cumsum(changes)   # count[k + 1]: changes at steps 1..k
-    # steps first..last-1 of a window; a change at step k means step k != step k-1
-    return count[last] - count[first + 1] > 0
+    changes = []   # steps k (t[k + 1] - t[k]) unlike step k - 1, a piece of samples at a time
+    for a in range(1, max(len(t) - 1, 1), _GRADIENT_ROWS):
+        step = np.diff(t[a - 1:a + _GRADIENT_ROWS + 1])
+        changes.append(a + np.flatnonzero(np.abs(np.diff(step)) > 1e-9 * np.abs(step[1:])))
+    changed = np.concatenate(changes) if changes else np.zeros(0, np.int64)
+    # steps first+1..last-1 of a window; a change at step k means step k != step k-1
+    return np.searchsorted(changed, last) - np.searchsorted(changed, first + 1) > 0
 
 
 def weak_block(model: Model, records: Records, windows: Windows,
@@ -373,8 +432,11 @@ def weak_block(model: Model, records: Records, windows: Windows,
         dLdv, dLdq = model.lagrangian.gradients(records.X[a:b])   # (b - a, N, 1 + p)
         w_lo = int(np.searchsorted(windows.last, a, side="left"))
         w_hi = int(np.searchsorted(windows.first, b, side="left"))
-        integrals[w_lo:w_hi] += (windows.Q_dpsi[w_lo:w_hi, a:b] @ dLdv.reshape(b - a, -1)
-                                 + windows.Q_psi[w_lo:w_hi, a:b] @ dLdq.reshape(b - a, -1))
+        for lo in range(w_lo, w_hi, _WINDOW_BLOCK):
+            hi = min(lo + _WINDOW_BLOCK, w_hi)
+            psi, dpsi = windows.operators(lo, hi)
+            integrals[lo:hi] += (dpsi[:, a:b] @ dLdv.reshape(b - a, -1)
+                                 + psi[:, a:b] @ dLdq.reshape(b - a, -1))
     integrals = integrals.reshape(rows, parts)   # rows (window, coordinate)
     A = integrals[:, 1:]
     if dissipation:
@@ -421,7 +483,8 @@ def row_variance(block: Block, model: Model, records: Records, theta: npt.NDArra
         g = (model.energy_gradient(records.X, theta[:len(model.parameters)]) ** 2) @ s2
         if windows is None:
             return g
-        return windows.means.multiply(windows.means) @ g
+        means = windows.means
+        return means.multiply(means) @ g
     assert windows is not None
     d_dv, d_dq = _weak_sensitivities(model, records, theta, dissipation)
     N = len(model.coordinates)
@@ -466,10 +529,11 @@ def propagated_covariance(blocks: list[Block], G: npt.NDArray[np.float64], model
         else:
             assert windows is not None
             d_dv, d_dq = _weak_sensitivities(model, records, theta, dissipation)
+            dd, dp = windows.Q_dpsi, windows.Q_psi
             for i in range(N):
                 rows = G_block[i::N]
-                via_dpsi = windows.Q_dpsi.T @ rows     # (n, p)
-                via_psi = windows.Q_psi.T @ rows
+                via_dpsi = dd.T @ rows     # (n, p)
+                via_psi = dp.T @ rows
                 g += d_dv[:, i, :, None] * via_dpsi[:, None, :]
                 g += d_dq[:, i, :, None] * via_psi[:, None, :]
     weighted = g * np.asarray(sigma)[None, :, None]
@@ -524,7 +588,9 @@ def fitted_energy(rows: Block, model: Model, estimates: dict[str, float]) -> Any
     """E(x_i; theta) at every sample, from the energy rows already built (A theta - b)."""
     n_energy = len(model.parameters)
     theta = np.array([estimates[name] for name in model.parameters])
-    return rows.A[:, :n_energy] @ theta - rows.b
+    energy = rows.A[:, :n_energy] @ theta
+    energy -= rows.b   # in place: one array of the record's length, not two
+    return energy
 
 
 def sample_weights(kind: str, blocks: list[Block], energy_rows: Block, spans: Any) -> Any:
@@ -537,4 +603,4 @@ def sample_weights(kind: str, blocks: list[Block], energy_rows: Block, spans: An
         return blocks[0].weight
     if kind == "weak":
         return np.zeros(energy_rows.n_rows)
-    return spans.means.T @ blocks[0].weight
+    return spans.spread(blocks[0].weight)

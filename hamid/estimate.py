@@ -83,7 +83,7 @@ class Solved:
     theta: Any
     h: Any
     residual: Any      # unweighted, all blocks stacked
-    centred: Any
+    centred: solve.Centred
     solution: Any
     df_resid: int
 
@@ -92,11 +92,11 @@ def least_squares(blocks: list[Block], names: list[str], J: int,
                   correction: tuple[Any, Any] | None = None) -> Solved:
     """Solve stacked blocks; with `correction` (noise-bias terms), adjusted least squares."""
     has_levels = any(b.has_level for b in blocks)
-    centred = solve.centre(blocks, J)
+    centred = solve.Centred.of(blocks, J)
     if correction is None:
         solution = solve.solve(centred, names, n_levels=J if has_levels else 0)
     else:
-        solution = solve.solve_adjusted(centred, *correction, names)
+        solution = solve.solve_adjusted(centred.pieces(), *correction, names)
     theta = solution.theta
     h = centred.level_means_A @ theta - centred.level_means_b
     residual = np.concatenate([b.A @ theta - b.b - (h[b.group] if b.has_level else 0.0)
@@ -137,25 +137,25 @@ class Scores:
             window_scores = np.zeros((len(window_group), p + 1))
         stats = []
         for k, (block, scale) in enumerate(zip(blocks, scales, strict=True)):
-            w = scale * block.weight
-            r = block.A @ self.theta - block.b
-            if block.has_level:
-                r -= self.h[block.group]
-                G = w[:, None] * ((block.A - self.means_A[block.group]) @ self.inverse)
-                lam = w / self.total_weight[block.group]
-            else:
-                G, lam = w[:, None] * (block.A @ self.inverse), np.zeros(len(w))
-            z = np.column_stack([G, lam])
-            stats.append((len(r), float(r @ r), float(np.max(np.abs(r), initial=0.0))))
-            offset = None if shares is None else np.column_stack(
-                [scale * shares[k] @ self.inverse, np.zeros(len(r))])
-            if window_group is not None:
+            # rows of windows whole (their scores are summed by window), energy rows of
+            # samples a piece at a time: their scores are as many as the samples
+            step = max(block.n_rows, 1) if window_group is not None else solve.PIECE_ROWS
+            n, squares, largest = 0, 0.0, 0.0
+            for start in range(0, max(block.n_rows, 1), step):
+                piece = block.slice(start, start + step)
+                z, r, w = self._scores(piece, scale)
+                n, squares = n + len(r), squares + float(r @ r)
+                largest = max(largest, float(np.max(np.abs(r), initial=0.0)))
+                offset = None if shares is None else np.column_stack(
+                    [scale * shares[k][start:start + step] @ self.inverse, np.zeros(len(r))])
                 score = z * r[:, None] if offset is None else z * r[:, None] + offset
-                window_scores += score.reshape(len(window_group), -1, p + 1).sum(axis=1)
-            else:
-                for j, start, stop in runs(block.group):
-                    sums.add(j, z[start:stop], r[start:stop], w[start:stop],
-                             None if offset is None else offset[start:stop])
+                if window_group is not None:
+                    window_scores += score.reshape(len(window_group), -1, p + 1).sum(axis=1)
+                else:
+                    for j, first, stop in runs(piece.group):
+                        sums.add(j, z[first:stop], r[first:stop], w[first:stop],
+                                 None if offset is None else offset[first:stop])
+            stats.append((n, squares, largest))
         if window_group is not None:
             for j, start, stop in runs(window_group):
                 sums.add(j, window_scores[start:stop], np.ones(stop - start),
@@ -163,6 +163,18 @@ class Scores:
                 if stop < len(window_group):   # the trajectory ended inside this piece
                     sums.close(j)
         return stats
+
+    def _scores(self, block: Block, scale: float) -> tuple[Any, Any, Any]:
+        """Helper: the rows' influences z = [G, lam], residuals and weights."""
+        w = scale * block.weight
+        r = block.A @ self.theta - block.b
+        if block.has_level:
+            r -= self.h[block.group]
+            G = w[:, None] * ((block.A - self.means_A[block.group]) @ self.inverse)
+            lam = w / self.total_weight[block.group]
+        else:
+            G, lam = w[:, None] * (block.A @ self.inverse), np.zeros(len(w))
+        return np.column_stack([G, lam]), r, w
 
 
 def windows_covariance(c: uncertainty.Covariance, n_windows: int) -> uncertainty.Covariance:
@@ -193,7 +205,7 @@ def covariance(kind: str, fit: Solved, blocks: list[Block],
     fed = window_group if by_window else None
     sums, automatic = uncertainty.fed_sums(
         kind, p, J, lambda s: scores.feed(s, blocks, [1.0] * len(blocks), fed, shares))
-    fitted = fit.centred.A.shape[0] - fit.df_resid
+    fitted = fit.centred.n_rows - fit.df_resid
     if not by_window:
         return sums.covariance(fit.df_resid, automatic=automatic)
     n_windows = len(window_group)
@@ -435,7 +447,8 @@ def _with_propagated_noise(theta_cov: Any, text: str, fit: Solved, blocks: list[
 
     if sigma is None:
         sigma = measurement.estimate_noise(records.X, records.bounds())
-    propagated = design.propagated_covariance(blocks, fit.solution.G, model, records,
+    G = fit.centred.influence(fit.solution.inverse)
+    propagated = design.propagated_covariance(blocks, G, model, records,
                                               unknowns.full(fit.theta), sigma, spans, damping)
     old = np.sqrt(np.clip(np.diag(theta_cov), 0, None))
     new = np.sqrt(np.maximum(np.diag(theta_cov), np.diag(propagated)))
@@ -604,20 +617,25 @@ def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unk
             sigma = measurement.estimate_noise(records.X, records.bounds())
         except DataError:   # trajectories too short to tell the noise: nothing to check
             return None
-    spread = records.X.std(axis=0)
+    spread = [records.X[:, k].std() for k in range(records.X.shape[1])]   # no copy of X
     ratio = {name: float(s / d) if d > 0 else 0.0
              for name, s, d in zip(m.variables, sigma, spread, strict=True)}
     if (fit is None or options.bias_correct or not m.is_polynomial
             or options.velocity == "savgol" or damping
             or not _noise_in_residuals(rows.energy, fit, m, records, unknowns, sigma)):
         return NoiseCheck(ratio)
-    names = unknowns.free_names
-    moments = [adjust.adjusted_moments(b, m, records, sigma, rows.windows, names,
-                                       dict(unknowns.fixed)) for b in rows.blocks]
+    names, fixed = unknowns.free_names, dict(unknowns.fixed)
     try:
-        adjusted = least_squares([mo.block for mo in moments], names,
-                                 records.n_trajectories,
-                                 (sum(mo.AA for mo in moments), sum(mo.Ab for mo in moments)))
+        if rows.windows is None:   # energy rows of single samples: a piece at a time
+            block, = rows.blocks
+            adjusted = adjust.adjusted_energy(block, m, records, sigma, names, fixed)
+        else:
+            moments = [adjust.adjusted_moments(b, m, records, sigma, rows.windows, names,
+                                               fixed) for b in rows.blocks]
+            adjusted = least_squares([mo.block for mo in moments], names,
+                                     records.n_trajectories,
+                                     (sum(mo.AA for mo in moments),
+                                      sum(mo.Ab for mo in moments)))
     except FitError:
         return NoiseCheck(ratio, uncorrectable=True)
     stderr = np.sqrt(np.clip(np.diag(fit.covariance), 0, None))
@@ -629,7 +647,13 @@ def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unk
 def _noise_in_residuals(energy: Block, fit: LinearFit, model: Model, records: Records,
                         unknowns: Unknowns, sigma: Any) -> bool:
     """Whether the energy residuals of the fit show at least a share `_NOISE_SEEN` of the
-    variance that noise of std `sigma` would put into them."""
-    residual = energy.A @ fit.theta - energy.b - fit.h[energy.group]
-    expected = design.row_variance(energy, model, records, unknowns.full(fit.theta), sigma)
-    return bool(np.mean(residual**2) >= _NOISE_SEEN * np.mean(expected))
+    variance that noise of std `sigma` would put into them (a piece of rows at a time:
+    the energy's gradient has the records' size)."""
+    theta, squares, expected = unknowns.full(fit.theta), 0.0, 0.0
+    for start in range(0, energy.n_rows, solve.PIECE_ROWS):
+        piece = energy.slice(start, start + solve.PIECE_ROWS)
+        residual = piece.A @ fit.theta - piece.b - fit.h[piece.group]
+        squares += float(residual @ residual)
+        expected += float(design.row_variance(
+            piece, model, records.slice(start, start + solve.PIECE_ROWS), theta, sigma).sum())
+    return squares >= _NOISE_SEEN * expected

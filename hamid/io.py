@@ -29,19 +29,9 @@ if TYPE_CHECKING:
     import pandas as pd
     import pyarrow as pa
 
-__all__ = [
-    "as_numpy",
-    "column_values",
-    "file_digest",
-    "is_missing",
-    "is_parquet",
-    "numeric_column",
-    "not_utf8",
-    "numeric_values",
-    "read_bytes",
-    "read_columns",
-    "read_table",
-]
+__all__ = ["as_numpy", "column_values", "file_digest", "is_missing", "is_parquet",
+           "numeric_column", "not_utf8", "numeric_values", "read_bytes", "read_columns",
+           "read_table"]
 
 Format = Literal["csv", "tsv", "parquet"]
 
@@ -116,26 +106,29 @@ def read_table(
 
 def read_columns(
     source: str | os.PathLike[str], *, format: str | None = None,
-    text: textlayout.TextOptions | None = None,
+    text: textlayout.TextOptions | None = None, name: str | None = None,
 ) -> tuple[dict[str, npt.NDArray[Any]], dict[str, Any] | None]:
     """`read_table` as numpy arrays by column name, in file order, without pandas (whose
-    import costs a third of a second) unless a Parquet file stores a pandas index. MATLAB,
-    HDF5, TDMS and UFF files (by extension) are read by `hamid.labfiles`."""
+    import costs a third of a second) unless a Parquet file stores a pandas index; `name`
+    replaces the path in messages. MATLAB, HDF5, TDMS and UFF files: `hamid.labfiles`."""
     if _is_lab_file(source, format):
         return labfiles.read(source)
-    table, metadata, name = _read_arrow(source, format, text)
+    table, metadata, name = _read_arrow(source, format, text, name)
     if _stores_pandas_index(table):
         frame = _to_pandas(table, name)
         return {column: frame[column].to_numpy() for column in frame.columns}, metadata
-    return {column: as_numpy(table.column(column)) for column in table.column_names}, metadata
+    names, arrays = table.column_names, table.columns[::-1]
+    del table   # each column's chunks go once copied: not all of them twice at once
+    return {name: as_numpy(arrays.pop()) for name in names}, metadata
 
 
-def _read_arrow(
-    source: str | os.PathLike[str], format: str | None, text: textlayout.TextOptions | None
-) -> tuple[pa.Table, dict[str, Any] | None, str]:
+def _read_arrow(source: str | os.PathLike[str], format: str | None,
+                text: textlayout.TextOptions | None, name: str | None = None,
+                ) -> tuple[pa.Table, dict[str, Any] | None, str]:
     """Helper reading a table file: its Arrow table, hamid metadata and name for messages."""
     fmt = check_format(format) if format is not None else input_format(source)
-    data, name = read_bytes(source)
+    data, read_name = read_bytes(source)
+    name = name or read_name
     if not data or data.isspace():
         raise DataError(f"{name}: file is empty")
     data = compressed.decompressed(data, name)
@@ -392,9 +385,9 @@ class TableChunks:
     """
 
     def __init__(self, source: str | os.PathLike[str], *, format: str | None = None,
-                 text: textlayout.TextOptions | None = None) -> None:
+                 text: textlayout.TextOptions | None = None, name: str | None = None) -> None:
         self.path = source
-        self.name = os.fsdecode(source)
+        self.name = name or os.fsdecode(source)
         if _is_lab_file(source, format):   # read whole, given in chunks
             self.format, self.compression = "lab", None
             self._whole, self.metadata = labfiles.read(source)
@@ -417,7 +410,6 @@ class TableChunks:
         self.format = fmt or ("parquet" if head == _PARQUET_MAGIC else "csv")
         if self.format == "parquet":
             _check_parquet_magic(head, self.name)
-        if self.format == "parquet":
             self._open_parquet()
         else:
             self._open_text(fmt, text)

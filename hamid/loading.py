@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from hamid import design, io, measurement, naming
+from hamid import design, inputs, io, measurement, naming
 from hamid.dissipation import shorthand_names
 from hamid.errors import DataError, UsageError
 from hamid.model import (
@@ -82,17 +82,20 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
         paths = [data] if isinstance(data, str | os.PathLike) else list(data)
         if not paths:
             raise UsageError("no data given")
-        tables = [(os.fspath(p) if os.fspath(p) != "-" else io.STDIN,
-                   *io.read_columns(p, format=options.format, text=options.text))
+        tables = [(inputs.name_of(p), *io.read_columns(p, format=options.format,
+                                                        text=options.text,
+                                                        name=inputs.name_of(p)))
                   for p in paths]
-    first_name, first_table, metadata = tables[0]
+    sources = [name for name, _, _ in tables]
+    metadata = tables[0][2]
     if model is None:
         _check_same_model(tables)
-    m, notes = _settle_model(model, metadata, [str(c) for c in first_table], first_name,
+    m, notes = _settle_model(model, metadata, [str(c) for c in tables[0][1]], sources[0],
                              options)
     derived = options.velocity == "savgol"
     parts, labels, mapping, units = [], [], {}, {}
-    for source, frame, table_metadata in tables:
+    while tables:   # each table's columns let go once its records are read
+        source, frame, table_metadata = tables.pop(0)
         names = [str(c) for c in frame]
         mapping = naming.resolve_columns(names, m.coordinates, () if derived else m.velocities,
                                          mapping=options.columns, source=source)
@@ -103,20 +106,29 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
                         typed=source in _IN_MEMORY or io.is_parquet(source),
                         scales=units["scale"], missing_ok=options.gaps == "split")
         piece = next(reader.read([(frame, 0)]))
+        del frame
         notes.extend(reader.notes)
-        parts.append(dataclasses.replace(piece, group=piece.group + len(labels)))
-        if len(tables) == 1:
+        if labels:
+            piece = dataclasses.replace(piece, group=piece.group + len(labels))
+        parts.append(piece)
+        if len(sources) == 1:
             labels.extend(reader.labels)
         elif reader.trajectory is None:
             labels.append(source)
         else:
             labels.extend(f"{source}:{label}" for label in reader.labels)
     has_time = all(part.t is not None for part in parts)
-    records = Records(np.vstack([part.X for part in parts]),
-                      np.concatenate([part.t for part in parts]) if has_time else None,
-                      np.concatenate([part.group for part in parts]), tuple(labels))
+    records = parts[0] if len(parts) == 1 else Records(
+        np.vstack([part.X for part in parts]),
+        np.concatenate([part.t for part in parts]) if has_time else None,
+        np.concatenate([part.group for part in parts]), ())
+    records = dataclasses.replace(records, labels=tuple(labels))
     firsts = np.cumsum([0] + [len(part.group) for part in parts[:-1]])
-    row_sources = tuple((name, int(f)) for (name, _, _), f in zip(tables, firsts, strict=True))
+    del parts
+    arrow = sys.modules.get("pyarrow")   # the tables read are gone: their memory goes back
+    if arrow is not None:
+        arrow.default_memory_pool().release_unused()
+    row_sources = tuple((name, int(f)) for name, f in zip(sources, firsts, strict=True))
     records, file_rows = _split_gaps(records, options.gaps, row_sources, notes)
     labels = list(records.labels)
     if not derived and records.t is not None:
@@ -127,7 +139,7 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
         notes.append(f"velocities derived from the positions (Savitzky-Golay, window "
                      f"{derivation[0]} samples, order {options.order}); their noise is "
                      "correlated with the positions'")
-    data_info = _data_info([name for name, _, _ in tables], len(records.group), len(labels),
+    data_info = _data_info(sources, len(records.group), len(labels),
                            mapping, options, units)
     if derivation:
         data_info.update(velocity_window=derivation[0], velocity_order=options.order)
@@ -248,10 +260,11 @@ class Reader:
         """A file read in chunks is not cut at time gaps (`_split_gaps` cuts records in
         memory): a step over `GAP_STEPS` times its trajectory's median step in the first
         chunk that holds three of its rows is an error, not a different fit."""
+        reference = np.empty(len(group))
         for j, start, stop in runs(group):
             if j not in self._steps and stop - start >= 3:
                 self._steps[j] = float(np.median(steps[start + 1:stop]))
-        reference = np.array([self._steps.get(int(j), np.inf) for j in group])
+            reference[start:stop] = self._steps.get(j, np.inf)
         gap = np.flatnonzero(same & (steps > GAP_STEPS * reference))
         if gap.size:
             k = int(gap[0])
@@ -361,12 +374,13 @@ class Chunked:
                           self.reader.mapping, options, self.units)
 
 
-def open_chunks(path: str, model: str | os.PathLike[str] | Model | None,
+def open_chunks(path: str | os.PathLike[str], model: str | os.PathLike[str] | Model | None,
                 options: FitOptions, chunk_rows: int,
                 progress: Callable[[str], None] | None) -> Chunked:
     """A file to read in chunks of `chunk_rows` rows: its model and columns, settled as
     `load` settles them."""
-    table = io.TableChunks(path, format=options.format, text=options.text)
+    table = io.TableChunks(path, format=options.format, text=options.text,
+                           name=inputs.name_of(path))
     m, notes = _settle_model(model, table.metadata, table.columns, table.name, options)
     if m.dissipation:
         raise UsageError(f"{table.name}: the model's dissipation function needs the data in "
@@ -572,14 +586,16 @@ def _split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int],
         missing |= np.isnan(records.t)
     kept = np.flatnonzero(~missing)
     group, t = records.group, records.t
+    whole = len(kept) == len(group)   # no copies of the columns when nothing is missing
     cut = np.zeros(len(kept), dtype=bool)
-    cut[1:] = (kept[1:] - kept[:-1] > 1) & (group[kept[1:]] == group[kept[:-1]])
+    if not whole:
+        cut[1:] = (kept[1:] - kept[:-1] > 1) & (group[kept[1:]] == group[kept[:-1]])
     n_gaps = 0
     if t is not None and len(kept) > 1:
-        tk, gk = t[kept], group[kept]
+        tk, gk = (t, group) if whole else (t[kept], group[kept])
         steps = np.diff(tk)
         same = gk[1:] == gk[:-1]
-        adjacent = same & (kept[1:] - kept[:-1] == 1)
+        adjacent = same if whole else same & (kept[1:] - kept[:-1] == 1)
         limit = np.full(len(steps), np.inf)
         # each trajectory's steps are contiguous: one slice each (a mask per trajectory
         # made this quadratic in their number, 15 s for 5,000)

@@ -43,15 +43,17 @@ def estimate_noise(X: npt.NDArray[np.float64],
     if not usable:
         raise DataError(f"too few samples to estimate the noise (need more than {k} per "
                         "trajectory); give --noise COL=SIGMA instead of auto")
-    # one array of differences, reordered in place by the medians (a column's order does
-    # not change its median): no copy of the record's size
-    differences = np.empty((sum(b - a - k for a, b in usable), X.shape[1]))
-    row = 0
-    for a, b in usable:
-        differences[row:row + b - a - k] = np.diff(X[a:b], n=k, axis=0)
-        row += b - a - k
-    differences -= np.median(differences, axis=0, overwrite_input=True)
-    mad = np.median(np.abs(differences, out=differences), axis=0, overwrite_input=True)
+    # one column of differences at a time, reordered in place by the medians (a column's
+    # order does not change its median): no copy of the record's size
+    differences = np.empty(sum(b - a - k for a, b in usable))
+    mad = np.empty(X.shape[1])
+    for column in range(X.shape[1]):
+        row = 0
+        for a, b in usable:
+            differences[row:row + b - a - k] = np.diff(X[a:b, column], n=k)
+            row += b - a - k
+        differences -= np.median(differences, overwrite_input=True)
+        mad[column] = np.median(np.abs(differences, out=differences), overwrite_input=True)
     return _MAD_TO_SIGMA * mad / math.sqrt(math.comb(2 * k, k))
 
 

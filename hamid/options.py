@@ -124,8 +124,9 @@ DAMPING_KINDS = ("viscous", "coulomb", "quadratic")
 SELECTION_CRITERIA = ("bic", "aic", "cv")   # of `hamid select` (hamid.selection)
 SAVGOL_ORDER = 5
 
-# Files larger than this are read in chunks when the options allow it: the chunked fit is
-# the fit in memory, faster and in a third of the memory.
+# Files that take more than this once decoded (8 bytes a cell, `hamid.inputs`) are read in
+# chunks when the options allow it: the chunked fit is the fit in memory, faster and in a
+# third of the memory.
 STREAM_BYTES = 64 << 20
 CHUNK_ROWS = 1 << 18
 # The trajectory refinement of a chunked fit holds the records (times, states, trajectory
@@ -216,7 +217,8 @@ class FitOptions:
     def chunking(self, data: Any, dissipative: bool = False) -> int | None:
         """The rows per chunk when `data` is read in chunks, or None to read it whole.
 
-        A file over `STREAM_BYTES` is read in chunks when the options allow it;
+        A file that takes over `STREAM_BYTES` once decoded (`hamid.inputs.decoded_bytes`,
+        whatever its size on disk) is read in chunks when the options allow it;
         `chunk_rows` asks for chunks, which is an error when they are not possible. A model
         with its own dissipation function (`dissipative`) needs the data in memory.
         """
@@ -227,7 +229,11 @@ class FitOptions:
                              f"{obstacle or 'in_memory asks for the data in memory'}")
         if self.chunk_rows is not None:
             return self.chunk_rows
-        if not obstacle and not self.in_memory and os.path.getsize(data) > STREAM_BYTES:
+        if obstacle or self.in_memory:
+            return None
+        from hamid.inputs import decoded_bytes
+
+        if decoded_bytes(data, format=self.format, text=self.text) > STREAM_BYTES:
             return CHUNK_ROWS
         return None
 
@@ -235,7 +241,7 @@ class FitOptions:
         """Why the fit needs all the data in memory, or "" when it can read them in chunks."""
         if not isinstance(data, str | os.PathLike) or os.fspath(data) == "-" \
                 or not os.path.isfile(data):
-            return "chunks need one file (not standard input, a list or a DataFrame)"
+            return "chunks need one file (not a list, a DataFrame or a device)"
         if self.velocity != "measured":
             return "derived velocities (--velocity savgol) need the data in memory"
         if self.weighted:

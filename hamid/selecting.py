@@ -214,13 +214,13 @@ def _collinear(source: loading.Loaded, library: Library, kept: Sequence[int],
     fit_plan = plan.decide(options, m, source.scales())
     raw, fit_plan = estimate.rows_of(source, Unknowns.of(m.parameters, forces.names, {}),
                                      forces, fit_plan, options)
-    stacked = solve.centre([dataclasses.replace(b, weight=b.weight / max(
+    stacked, _ = solve.Centred.of([dataclasses.replace(b, weight=b.weight / max(
         float(np.mean(b.b**2)), estimate.TINY)) for b in raw.blocks],
-        source.records.n_trajectories)
+        source.records.n_trajectories).arrays()
     simple = sorted(range(n_terms), key=lambda k: library.terms[k].complexity)
-    order = [*range(n_terms, stacked.A.shape[1]), *kept,
+    order = [*range(n_terms, stacked.shape[1]), *kept,
              *(k for k in simple if k not in kept)]
-    collinear = [(j, tuple(sorted(p))) for j, p in selection.collinear(stacked.A, order)]
+    collinear = [(j, tuple(sorted(p))) for j, p in selection.collinear(stacked, order)]
     blocked = [(j, p) for j, p in collinear if j in kept or j >= n_terms]
     if blocked:
         raise FitError("cannot tell apart the terms kept (--keep, --damping) on these data: "

@@ -73,7 +73,7 @@ class Design:
     @classmethod
     def of(cls, fit: estimate.Solved, blocks: Sequence[Block], fraction: float) -> Design:
         """The design of a least-squares fit of `blocks` (every term free)."""
-        A, b = fit.centred.A, fit.centred.b
+        A, b = fit.centred.arrays()
         M = np.column_stack([A / np.linalg.norm(A, axis=0), b])
         unit, unit_group = estimate.resampling_units(blocks)
         windows = len(blocks) > 1 or not blocks[0].has_level

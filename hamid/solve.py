@@ -7,8 +7,9 @@ the levels are recovered afterwards.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -17,8 +18,8 @@ from hamid.design import Block
 from hamid.errors import FitError
 from hamid.records import runs
 
-__all__ = ["Centred", "Conditioning", "Factor", "Solution", "centre", "conditioning",
-           "factor_conditioning", "solve", "solve_adjusted", "solve_factor"]
+__all__ = ["Centred", "Conditioning", "Factor", "Solution", "centred_piece", "conditioning",
+           "factor_conditioning", "level_means", "solve", "solve_adjusted", "solve_factor"]
 
 # A scaled singular value below this (a condition number above 1e10) leaves a direction
 # undetermined at double precision for any data with noise in them.
@@ -28,17 +29,77 @@ _RANK_TOLERANCE = 1e-10
 _VARIES = 1e-9
 
 
+# Rows are centred, weighted and factored this many at a time: the copies a fit in
+# memory makes stay small however long the record (one piece: the whole rows at once).
+PIECE_ROWS = 1 << 16
+
+
 @dataclass(frozen=True)
 class Centred:
-    """Weighted, level-free rows: sqrt(w) (A - mean_j A) and sqrt(w) (b - mean_j b)."""
+    """Blocks stacked as weighted, level-free rows, sqrt(w) (A - mean_j A) and
+    sqrt(w) (b - mean_j b), made a piece of rows at a time (`pieces`), not held."""
 
-    A: npt.NDArray[np.float64]
-    b: npt.NDArray[np.float64]
-    sqrt_w: npt.NDArray[np.float64]
+    blocks: tuple[Block, ...]
     level_means_A: npt.NDArray[np.float64]  # (J, p) weighted mean of A per trajectory
     level_means_b: npt.NDArray[np.float64]  # (J,)
-    level_weight: npt.NDArray[np.float64]   # (n,) w_i / W_j on level rows, else 0
     raw_norms: npt.NDArray[np.float64]      # (p,) column norms before centring
+    means: tuple[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]] | None, ...]
+
+    @classmethod
+    def of(cls, blocks: Sequence[Block], n_groups: int) -> Centred:
+        """The blocks, each trajectory's means in those that carry a level."""
+        p = blocks[0].A.shape[1]
+        raw_sq = np.zeros(p)
+        means_A, means_b = np.zeros((n_groups, p)), np.zeros(n_groups)
+        means = []
+        for block in blocks:
+            raw_sq += np.einsum("i,ij,ij->j", block.weight, block.A, block.A)
+            if block.has_level:
+                means_A, means_b, _ = level_means(block, n_groups)
+            means.append((means_A, means_b) if block.has_level else None)
+        return cls(tuple(blocks), means_A, means_b, np.sqrt(raw_sq), tuple(means))
+
+    @property
+    def n_rows(self) -> int:
+        return sum(block.n_rows for block in self.blocks)
+
+    def pieces(self) -> Iterator[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64],
+                                       npt.NDArray[np.float64]]]:
+        """The centred weighted rows (A, b) and sqrt(w), at least `PIECE_ROWS` rows at a
+        time (but the last), the blocks one after another; rows that fit in one piece are
+        one piece, the arithmetic of all rows at once."""
+        held: list[tuple[Any, Any, Any]] = []
+        for block, means in zip(self.blocks, self.means, strict=True):
+            for start in range(0, block.n_rows, PIECE_ROWS):
+                held.append(centred_piece(block.slice(start, start + PIECE_ROWS), means))
+                if sum(len(part[1]) for part in held) >= PIECE_ROWS:
+                    yield tuple(_stacked(list(parts)) for parts in zip(*held, strict=True))
+                    held = []
+        if held:
+            yield tuple(_stacked(list(parts)) for parts in zip(*held, strict=True))
+
+    def arrays(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """All the centred weighted rows, A and b."""
+        A, b, _ = zip(*self.pieces(), strict=True)
+        return _stacked(list(A)), _stacked(list(b))
+
+    def influence(self, inverse: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """G = sqrt(w) (centred A) @ inverse, shape (n_rows, p): theta - theta_true = G.T @ e
+        for row errors e (`Solution`)."""
+        return _stacked([sw[:, None] * (A @ inverse) for A, _, sw in self.pieces()])
+
+
+def centred_piece(block: Block, means: tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]
+                  | None) -> tuple[npt.NDArray[np.float64], ...]:
+    """Rows weighted and centred on their trajectories' `means` of A and b (None: rows
+    without a level): sqrt(w) (A - mean_j A), sqrt(w) (b - mean_j b) and sqrt(w)."""
+    A, b = block.A, block.b
+    if means is not None:
+        A, b = A - means[0][block.group], b - means[1][block.group]
+    sw = np.sqrt(block.weight)
+    if np.any(sw != 1.0):   # unit weights (the common case) need no product
+        A, b = A * sw[:, None], b * sw
+    return A, b, sw
 
 
 def level_means(block: Block, n_groups: int) -> tuple[npt.NDArray[np.float64], ...]:
@@ -54,33 +115,6 @@ def level_means(block: Block, n_groups: int) -> tuple[npt.NDArray[np.float64], .
                                     minlength=n_groups) for k in range(p)],
                        axis=-1).reshape(n_groups, p) * inverse[:, None]
     return means_A, means_b, inverse
-
-
-def centre(blocks: Sequence[Block], n_groups: int) -> Centred:
-    """Stack the blocks, centring rows that carry a level within their trajectory."""
-    A_parts, b_parts, sw_parts, lam_parts = [], [], [], []
-    p = blocks[0].A.shape[1]
-    raw_sq = np.zeros(p)
-    means_A, means_b = np.zeros((n_groups, p)), np.zeros(n_groups)
-    for block in blocks:
-        w = block.weight
-        A, b = block.A, block.b
-        lam = np.zeros(block.n_rows)
-        raw_sq += np.einsum("i,ij,ij->j", w, A, A)
-        if block.has_level:
-            means_A, means_b, inverse = level_means(block, n_groups)
-            A = A - means_A[block.group]
-            b = b - means_b[block.group]
-            lam = w * inverse[block.group]
-        sw = np.sqrt(w)
-        if np.any(sw != 1.0):   # unit weights (the common case) need no product
-            A, b = A * sw[:, None], b * sw
-        A_parts.append(A)
-        b_parts.append(b)
-        sw_parts.append(sw)
-        lam_parts.append(lam)
-    return Centred(_stacked(A_parts), _stacked(b_parts), _stacked(sw_parts), means_A,
-                   means_b, _stacked(lam_parts), np.sqrt(raw_sq))
 
 
 def _stacked(parts: list[npt.NDArray[np.float64]]) -> npt.NDArray[np.float64]:
@@ -193,23 +227,23 @@ class Solution:
 
     theta - theta_true = G.T @ e  for row errors e (unweighted), so every covariance
     estimator works from G and the residuals; G_i = w_i (a_i - mean_j a) @ inverse, with
-    `inverse` that of the centred weighted normal matrix.
+    `inverse` that of the centred weighted normal matrix (`Centred.influence`).
     """
 
     theta: npt.NDArray[np.float64]
     inverse: npt.NDArray[np.float64]           # (p, p)
     singular_values: npt.NDArray[np.float64]   # of the column-scaled centred design
-    G: npt.NDArray[np.float64] | None = None   # (n_rows, p), when the rows are in memory
 
 
 def solve(centred: Centred, names: Sequence[str], *, n_levels: int = 0) -> Solution:
-    """Least squares of the centred rows; a FitError names undetermined parameters."""
-    import dataclasses
+    """Least squares of the centred rows; a FitError names undetermined parameters.
 
-    R = np.linalg.qr(np.column_stack([centred.A, centred.b]), mode="r")
-    solution = solve_factor(R, centred.raw_norms, len(centred.b), names, n_levels=n_levels)
-    G = centred.sqrt_w[:, None] * (centred.A @ solution.inverse)
-    return dataclasses.replace(solution, G=G)
+    The triangular factor of [A, b] is that of its pieces stacked (tall-skinny QR)."""
+    R = None
+    for A, b, _ in centred.pieces():
+        R = _stack_qr(R, np.column_stack([A, b]))
+    assert R is not None
+    return solve_factor(R, centred.raw_norms, centred.n_rows, names, n_levels=n_levels)
 
 
 def solve_factor(R: npt.NDArray[np.float64], raw_norms: npt.NDArray[np.float64], n_rows: int,
@@ -244,7 +278,8 @@ def solve_factor(R: npt.NDArray[np.float64], raw_norms: npt.NDArray[np.float64],
     return Solution(theta, inverse, s)
 
 
-def solve_adjusted(centred: Centred, AA: npt.NDArray[np.float64], Ab: npt.NDArray[np.float64],
+def solve_adjusted(pieces: Iterable[tuple[npt.NDArray[np.float64], ...]],
+                   AA: npt.NDArray[np.float64], Ab: npt.NDArray[np.float64],
                    names: Sequence[str]) -> Solution:
     """Adjusted least squares: the corrected moment equations (A'WA + AA) theta = A'Wb + Ab.
 
@@ -253,9 +288,10 @@ def solve_adjusted(centred: Centred, AA: npt.NDArray[np.float64], Ab: npt.NDArra
     and solved through their eigendecomposition, which also shows when the correction
     leaves them indefinite (noise too large for the data).
     """
-    A, b = centred.A, centred.b
-    gram = A.T @ A + AA
-    moment = A.T @ b + Ab
+    gram, moment = AA.copy(), Ab.copy()
+    for A, b, _ in pieces:   # the centred weighted rows (`Centred.pieces`)
+        gram += A.T @ A
+        moment += A.T @ b
     diagonal = np.diag(gram)
     if not np.all(diagonal > 0):
         bad = [n for n, d in zip(names, diagonal, strict=True) if not d > 0]
@@ -271,8 +307,7 @@ def solve_adjusted(centred: Centred, AA: npt.NDArray[np.float64], Ab: npt.NDArra
                        "for these data, or overstated)")
     inverse = (V / eigenvalues) @ V.T / np.outer(scale, scale)
     theta = inverse @ moment
-    G = centred.sqrt_w[:, None] * (A @ inverse)
-    return Solution(theta, inverse, np.sqrt(eigenvalues[::-1]), G)
+    return Solution(theta, inverse, np.sqrt(eigenvalues[::-1]))
 
 
 def _raise_rank_deficient(s: np.ndarray, Vt: np.ndarray, names: Sequence[str],
@@ -304,7 +339,8 @@ def conditioning(blocks: Sequence[Block], names: Sequence[str],
     """Singular values of [A, level columns], scaled to unit column norms."""
     factor = Factor(len(names), len(labels))
     for block in blocks:
-        factor.add(block)
+        for start in range(0, block.n_rows, PIECE_ROWS):
+            factor.add(block.slice(start, start + PIECE_ROWS))
     return factor_conditioning(factor, names, labels)
 
 

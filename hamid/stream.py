@@ -121,13 +121,13 @@ def _windowed(source: Chunked, energy_rows: Callable[[Records, int], Block], pla
         keep = int(np.searchsorted(held.records.t, held.origin + held.next * window
                                    * design.WINDOW_STEP))
         held.records = held.records.slice(keep, None)
-        held.rows = _block_slice(held.rows, keep, None)
+        held.rows = held.rows.slice(keep, None)
 
     with store:
         for records, row in source.rows("window rows"):
             rows = energy_rows(records, row)
             for j, start, stop in runs(records.group):
-                piece, piece_rows = records.slice(start, stop), _block_slice(rows, start, stop)
+                piece, piece_rows = records.slice(start, stop), rows.slice(start, stop)
                 total = totals.setdefault(j, np.zeros(rows.A.shape[1] + 2))
                 total += np.r_[piece_rows.A.sum(axis=0), piece_rows.b.sum(), stop - start]
                 if held is not None and held.j != j:
@@ -345,12 +345,6 @@ class _Held:
     next: int        # number of its next window
     records: Records
     rows: Block
-
-
-def _block_slice(block: Block, start: int, stop: int | None) -> Block:
-    return dataclasses.replace(block, A=block.A[start:stop], b=block.b[start:stop],
-                               group=block.group[start:stop], time=block.time[start:stop],
-                               weight=block.weight[start:stop])
 
 
 def _concatenate(blocks: list[Block]) -> Block:

@@ -168,9 +168,12 @@ def samples(rows: Rows, fit: LinearFit, model: Model, unknowns: Unknowns, plan: 
     energy equation carried (for --residuals)."""
     energy = rows.energy
     estimates = unknowns.estimates(fit.theta)
+    residual = energy.A @ fit.theta   # then in place: no more arrays of the record's length
+    residual -= energy.b
+    residual -= fit.h[energy.group]
     return {"trajectory": np.asarray(labels, dtype=object)[energy.group], "t": energy.time,
             "energy": design.fitted_energy(rows.all_energy, model, estimates),
-            "residual": energy.A @ fit.theta - energy.b - fit.h[energy.group],
+            "residual": residual,
             "weight": design.sample_weights(plan.kind, rows.blocks, energy, rows.windows)}
 
 

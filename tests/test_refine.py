@@ -5,7 +5,6 @@ refinement")."""
 from __future__ import annotations
 
 import dataclasses
-import os
 import re
 
 import numpy as np
@@ -15,7 +14,7 @@ from conftest import DUFFING, with_noise
 from scipy.signal import savgol_coeffs, savgol_filter
 
 import hamid
-from hamid import estimate, measurement, options, refine, trajectory, writing
+from hamid import estimate, inputs, measurement, options, refine, trajectory, writing
 from hamid.model import model_from_spec
 from hamid.records import Records
 from hamid.report import render
@@ -137,7 +136,7 @@ def test_a_wrong_model_keeps_the_linear_fit_read_in_chunks(clean_records, monkey
     frame = clean_records["duffing"]
     path = str(tmp_path / "duffing.parquet")
     writing.write_table(frame, path, metadata=frame.attrs["hamid"])
-    monkeypatch.setattr(options, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
+    monkeypatch.setattr(options, "STREAM_BYTES", inputs.decoded_bytes(path) - 1)  # made small
     auto, joint = hamid.fit(path, QUARTIC), hamid.fit(path, QUARTIC, method="joint")
     assert auto.samples is None
     refinement = auto.method["refinement"]

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pandas as pd
 import pytest
@@ -11,7 +9,7 @@ from click.testing import CliRunner
 from conftest import PENG, with_noise
 
 import hamid
-from hamid import design, io, options, plan, stream, writing
+from hamid import design, inputs, io, options, plan, stream, writing
 from hamid.cli import cli
 from hamid.errors import DataError, UsageError
 
@@ -294,8 +292,8 @@ def test_cli_chunk_rows(noisy_files, tmp_path):
 def test_a_file_over_the_size_limit_is_read_in_chunks_unless_asked_otherwise(
         noisy_files, monkeypatch, tmp_path):
     frame, paths = noisy_files
-    size = os.path.getsize(paths["parquet"])
-    monkeypatch.setattr(options, "STREAM_BYTES", size)   # the limit (64 MB), made small
+    size = inputs.decoded_bytes(paths["parquet"])
+    monkeypatch.setattr(options, "STREAM_BYTES", size)   # the limit (64 MB decoded), made small
     assert hamid.fit(paths["parquet"]).samples is not None   # not over it: in memory
     monkeypatch.setattr(options, "STREAM_BYTES", size - 1)
     assert hamid.fit(paths["parquet"]).samples is None

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 
 import numpy as np
 import pytest
@@ -11,7 +10,7 @@ from click.testing import CliRunner
 from conftest import DUFFING, ELASTIC_PENDULUM, PENG, TWO_MASS, with_noise
 
 import hamid
-from hamid import options, plan, trajectory, writing
+from hamid import inputs, options, plan, trajectory, writing
 from hamid.cli import cli
 from hamid.trajectory import _common_times
 
@@ -91,7 +90,7 @@ def test_a_file_read_in_chunks_is_refined_like_one_in_memory(clean_records, monk
     path = str(tmp_path / "duffing.parquet")
     writing.write_table(frame, path, metadata=frame.attrs["hamid"])
     memory = hamid.fit(path)
-    monkeypatch.setattr(options, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
+    monkeypatch.setattr(options, "STREAM_BYTES", inputs.decoded_bytes(path) - 1)  # made small
     chunked = hamid.fit(path)
     assert chunked.samples is None and memory.samples is not None
     assert chunked.method["refinement"]["applied"] is True
@@ -130,7 +129,7 @@ def test_progress_hears_every_pass_and_every_batch(clean_records, monkeypatch, t
     frame = with_noise(clean_records["duffing"], 0.02, seed=3)
     path = str(tmp_path / "duffing.parquet")
     writing.write_table(frame, path, metadata=frame.attrs["hamid"])
-    monkeypatch.setattr(options, "STREAM_BYTES", os.path.getsize(path) - 1)  # 64 MB, made small
+    monkeypatch.setattr(options, "STREAM_BYTES", inputs.decoded_bytes(path) - 1)  # made small
     heard: list[str] = []
     result = hamid.fit(path, progress=heard.append)
     stages = ["periods of the trajectories", "window rows", "records for the trajectory fit",

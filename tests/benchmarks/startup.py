@@ -8,6 +8,13 @@ runs of a command and of its baseline alternating, and the median wall time is r
     hamid --version, hamid --help   against   python -c "import click"
     hamid fit DATA.csv              against   python -c "import numpy, scipy.linalg, pyarrow.csv"
 
+Then where a fit's time above the floor goes: the imports of a linear fit (hamid's
+modules, scipy.special for the t quantiles, scipy.sparse for the windows, pyarrow's
+reader, click and rich),
+the linear fit itself (the joint fit's time less those imports), and the trajectory
+refinement of auto (auto's time less the joint fit's), of which importing
+scipy.integrate (with the scipy.optimize it imports) is measured alone.
+
 DATA.csv is a peng-quadratic record of `--rows` rows (2 trajectories, with hamid's
 metadata line) made with `hamid.simulate` in a temporary folder, noise-free and with 1%
 noise (a noise-free record makes auto's trajectory refinement integrate at its strict
@@ -134,6 +141,10 @@ def main():
     hamid_cmd = hamid_command()
     click_cmd = [py, "-c", "import click"]
     fit_base_cmd = [py, "-c", "import numpy, scipy.linalg, pyarrow.csv"]
+    # with what a fit imports on its way: pyarrow's reader, scipy.sparse for the windows
+    modules = "import hamid.api, hamid.cli, hamid.report, rich.console, pyarrow.csv, scipy.sparse"
+    imports = {"imports of a linear fit": [py, "-c", modules],
+               "the same and scipy.integrate": [py, "-c", modules + ", scipy.integrate"]}
     with tempfile.TemporaryDirectory() as folder:
         clean, noisy = make_data(folder, args.rows), make_data(folder, args.rows, 0.01)
         fits = {f"hamid fit ({args.rows} rows, noise-free)": [*hamid_cmd, "fit", str(clean)],
@@ -143,7 +154,8 @@ def main():
         medians = compare([
             [("hamid --version", [*hamid_cmd, "--version"]), ("import click", click_cmd)],
             [("hamid --help", [*hamid_cmd, "--help"])],
-            [*fits.items(), ("import numpy, scipy.linalg, pyarrow.csv", fit_base_cmd)],
+            [*fits.items(), ("import numpy, scipy.linalg, pyarrow.csv", fit_base_cmd),
+             *imports.items()],
             [("python -c pass", [py, "-c", "pass"])],
         ], args.runs)
 
@@ -159,6 +171,19 @@ def main():
                   f"{medians[base] * 1e3:.0f} | {ratios[name]:.2f}x | "
                   f"{'ok' if ratios[name] <= TARGET else 'ABOVE'} (<= {TARGET:g}x) |")
         print(f"\n(interpreter alone, `python -c pass`: {medians['python -c pass'] * 1e3:.0f} ms)")
+        floor = medians["import numpy, scipy.linalg, pyarrow.csv"]
+        linear, integrate = (medians[name] for name in imports)
+        joint, noisy, clean = (medians[name] for name in (
+            f"hamid fit --method joint ({args.rows} rows, 1% noise)",
+            f"hamid fit ({args.rows} rows, 1% noise)",
+            f"hamid fit ({args.rows} rows, noise-free)"))
+        print("\nwhere the time above the floor goes (ms, and in units of the floor):")
+        for what, ms in (("imports of a linear fit beyond the floor", linear - floor),
+                         ("the linear joint fit, reading and writing", joint - linear),
+                         ("auto's refinement, 1% noise", noisy - joint),
+                         ("auto's refinement, noise-free", clean - joint),
+                         ("  of which importing scipy.integrate", integrate - linear)):
+            print(f"    {what:45s} {ms * 1e3:6.0f} ms  {ms / floor:5.2f}x")
 
         above = [name for name in fits if ratios[name] > TARGET]
         if above:
