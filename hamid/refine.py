@@ -6,7 +6,8 @@ What is decided here: the noise each variable is weighted by (the user's, the di
 estimate, or, when the misfit shows that estimate too small, the fit's own residual
 scale), which covariance the refined parameters get, and whether they replace the linear
 ones: only when they predict segments held out of their fit no worse than the linear
-fit's parameters do (blocked cross-validation).
+fit's parameters do (blocked cross-validation); and, once kept within the noise, how far
+its segments are lengthened (joined while the misfit the joins add is the noise's).
 """
 
 from __future__ import annotations

@@ -16,7 +16,8 @@ keep the integration short enough that a wrong start cannot wander off into anot
 minimum, and the per-segment states are eliminated from the normal equations (Schur
 complement), so the work grows linearly with the record. A `SegmentFit` also gives the
 parameters' covariance (misfit-scaled, or the sandwich over segments) and what the
-parameters predict for segments left out of the fit, for `hamid.refine` to judge it by.
+parameters predict for segments left out of the fit, for `hamid.refine` to judge it by;
+`join` refits it over neighbouring segments joined into longer ones.
 """
 
 from __future__ import annotations
