@@ -378,12 +378,14 @@ def test_segments_beyond_the_noise_are_not_lengthened(friction):
     "simulate"]}], ids=["duffing", "peng-quadratic"])
 def test_lengthened_bounds_cover_the_truth(system):
     """3% noise, 60 realizations of 100 s records (segments joined into one per
-    trajectory): the 95% bounds cover the truth 88-99% of the time and the standard
-    errors are the spread."""
+    trajectory, nearly always): the 95% bounds cover the truth 88-99% of the time and
+    the standard errors are the spread."""
     clean = hamid.simulate(system)
     truth = system["parameters"]
     fits = [hamid.fit(with_noise(clean, 0.03, seed)) for seed in range(60)]
-    assert all(f.method["refinement"]["lengthening"]["stopped"] == "whole" for f in fits)
+    # the F test refuses a right join 1% of the time by chance, pairs then tried
+    whole = [f.method["refinement"]["lengthening"]["stopped"] == "whole" for f in fits]
+    assert sum(whole) >= 55
     for name in truth:
         parameters = [next(p for p in f.parameters if p.name == name) for f in fits]
         covered = np.mean([p.ci_low <= truth[name] <= p.ci_high for p in parameters])
