@@ -6,7 +6,8 @@ What is decided here: the noise each variable is weighted by (the user's, the di
 estimate, or, when the misfit shows that estimate too small, the fit's own residual
 scale), which covariance the refined parameters get, and whether they replace the linear
 ones: only when they predict segments held out of their fit no worse than the linear
-fit's parameters do (blocked cross-validation).
+fit's parameters do (blocked cross-validation); and, once kept within the noise, how far
+its segments are lengthened (joined while the misfit the joins add is the noise's).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
+from scipy.special import fdtri
 
 from hamid import design, estimate, measurement, uncertainty
 from hamid.dissipation import Dissipation
@@ -41,6 +43,8 @@ CHECKED_SEGMENTS = 2 * FOLDS  # fewest segments the held-out check is made with
 REWEIGHT_ROUNDS = 2      # fits at residual-based noise levels, at most
 REWEIGHT_SETTLED = 0.1   # relative change of every noise level that ends them sooner
 HELD_OUT_LEVEL = 0.95    # refused when the refinement predicts worse beyond this bound
+LENGTHEN_LEVEL = 0.99    # segments joined while the misfit a join adds is below this F point
+LONGEST_PERIODS = 32     # dominant periods: longer segments would integrate one after another
 NOISE_FLOOR = 1e-9       # of a variable's spread: the smallest noise level weighted by
 
 
@@ -173,7 +177,53 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipati
                   f"over {fit.segments} segments)")
     if reason is not None:
         return None, {"applied": False, "reason": reason, **info}
+    info["lengthening"] = None
+    if within:
+        fit, info["lengthening"] = _lengthened(fit, period, progress)
     return _refined(linear, fit, within), {"applied": True, **info}
+
+
+def _lengthened(fit: SegmentFit, period: float, progress: Callable[[str], None] | None
+                ) -> tuple[SegmentFit, dict[str, Any]]:
+    """The fit over longer segments, neighbours joined, while what the joining adds to the
+    misfit is what the noise explains; and what the report says of it.
+
+    Every segment boundary sets the state free again, and the information carried across
+    it is lost: over four-period segments of a 100 s record the stiffnesses spread up to
+    twice the bound of one state per trajectory (`tests/benchmarks/bound.py`). Joining
+    ties k = 2N states per boundary; with the model right, the misfit it adds is
+    chi-squared with k degrees of freedom, so F = (added / k) / (misfit / dof of the
+    joined fit) follows Fisher's F. Beyond its LENGTHEN_LEVEL point (the motion drifts
+    off the longer segments, or the joined fit fell into another minimum), or when the
+    joined fit fails, the last good length stands. All segments within LONGEST_PERIODS
+    are joined at once first; when that is refused, neighbours are joined in pairs.
+    """
+    from hamid import trajectory
+
+    longest, count, rounds = LONGEST_PERIODS * period, fit.segments, 0
+    while True:
+        try:
+            longer = trajectory.join(fit, count, longest, progress)
+        except trajectory.RefinementFailed:
+            longer, stopped = None, "failed"
+        else:
+            if longer is None:
+                whole = fit.segments == fit.problem.records.n_trajectories
+                stopped = "whole" if whole else "longest"
+                break
+            misfit = longer.chi2_per_dof * longer.dof
+            k = fit.states.size - longer.states.size
+            added = misfit - fit.chi2_per_dof * fit.dof
+            if added / k <= fdtri(k, longer.dof, LENGTHEN_LEVEL) * misfit / longer.dof:
+                fit, rounds = longer, rounds + 1
+                continue
+            stopped = "misfit"
+        if count == 2:
+            break
+        count = 2   # refused at once: join in pairs, from the last good length
+    return fit, {"segments": fit.segments, "segment_seconds": fit.problem.length,
+                 "rounds": rounds, "iterations": fit.iterations if rounds else 0,
+                 "chi2_per_dof": fit.chi2_per_dof, "stopped": stopped}
 
 
 def _beyond_noise(fit: SegmentFit, noise: _Noise, length: float,

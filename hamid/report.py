@@ -269,9 +269,16 @@ def _conditioning_section(result: Mapping[str, Any]) -> _Section:
     return _Section("Conditioning", tables=(_Table(("quantity", "value"), (("", rows),), True),))
 
 
+_LENGTHENING_STOPPED = {
+    "whole": "one per trajectory", "longest": "the longest integrated at once",
+    "misfit": "longer ones missed the recording beyond the noise",
+    "failed": "longer ones could not be fitted"}
+
+
 def _refinement_checks(refinement: Mapping[str, Any]) -> list[tuple[str, str]]:
-    """Helper: the refinement's noise levels when raised from its residuals, and its
-    held-out check against the linear fit (reports of older versions have neither)."""
+    """Helper: the refinement's noise levels when raised from its residuals, its segments
+    once lengthened, and its held-out check against the linear fit (reports of older
+    versions have none of these)."""
     rows = []
     noise = refinement.get("noise") or {}
     raised = [f"{name} {_num(entry['sigma'], '.3g')}" for name, entry in noise.items()
@@ -280,6 +287,12 @@ def _refinement_checks(refinement: Mapping[str, Any]) -> list[tuple[str, str]]:
         rows.append(("refinement noise σ", f"{', '.join(raised)} from its residuals "
                      f"(misfit {_num(refinement.get('noise_chi2_per_dof'), '.3g')} × the noise "
                      "estimated from differences)"))
+    lengthening = refinement.get("lengthening")
+    if lengthening and lengthening["rounds"]:
+        rows.append(("lengthened", f"{_plural(lengthening['segments'], 'segment', 'segments')}"
+                     f" of up to {_num(lengthening['segment_seconds'])} s, misfit "
+                     f"{_num(lengthening['chi2_per_dof'])} × noise variance "
+                     f"({_LENGTHENING_STOPPED[lengthening['stopped']]})"))
     acceptance = refinement.get("acceptance") or {}
     if acceptance.get("rule") == "held-out":
         rows.append(("held-out check", f"misfit {_num(acceptance['held_out_refined'], '.4g')}"

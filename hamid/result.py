@@ -35,6 +35,7 @@ __all__ = [
     "EnergyLost",
     "FitResult",
     "InputFile",
+    "LengtheningInfo",
     "MethodInfo",
     "ModelInfo",
     "NoiseLevel",
@@ -89,6 +90,17 @@ class AcceptanceInfo(TypedDict):
     t_limit: NotRequired[float]
 
 
+class LengtheningInfo(TypedDict):
+    """The refinement's segments once lengthened (neighbours joined) within the noise."""
+
+    segments: int
+    segment_seconds: float               # the longest segment
+    rounds: int                          # joins kept
+    iterations: int                      # Gauss-Newton iterations of the last one kept
+    chi2_per_dof: float
+    stopped: Literal["whole", "longest", "misfit", "failed"]
+
+
 class RefinementInfo(TypedDict):
     """Whether the trajectory refinement of `auto` ran; its figures, or why not."""
 
@@ -102,6 +114,7 @@ class RefinementInfo(TypedDict):
     noise: NotRequired[dict[str, NoiseLevel]]
     covariance: NotRequired[Literal["misfit-scaled", "sandwich"]]
     acceptance: NotRequired[AcceptanceInfo]
+    lengthening: NotRequired[LengtheningInfo | None]
 
 
 class MethodInfo(TypedDict):

@@ -16,7 +16,8 @@ keep the integration short enough that a wrong start cannot wander off into anot
 minimum, and the per-segment states are eliminated from the normal equations (Schur
 complement), so the work grows linearly with the record. A `SegmentFit` also gives the
 parameters' covariance (misfit-scaled, or the sandwich over segments) and what the
-parameters predict for segments left out of the fit, for `hamid.refine` to judge it by.
+parameters predict for segments left out of the fit, for `hamid.refine` to judge it by;
+`join` refits it over neighbouring segments joined into longer ones.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from hamid.dynamics import Dynamics, Motion
 from hamid.model import Model
 from hamid.records import Records
 
-__all__ = ["RefinementFailed", "SegmentFit", "fit", "refine", "refit", "segment_count"]
+__all__ = ["RefinementFailed", "SegmentFit", "fit", "join", "refine", "refit", "segment_count"]
 
 SEGMENT_PERIODS = 4.0  # dominant periods per segment, halved down to one when it fails
 MIN_SEGMENT_PERIODS = 1.0
@@ -65,13 +66,14 @@ class _Problem:
     """The segments of a recording at one length, and what integrating them needs."""
 
     dynamics: Dynamics
+    records: Records
     pieces: list[tuple[int, int]]             # each segment's rows (start, stop)
     tau: list[npt.NDArray[np.float64]]        # each segment's times from its start
     measured: list[npt.NDArray[np.float64]]   # each segment's samples (views)
     x_step: npt.NDArray[np.float64]           # forward-difference step of each variable
     resolution: float                         # times closer than this are one
     weight: npt.NDArray[np.float64]           # 1 / noise of each variable
-    length: float                             # seconds per segment
+    length: float                             # seconds per segment (the longest, joined)
 
     @classmethod
     def cut(cls, model: Model, records: Records, damping: Dissipation, length: float,
@@ -85,14 +87,37 @@ class _Problem:
         # t[i] - t[a] carries the rounding of both times: segments sampled alike then
         # differ in their last bits, and would each add their own times to a batch's grid
         resolution = TIME_ROUNDING * np.finfo(float).eps * float(np.max(np.abs(t)))
-        return cls(Dynamics(model, damping), pieces, [t[a:b] - t[a] for a, b in pieces],
-                   [X[a:b] for a, b in pieces],
+        return cls(Dynamics(model, damping), records, pieces,
+                   [t[a:b] - t[a] for a, b in pieces], [X[a:b] for a, b in pieces],
                    STEP * np.maximum(np.abs(X).max(axis=0), X.std(axis=0)), resolution,
                    weight, length)
 
     def reweighted(self, weight: npt.NDArray[np.float64]) -> _Problem:
         """The same segments under other weights."""
         return dataclasses.replace(self, weight=weight)
+
+    def joined(self, count: int, longest: float,
+               most: int) -> tuple[_Problem, npt.NDArray[np.intp]]:
+        """Up to `count` neighbouring segments of one trajectory joined into one, as long
+        as it spans at most `longest` seconds and holds at most `most` samples; and the
+        index of each new segment's first part."""
+        t, X, group = self.records.t, self.records.X, self.records.group
+        assert t is not None
+        pieces, first, s = [], [], 0
+        while s < len(self.pieces):
+            (a, b), first_part = self.pieces[s], s
+            s += 1
+            while (s - first_part < count and s < len(self.pieces) and self.pieces[s][0] == b
+                   and group[b] == group[a] and self.pieces[s][1] - a <= most
+                   and t[self.pieces[s][1] - 1] - t[a] <= longest):
+                b = self.pieces[s][1]
+                s += 1
+            pieces.append((a, b))
+            first.append(first_part)
+        tau = [t[a:b] - t[a] for a, b in pieces]
+        return dataclasses.replace(self, pieces=pieces, tau=tau,
+                                   measured=[X[a:b] for a, b in pieces],
+                                   length=max(float(x[-1]) for x in tau)), np.array(first)
 
     @property
     def n_samples(self) -> int:
@@ -284,6 +309,24 @@ def refit(fit: SegmentFit, weight: npt.NDArray[np.float64],
                              fit.states, fit.rtol, progress, "reweighted, ")
     except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
         raise RefinementFailed(f"{exc}, reweighted") from exc
+
+
+def join(fit: SegmentFit, count: int, longest: float,
+         progress: Callable[[str], None] | None = None) -> SegmentFit | None:
+    """The fit over up to `count` neighbouring segments joined into one (at most `longest`
+    seconds, and no more samples than one batch integrates), from the fit's parameters,
+    each joined segment started at its first part's fitted state; None when no segments
+    can be joined. Raises RefinementFailed when the joined fit fails."""
+    n_states = fit.states.shape[1]
+    most = BATCH_VALUES // ((1 + n_states + len(fit.free)) * n_states)
+    problem, first = fit.problem.joined(count, longest, most)
+    if len(first) == fit.segments:
+        return None
+    try:
+        return _fit_segments(problem, fit.theta, fit.free, fit.states[first], fit.rtol,
+                             progress, "joined, ")
+    except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
+        raise RefinementFailed(f"{exc}, over joined segments") from exc
 
 
 class _SegmentFitFailed(Exception):

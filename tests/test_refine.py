@@ -10,7 +10,7 @@ import re
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import DUFFING, with_noise
+from conftest import DUFFING, PENG, with_noise
 from scipy.signal import savgol_coeffs, savgol_filter
 
 import hamid
@@ -92,8 +92,14 @@ def test_the_right_model_predicts_held_out_segments_better():
     refinement = result.method["refinement"]
     acceptance = refinement["acceptance"]
     segments = refinement["segments"]
-    assert heard[-1] == (f"held-out check of the trajectory fit: {segments:,} of "
-                         f"{segments:,} segments")
+    checked = f"held-out check of the trajectory fit: {segments:,} of {segments:,} segments"
+    # then the segments are lengthened: one per trajectory, the stage heard after the check
+    lengthening = refinement["lengthening"]
+    assert lengthening["stopped"] == "whole" and lengthening["segments"] == 2
+    assert heard[-1] == (f"trajectory fit over segments of "
+                         f"{lengthening['segment_seconds']:.3g} s: joined, iteration "
+                         f"{lengthening['iterations']}, 2 of 2 segments")
+    assert heard.index(checked) < min(i for i, text in enumerate(heard) if "joined" in text)
     assert refinement["applied"] is True and refinement["covariance"] == "misfit-scaled"
     assert acceptance["rule"] == "held-out" and acceptance["linear_refitted"] is True
     assert acceptance["held_out_refined"] < acceptance["held_out_linear"]
@@ -272,3 +278,116 @@ def test_the_table_says_how_the_refinement_weighted_and_was_checked():
         "applied", "segments", "segment_seconds", "iterations", "chi2_per_dof")}
     text = render(old, "table", width=200)
     assert "trajectory fit over 12 segments" in text and "held-out check" not in text
+
+
+# Duffing over 100 s: eight segments of four periods, two trajectories.
+LONG_DUFFING = {**DUFFING, "simulate": {"t_end": 100.0, "dt": 0.05}}
+
+
+def _duffing_bound(clean: pd.DataFrame, relative: float) -> np.ndarray:
+    """The Cramér-Rao bound of (k, k3), one initial state per trajectory, the noise of
+    `with_noise`: sensitivities by central differences of solve_ivp over each whole
+    trajectory, the equation of motion written here."""
+    from scipy.integrate import solve_ivp
+
+    def motion(values: np.ndarray, times: np.ndarray) -> np.ndarray:
+        k, k3 = values[2:]
+        solution = solve_ivp(lambda t, y: [y[1], -k * y[0] - k3 * y[0] ** 3],
+                             (0.0, times[-1]), values[:2], t_eval=times, method="DOP853",
+                             rtol=1e-12, atol=1e-14)
+        return solution.y.T
+
+    weight = 1.0 / (relative * clean[["x", "v"]].std().to_numpy())
+    information = np.zeros((2, 2))
+    for _, part in clean.groupby("trajectory"):
+        values = np.concatenate([part[["x", "v"]].to_numpy()[0],
+                                 [DUFFING["parameters"]["k"], DUFFING["parameters"]["k3"]]])
+        times = part["t"].to_numpy() - part["t"].iloc[0]
+        columns = []
+        for j in range(4):
+            h = 1e-6 * max(abs(values[j]), 1.0)
+            up, down = values.copy(), values.copy()
+            up[j] += h
+            down[j] -= h
+            columns.append(((motion(up, times) - motion(down, times)) / (2 * h) * weight)
+                           .ravel())
+        J = np.array(columns).T
+        F = J.T @ J
+        information += F[2:, 2:] - F[2:, :2] @ np.linalg.solve(F[:2, :2], F[:2, 2:])
+    return np.linalg.inv(information)
+
+
+def test_lengthened_segments_reach_the_bound_of_one_state_per_trajectory(monkeypatch):
+    """1% noise: the segments are joined into one per trajectory; the standard errors are
+    then the Cramér-Rao bound of the whole trajectories (computed here independently),
+    well below those of the four-period segments, and the estimates within them."""
+    clean = hamid.simulate(LONG_DUFFING)
+    frame = with_noise(clean, 0.01, seed=4)
+    result = hamid.fit(frame)
+    refinement = result.method["refinement"]
+    lengthening = refinement["lengthening"]
+    assert refinement["applied"] is True and refinement["segments"] == 8
+    assert lengthening["stopped"] == "whole" and lengthening["segments"] == 2
+    assert lengthening["rounds"] == 1 and lengthening["segment_seconds"] == pytest.approx(100)
+    assert re.search(r"lengthened +2 segments of up to 100 s, misfit [0-9.]+ × noise "
+                     r"variance \(one per trajectory\)", render(result.to_dict(), "table",
+                                                                 width=200))
+    errors = np.array([p.stderr for p in result.parameters])
+    bound = np.sqrt(np.diag(_duffing_bound(clean, 0.01)))
+    assert errors / bound == pytest.approx([1.0, 1.0], abs=0.1)
+    truth = np.array(list(DUFFING["parameters"].values()))
+    estimates = np.array([p.estimate for p in result.parameters])
+    assert np.all(np.abs(estimates - truth) < 3 * errors)
+
+    monkeypatch.setattr(refine, "LONGEST_PERIODS", 0.0)   # no segment joined
+    fixed = hamid.fit(frame)
+    assert fixed.method["refinement"]["lengthening"] == {
+        "segments": 8, "segment_seconds": refinement["segment_seconds"], "rounds": 0,
+        "iterations": 0, "chi2_per_dof": refinement["chi2_per_dof"], "stopped": "longest"}
+    fixed_errors = np.array([p.stderr for p in fixed.parameters])
+    assert np.all(errors < 0.8 * fixed_errors)
+    assert np.all(np.abs(np.array([p.estimate for p in fixed.parameters]) - truth)
+                  < 3 * fixed_errors)
+
+
+def test_segments_stay_short_where_longer_ones_miss_the_motion():
+    """Slight damping fitted as conservative: within the noise over four periods, but the
+    decay shows over longer segments, and the joins are refused by the F test."""
+    clean = hamid.simulate({**LONG_DUFFING, "damping": {"c_x": 0.001}})
+    result = hamid.fit(with_noise(clean, 0.01, seed=2))
+    refinement = result.method["refinement"]
+    assert "lengthened" not in render(result.to_dict(), "table", width=200)
+    assert refinement["applied"] is True
+    assert refinement["noise_chi2_per_dof"] < refine.CHI2_LIMIT
+    assert refinement["lengthening"] == {
+        "segments": refinement["segments"], "segment_seconds": refinement["segment_seconds"],
+        "rounds": 0, "iterations": 0, "chi2_per_dof": refinement["chi2_per_dof"],
+        "stopped": "misfit"}
+
+
+def test_segments_beyond_the_noise_are_not_lengthened(friction):
+    """The sandwich covariance needs the segments: no lengthening is tried."""
+    refinement = hamid.fit(_smoothed(friction, 0), "duffing", damping="viscous").method[
+        "refinement"]
+    assert refinement["covariance"] == "sandwich" and refinement["lengthening"] is None
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("system", [LONG_DUFFING, {**PENG, "simulate": LONG_DUFFING[
+    "simulate"]}], ids=["duffing", "peng-quadratic"])
+def test_lengthened_bounds_cover_the_truth(system):
+    """3% noise, 60 realizations of 100 s records (segments joined into one per
+    trajectory, nearly always): the 95% bounds cover the truth 88-99% of the time and
+    the standard errors are the spread."""
+    clean = hamid.simulate(system)
+    truth = system["parameters"]
+    fits = [hamid.fit(with_noise(clean, 0.03, seed)) for seed in range(60)]
+    # the F test refuses a right join 1% of the time by chance, pairs then tried
+    whole = [f.method["refinement"]["lengthening"]["stopped"] == "whole" for f in fits]
+    assert sum(whole) >= 55
+    for name in truth:
+        parameters = [next(p for p in f.parameters if p.name == name) for f in fits]
+        covered = np.mean([p.ci_low <= truth[name] <= p.ci_high for p in parameters])
+        assert 0.88 <= covered <= 0.99, (name, covered)
+        spread = np.std([p.estimate for p in parameters], ddof=1)
+        assert 0.75 < spread / np.mean([p.stderr for p in parameters]) < 1.25, name
