@@ -22,7 +22,7 @@ from collections.abc import Callable
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["IntegrationFailed", "integrate"]
+__all__ = ["IntegrationFailed", "TooManySteps", "integrate"]
 
 N_STAGES = 12
 N_STAGES_EXTENDED = 16
@@ -230,17 +230,23 @@ class IntegrationFailed(Exception):
     """The integration stopped short of the last time; the reason is the text."""
 
 
+class TooManySteps(IntegrationFailed):
+    """The integration took the steps it was allowed without reaching the last time."""
+
+
 def integrate(fun: Function, y0: Array, times: Array, rtol: float, atol: Array,
-              max_steps: int) -> Array:
+              max_steps: int, end: float | None = None) -> Array:
     """The solution of y' = fun(t, y), y(times[0]) = y0, at each of `times` (ascending):
-    one row per time, shape (len(times), len(y0)).
+    one row per time, shape (len(times), len(y0)). The steps run on to `end` (default the
+    last time; the interpolant of the last step serves the times before it).
 
     The local error of each step is kept within atol + rtol |y| in scipy's norm (a root
     mean square over the components). Raises IntegrationFailed when a step would fall
     below the spacing of the floats near t, or after `max_steps` steps (taken and
-    rejected): a stiff or exploding motion would otherwise crawl on for hours.
+    rejected; TooManySteps): a stiff or exploding motion would otherwise crawl on for
+    hours.
     """
-    t, t_end = float(times[0]), float(times[-1])
+    t, t_end = float(times[0]), float(times[-1] if end is None else end)
     y = np.asarray(y0, dtype=np.float64)
     out = np.empty((len(times), len(y)))
     if t == t_end:
@@ -259,7 +265,7 @@ def integrate(fun: Function, y0: Array, times: Array, rtol: float, atol: Array,
                                         "numbers.")
             steps += 1
             if steps > max_steps:
-                raise IntegrationFailed(f"{max_steps:,} steps did not reach t = {t_end:g}")
+                raise TooManySteps(f"{max_steps:,} steps did not reach t = {t_end:g}")
             t_new = min(t + h_abs, t_end)
             h = t_new - t
             h_abs = abs(h)
@@ -293,10 +299,8 @@ def _initial_step(fun: Function, t: float, y: Array, f: Array, span: float, rtol
     d0, d1 = _norm(y / scale), _norm(f / scale)
     h0 = min(1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1, span)
     d2 = _norm((fun(t + h0, y + h0 * f) - f) / scale) / h0
-    if d1 <= 1e-15 and d2 <= 1e-15:
-        h1 = max(1e-6, h0 * 1e-3)
-    else:
-        h1 = (0.01 / max(d1, d2)) ** (1 / 8)
+    still = d1 <= 1e-15 and d2 <= 1e-15
+    h1 = max(1e-6, h0 * 1e-3) if still else (0.01 / max(d1, d2)) ** (1 / 8)
     return min(100 * h0, h1, span)
 
 

@@ -1,0 +1,184 @@
+"""The trajectory refinement's integrations: batches of segments, each integrated as one
+vectorised system, reduced to their Gauss-Newton blocks, here or in worker processes.
+
+A `Batch` holds segments and, for each, the copies its forward-difference Jacobian needs
+(as is, each initial-state component perturbed, each free parameter perturbed). `blocks`
+integrates them together with `hamid.dop853` (the copies share the adaptive steps, so
+their differences carry almost no integration error) and returns each segment's weighted
+misfit and its Jacobian's normal equations. Given the parameters, batches are independent:
+`run` maps them over the workers of the enclosing `parallel` block, started at the first
+round worth them and kept for the rounds after (the Gauss-Newton iterations, refits and
+the held-out check of one refinement). What a batch holds never depends on the workers,
+so neither do the results.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from hamid import dop853
+from hamid.dynamics import Dynamics
+from hamid.executor import Pool, Workers, started
+
+__all__ = ["Batch", "Blocks", "IntegrationFailed", "Tolerance", "blocks", "common_times",
+           "parallel", "run"]
+
+Array = npt.NDArray[np.float64]
+
+# Values integrated in one round (copies x states x samples, summed over the batches) from
+# which the batches go to worker processes: starting them costs about 0.3 s
+# (docs/scaling.md, "The refinement on every core").
+PARALLEL_VALUES = 1 << 23
+
+
+class IntegrationFailed(Exception):
+    """A batch could not be integrated; the reason is the text."""
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """How a batch is integrated: local errors within atol + rtol |y| (atol per variable);
+    sample times closer than `resolution` integrated to once; at most `steps_per_sample`
+    steps per integration time, plus `min_steps`."""
+
+    rtol: float
+    atol: Array
+    resolution: float
+    steps_per_sample: int
+    min_steps: int
+
+
+@dataclass(frozen=True, eq=False)
+class Batch:
+    """Segments integrated together, each as `starts.shape[0]` copies.
+
+    `starts` (copies, B, 2N) and `weights` (n_weights, copies, B) are every copy's initial
+    state and weights (1, theta, damping); `steps` the perturbation of each copy past the
+    first, by which its difference from the first is divided.
+    """
+
+    dynamics: Dynamics
+    tau: Sequence[Array]        # each segment's times from its start
+    measured: Sequence[Array]   # each segment's samples (m, 2N)
+    weight: Array               # 1 / noise of each variable
+    starts: Array
+    weights: Array
+    steps: Array
+    tolerance: Tolerance
+
+    @property
+    def values(self) -> int:
+        """Values integrated: copies x states x samples."""
+        copies, _, n_states = self.starts.shape
+        return copies * n_states * sum(len(x) for x in self.tau)
+
+
+@dataclass(frozen=True)
+class Blocks:
+    """A batch's segments reduced: `cost` (B, 2N), each variable's weighted squared
+    residuals; `H` (B, c, c) and `g` (B, c), J'J and J'r of each segment's Jacobian by its
+    c perturbed copies (empty when there are none)."""
+
+    cost: Array
+    H: Array
+    g: Array
+
+
+def blocks(batch: Batch) -> Blocks:
+    """The batch integrated and reduced; raises IntegrationFailed."""
+    copies, B, n_states = batch.starts.shape
+    tol = batch.tolerance
+    grid, where = common_times(batch.tau, tol.resolution)
+    motion = batch.dynamics.at(batch.weights.reshape(len(batch.weights), -1))
+    try:
+        values = dop853.integrate(
+            motion, batch.starts.reshape(-1, n_states).T.ravel(), grid, tol.rtol,
+            np.repeat(tol.atol, copies * B), tol.steps_per_sample * len(grid) + tol.min_steps,
+            end=max(tau[-1] for tau in batch.tau))   # grid[-1] may be a rounding earlier
+    except dop853.TooManySteps as exc:
+        raise IntegrationFailed("the integration needs too many steps: the model's motion "
+                                "is stiff or blows up") from exc
+    except dop853.IntegrationFailed as exc:
+        raise IntegrationFailed(f"the integration failed ({exc})") from exc
+    if not np.all(np.isfinite(values)):
+        raise IntegrationFailed("the integrated motion is not finite")
+    values = values.reshape(len(grid), n_states, copies, B)
+    weight, c = batch.weight, copies - 1
+    cost, H, g = np.empty((B, n_states)), np.empty((B, c, c)), np.empty((B, c))
+    offset = 0
+    for b, (tau, measured) in enumerate(zip(batch.tau, batch.measured, strict=True)):
+        m = len(tau)
+        Y = values[where[offset:offset + m], :, :, b].transpose(1, 2, 0) * weight[:, None, None]
+        offset += m
+        base = Y[:, 0]                                              # (2N, m)
+        residual = (measured * weight).T - base                     # (2N, m)
+        cost[b] = np.einsum("cm,cm->c", residual, residual)
+        if c == 0:
+            continue
+        J = ((Y[:, 1:] - base[:, None]) / batch.steps[None, :, None])   # (2N, c, m)
+        J = J.transpose(0, 2, 1).reshape(-1, c)
+        H[b] = J.T @ J
+        g[b] = J.T @ residual.ravel()
+    return Blocks(cost, H, g)
+
+
+def common_times(times: Sequence[Array], resolution: float) -> tuple[Array, npt.NDArray[np.intp]]:
+    """The distinct times of all the arrays, those closer than `resolution` taken as one
+    (the earliest), and the index into them of every time of the concatenated arrays."""
+    joined = np.concatenate(times)
+    order = np.argsort(joined, kind="stable")
+    ordered = joined[order]
+    starts = np.empty(len(ordered), dtype=bool)
+    starts[0] = True
+    starts[1:] = np.diff(ordered) > resolution
+    where = np.empty(len(ordered), dtype=np.intp)
+    where[order] = np.cumsum(starts) - 1
+    return ordered[starts], where
+
+
+class _Workers:
+    """The workers of a `parallel` block, started at the first round that needs them."""
+
+    def __init__(self, workers: Workers, stack: contextlib.ExitStack):
+        self.workers, self._stack = workers, stack
+        self._pool: Pool | None = None
+
+    def pool(self) -> Pool:
+        if self._pool is None:
+            self._pool = self._stack.enter_context(started(self.workers, __name__))
+        return self._pool
+
+
+_current: contextvars.ContextVar[_Workers | None] = contextvars.ContextVar(
+    "hamid.integration workers", default=None)
+
+
+@contextlib.contextmanager
+def parallel(workers: Workers) -> Iterator[None]:
+    """Rounds of batches `run` within the block go to `workers` when they are worth it;
+    the processes start at the first such round and stop when the block ends."""
+    with contextlib.ExitStack() as stack:
+        token = _current.set(_Workers(workers, stack))
+        try:
+            yield
+        finally:
+            _current.reset(token)
+
+
+def run(batches: Sequence[Batch]) -> Iterator[Blocks]:
+    """Each batch's `blocks`, in order, each as soon as it and those before are done.
+
+    In a `parallel` block, a round of at least two batches and PARALLEL_VALUES values
+    runs on its workers; otherwise, or outside one, here.
+    """
+    current = _current.get()
+    if (current is None or current.workers == Workers() or len(batches) < 2
+            or sum(batch.values for batch in batches) < PARALLEL_VALUES):
+        return map(blocks, batches)
+    return current.pool().map(blocks, batches)
