@@ -375,9 +375,9 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
               help="Fit each file by itself (DATA: files, folders, glob patterns, URLs); "
                    "one jsonl line, or CSV or table rows, per file.")
 @click.option("--jobs", type=click.IntRange(min=1), metavar="N",
-              help="Local processes (default: one per core): with --each, files fitted at "
-                   "once; else the processes auto's trajectory refinement integrates a long "
-                   "record in (the same results).")
+              help="Local processes, default one per core: with --each, the files fitted "
+                   "at once; else, those that auto's trajectory refinement of a long record "
+                   "runs in (the same results).")
 @click.option("--scheduler", metavar="tcp://HOST:PORT",
               help="With --each: fit on this Dask cluster (default $DASK_SCHEDULER_ADDRESS).")
 @click.option("--ship-data", is_flag=True,

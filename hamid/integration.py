@@ -16,8 +16,14 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import copyreg
+import dataclasses
+import functools
+import io
+import pickle
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -78,6 +84,48 @@ class Batch:
         """Values integrated: copies x states x samples."""
         copies, _, n_states = self.starts.shape
         return copies * n_states * sum(len(x) for x in self.tau)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled for a worker: the equations as bytes without their cached properties
+        (compiled functions, which do not pickle), which the worker unpickles and compiles
+        once for every batch and round that brings the same bytes (`_equations`)."""
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        fields["dynamics"] = _without_caches(self.dynamics)
+        return _received, (fields,)
+
+
+def _received(fields: dict[str, Any]) -> Batch:
+    """Helper run by a worker: the batch, its equations unpickled once per process."""
+    return Batch(**{**fields, "dynamics": _equations(fields["dynamics"])})
+
+
+@functools.lru_cache(maxsize=4)
+def _equations(pickled: bytes) -> Dynamics:
+    return pickle.loads(pickled)
+
+
+class _CachesLeftOut(pickle.Pickler):
+    """Pickles objects without the values of their cached properties: derived, and
+    derived again on first use."""
+
+    def reducer_override(self, obj: Any) -> Any:
+        cached = _cached_properties(type(obj)) & getattr(obj, "__dict__", {}).keys()
+        if not cached:
+            return NotImplemented
+        state = {k: v for k, v in obj.__dict__.items() if k not in cached}
+        return copyreg.__newobj__, (type(obj),), state
+
+
+@functools.cache
+def _cached_properties(cls: type) -> frozenset[str]:
+    return frozenset(name for klass in cls.__mro__ for name, value in vars(klass).items()
+                     if isinstance(value, functools.cached_property))
+
+
+def _without_caches(obj: Any) -> bytes:
+    buffer = io.BytesIO()
+    _CachesLeftOut(buffer, protocol=pickle.HIGHEST_PROTOCOL).dump(obj)
+    return buffer.getvalue()
 
 
 @dataclass(frozen=True)

@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import json
+import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,8 +16,11 @@ from scipy.integrate import solve_ivp
 import hamid
 from hamid import dop853, integration, trajectory
 from hamid.cli import cli
+from hamid.dynamics import Dynamics
 from hamid.errors import UsageError
+from hamid.model import load_model
 
+SAMPLES = Path(__file__).resolve().parent.parent / "sample_data"
 OMEGA = np.linspace(0.5, 3.0, 40)   # one pendulum per column, each its own frequency
 
 
@@ -102,6 +107,38 @@ def test_results_do_not_depend_on_the_number_of_workers(noisy_peng, monkeypatch,
                                atol=0)
     assert heard[1] == heard[2]
     assert any("3 of " in m for m in heard[2]) and any("6 of " in m for m in heard[2])
+
+
+def test_a_batch_pickles_once_its_equations_are_compiled():
+    """A pendulum's cos energy, compiled by sympy (whose functions do not pickle): the
+    batch travels without the compiled functions, and its copy integrates alike."""
+    dynamics = Dynamics(load_model(SAMPLES / "pendulum.toml"))
+    tau = np.linspace(0.0, 2.0, 41)
+    batch = integration.Batch(
+        dynamics, [tau, tau], [np.zeros((41, 2)), np.ones((41, 2))], np.ones(2),
+        starts=np.array([[[2.0, 0.0], [3.0, 1.0]]]), weights=np.array([[[1.0, 1.0]],
+                                                                        [[64.0, 60.0]]]),
+        steps=np.zeros(0), tolerance=integration.Tolerance(1e-10, np.full(2, 1e-12), 1e-12,
+                                                           50, 1000))
+    here = integration.blocks(batch)
+    with pytest.raises((pickle.PicklingError, AttributeError, TypeError)):
+        pickle.dumps(dynamics)   # compiled now
+    there = integration.blocks(pickle.loads(pickle.dumps(batch)))
+    np.testing.assert_array_equal(there.cost, here.cost)
+    assert here.cost.shape == (2, 2) and np.all(here.cost > 0)
+
+
+def test_symbolic_energies_and_damping_reach_the_workers(monkeypatch, spied_pools):
+    """A pendulum's cos energy with viscous damping, in two processes: the results as in
+    this one."""
+    monkeypatch.setattr(trajectory, "MAX_BATCH", 2)
+    monkeypatch.setattr(integration, "PARALLEL_VALUES", 0)
+    data, model = (f"{SAMPLES}/pendulum_encoder.csv", f"{SAMPLES}/pendulum.toml")
+    one, two = (hamid.fit(data, model, damping="viscous", jobs=jobs) for jobs in (1, 2))
+    assert spied_pools == [2]
+    assert one.method["refinement"]["applied"] is True
+    for name, value in one.estimates.items():
+        assert two.estimates[name] == pytest.approx(value, rel=1e-12, abs=0)
 
 
 def test_a_short_record_stays_in_this_process(noisy_peng, spied_pools):
