@@ -186,3 +186,17 @@ def test_jobs_zero_on_the_command_line_is_a_usage_error(tmp_path):
     result = CliRunner().invoke(cli, ["fit", str(tmp_path / "x.csv"), "--jobs", "0"])
     assert result.exit_code == 2
     assert "--jobs" in result.stderr and "Traceback" not in result.output
+
+
+def test_fit_each_keeps_each_refinement_in_its_process(tmp_path, noisy_peng, monkeypatch,
+                                                       spied_pools):
+    """With --each the files are the parallel work: a fit's refinement starts no pool."""
+    monkeypatch.setattr(trajectory, "MAX_BATCH", 3)
+    monkeypatch.setattr(integration, "PARALLEL_VALUES", 0)
+    data = tmp_path / "peng.csv"
+    noisy_peng.to_csv(data, index=False)
+    result = CliRunner().invoke(cli, ["fit", "--each", str(data), "--model", "peng-quadratic",
+                                      "--jobs", "1", "--format", "jsonl"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["method"]["refinement"]["applied"] is True
+    assert spied_pools == []
