@@ -157,13 +157,15 @@ def blocks(batch: Batch) -> Blocks:
         raise IntegrationFailed(f"the integration failed ({exc})") from exc
     if not np.all(np.isfinite(values)):
         raise IntegrationFailed("the integrated motion is not finite")
-    values = values.reshape(len(grid), n_states, copies, B)
+    # segment by segment, each a block of rows (B, grid, 2N, copies): its samples gathered
+    # by row rather than element by element
+    values = np.moveaxis(values.reshape(len(grid), n_states, copies, B), 3, 0).copy()
     weight, c = batch.weight, copies - 1
     cost, H, g = np.empty((B, n_states)), np.empty((B, c, c)), np.empty((B, c))
     offset = 0
     for b, (tau, measured) in enumerate(zip(batch.tau, batch.measured, strict=True)):
         m = len(tau)
-        Y = values[where[offset:offset + m], :, :, b].transpose(1, 2, 0) * weight[:, None, None]
+        Y = values[b, where[offset:offset + m]].transpose(1, 2, 0) * weight[:, None, None]
         offset += m
         base = Y[:, 0]                                              # (2N, m)
         residual = (measured * weight).T - base                     # (2N, m)
@@ -192,13 +194,20 @@ def common_times(times: Sequence[Array], resolution: float) -> tuple[Array, npt.
 
 
 class _Workers:
-    """The workers of a `parallel` block, started at the first round that needs them."""
+    """The workers of a `parallel` block, started at the first round worth them."""
 
     def __init__(self, workers: Workers, stack: contextlib.ExitStack):
         self.workers, self._stack = workers, stack
         self._pool: Pool | None = None
 
-    def pool(self) -> Pool:
+    def pool(self, batches: Sequence[Batch]) -> Pool | None:
+        """The pool for a round of `batches`, or None to run it here: one batch, or too
+        little work to pay for starting the processes (once started, they take any round
+        of two batches or more: a batch's cost is more its steps than its values)."""
+        if self.workers == Workers() or len(batches) < 2:
+            return None
+        if self._pool is None and sum(batch.values for batch in batches) < PARALLEL_VALUES:
+            return None
         if self._pool is None:
             self._pool = self._stack.enter_context(started(self.workers, __name__))
         return self._pool
@@ -223,11 +232,10 @@ def parallel(workers: Workers) -> Iterator[None]:
 def run(batches: Sequence[Batch]) -> Iterator[Blocks]:
     """Each batch's `blocks`, in order, each as soon as it and those before are done.
 
-    In a `parallel` block, a round of at least two batches and PARALLEL_VALUES values
-    runs on its workers; otherwise, or outside one, here.
+    In a `parallel` block, a round of at least two batches runs on its workers, which
+    start at the first such round of PARALLEL_VALUES values or more; otherwise, or outside
+    one, here.
     """
     current = _current.get()
-    if (current is None or current.workers == Workers() or len(batches) < 2
-            or sum(batch.values for batch in batches) < PARALLEL_VALUES):
-        return map(blocks, batches)
-    return current.pool().map(blocks, batches)
+    pool = None if current is None else current.pool(batches)
+    return map(blocks, batches) if pool is None else pool.map(blocks, batches)
