@@ -32,18 +32,11 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from scipy.integrate import solve_ivp
-from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
 
-import hamid
-from hamid import trajectory
-from hamid.executor import available_cores
-from hamid.model import model_from_spec
-
+# Everything else is imported in the functions: the refinement's worker processes import
+# this script again (as multiprocessing does with the main module), and would otherwise
+# pay for scipy.optimize, pytest and pandas in every fit's pool.
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tests"))
-from conftest import DUFFING, PENG, with_noise  # noqa: E402
 
 CHAIN_SYSTEM = {
     "model": {"name": "chain3", "coordinates": ["x1", "x2", "x3"],
@@ -80,6 +73,10 @@ def _chain(theta, y):
 
 def _peer(rhs, fit, t, X, theta0, rtol: float):
     """least_squares over solve_ivp on the fit's segments, weights and start."""
+    from scipy.integrate import solve_ivp
+    from scipy.optimize import least_squares
+    from scipy.sparse import lil_matrix
+
     pieces, weight = fit.problem.pieces, fit.problem.weight
     p, n = len(theta0), X.shape[1]
     rows = sum(b - a for a, b in pieces) * n
@@ -110,6 +107,14 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--noise", type=float, default=0.01)
     args = parser.parse_args()
+    sys.path.insert(0, str(ROOT / "tests"))
+    from conftest import DUFFING, PENG, with_noise
+
+    import hamid
+    from hamid import trajectory
+    from hamid.executor import available_cores
+    from hamid.model import model_from_spec
+
     chain = model_from_spec(CHAIN_SYSTEM["model"], where="chain3")
     longer = {f"peng-quadratic {k}x longer": {**PENG, "simulate": {**PENG["simulate"],
                                                                    "t_end": 40.0 * k}}
