@@ -72,7 +72,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         progress: Callable[[str], None] | None = None, time_unit: str | None = None,
         scale: Mapping[str, float] | None = None, gaps: str = "split",
         delimiter: str | None = None, decimal: str | None = None, skip_rows: int = 0,
-        units_row: bool | None = None) -> FitResult:
+        units_row: bool | None = None, jobs: int | None = None) -> FitResult:
     """Fit the energy of recorded free oscillations.
 
     Parameters
@@ -142,6 +142,9 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     in_memory : bool
         Read the data into memory whatever the file's size: ``result.samples`` then holds
         the per-sample residuals.
+    jobs : int, optional
+        Processes the trajectory refinement of a long record integrates in (default: one
+        per core; a short record stays in this one, whose results are the same).
     progress : callable, optional
         Called with a line of text at each step of a long fit (every chunk of a pass over
         a file read in chunks, every batch of the trajectory refinement), e.g. for a
@@ -163,7 +166,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                       cov=cov, level=level, bootstrap=bootstrap, seed=seed, format=format,
                       chunk_rows=chunk_rows, in_memory=in_memory, time_unit=time_unit,
                       scale=scale, gaps=gaps, delimiter=delimiter, decimal=decimal,
-                      skip_rows=skip_rows, units_row=units_row)
+                      skip_rows=skip_rows, units_row=units_row, jobs=jobs)
     if isinstance(data, list | tuple) and len(data) == 1:
         data = data[0]
     with inputs.spooled(data) as readable:   # standard input in a file, read like one
@@ -213,7 +216,8 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
             given = sigma if isinstance(opts.noise, Mapping) else None   # not --noise auto
             refined, refinement = refine.refine(linear, m, records, damping_forces, unknowns,
                                                 fit_plan, given, opts.velocity == "savgol",
-                                                rows if chunks is None else None, progress)
+                                                rows if chunks is None else None, progress,
+                                                opts.jobs)
             fitted = refined or linear
             del records
         else:

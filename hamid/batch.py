@@ -182,7 +182,8 @@ def iter_fits(sources: Sequence[str], model: str | os.PathLike[str] | Model | No
     if ship_data and workers.scheduler is None:
         raise UsageError("--ship-data applies only with --scheduler (local workers read "
                          "the files themselves)")
-    tasks = (_Task(source, model, dict(fit_options), tuple(warnings.filters),
+    # the files are the parallel work: each fit's refinement stays in its own process
+    tasks = (_Task(source, model, {**fit_options, "jobs": 1}, tuple(warnings.filters),
                    *(_shipped(source) if ship_data else (None, None)))
              for source in sources)
     yield from ordered_map(_fit_task, tasks, workers)

@@ -376,7 +376,9 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
               help="Fit each file by itself (DATA: files, folders, glob patterns, URLs); "
                    "one jsonl line, or CSV or table rows, per file.")
 @click.option("--jobs", type=click.IntRange(min=1), metavar="N",
-              help="With --each: local processes (default: one per core).")
+              help="Local processes, default one per core: with --each, the files fitted "
+                   "at once; else, those that auto's trajectory refinement of a long record "
+                   "runs in (the same results).")
 @click.option("--scheduler", metavar="tcp://HOST:PORT",
               help="With --each: fit on this Dask cluster (default $DASK_SCHEDULER_ADDRESS).")
 @click.option("--ship-data", is_flag=True,
@@ -414,7 +416,7 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
                    scale=_parse_floats(scale, "--scale"), gaps=gaps,
                    delimiter=_DELIMITER_NAMES.get(delimiter or "", delimiter),
                    decimal=decimal, skip_rows=skip_rows, units_row=units_row)
-    if each or jobs or scheduler or ship_data:
+    if each or scheduler or ship_data:
         if figure is not None:
             raise UsageError("--plot draws one fit: it does not combine with --each")
         _fit_each(each, jobs, scheduler, ship_data, data, model, fit_options, fmt, output,
@@ -439,7 +441,7 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         raise UsageError("--format jsonl writes one line per file: it needs --each")
     with console.Status("fitting") as status:
         result = run_fit(list(data), model, **fit_options, in_memory=residuals is not None,
-                         progress=status)
+                         progress=status, jobs=jobs)
     result = result.with_command(shlex.join(["hamid", *sys.argv[1:]]))
 
     notes: list[str] = []
@@ -470,7 +472,7 @@ def _fit_each(each: bool, jobs: int | None, scheduler: str | None, ship_data: bo
     from hamid.executor import Workers
 
     if not each:
-        raise UsageError("--jobs, --scheduler and --ship-data apply only to --each")
+        raise UsageError("--scheduler and --ship-data apply only to --each")
     if residuals is not None:
         raise UsageError("--residuals writes the samples of one fit; leave it out with --each")
     sources = batch.expand_sources(data)

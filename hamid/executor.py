@@ -5,6 +5,8 @@ cluster, with the results in the order of the items.
 the items there and yields each result as soon as it and those before it are done. Only a
 bounded number of items is in flight at once, so 10^5 items take the memory of a few dozen.
 `hamid fit --each` maps its fits with it; any work split into independent pieces can.
+`started` keeps the workers from one map to the next, for work that comes in rounds (the
+trajectory refinement maps its batches of segments once per Gauss-Newton iteration).
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ from typing import Any, TypeVar
 
 from hamid.errors import HamidError, UsageError
 
-__all__ = ["DASK_EXTRA", "SCHEDULER_VARIABLE", "Workers", "available_cores", "ordered_map"]
+__all__ = ["DASK_EXTRA", "SCHEDULER_VARIABLE", "Pool", "Workers", "available_cores",
+           "ordered_map", "started"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -81,27 +84,58 @@ def ordered_map(function: Callable[[T], R], items: Iterable[T],
     item's turn comes. Closing the iterator early, Ctrl-C or a signal cancels what has not
     run and stops the local processes.
     """
-    if workers.scheduler is None and workers.jobs == 1:
-        yield from map(function, items)
-        return
-    pool = _dask_pool if workers.scheduler is not None else _local_pool
-    with pool(workers, function) as (submit, capacity):
-        queue = iter(items)
-        pending = deque(submit(function, item)
-                        for item in itertools.islice(queue, _IN_FLIGHT_PER_WORKER * capacity))
-        while pending:
-            result = pending.popleft().result()
-            for item in itertools.islice(queue, 1):
-                pending.append(submit(function, item))
-            yield result
+    with started(workers, function.__module__) as pool:
+        yield from pool.map(function, items)
 
 
 Submit = Callable[[Callable[[Any], Any], Any], Any]
 
 
+class Pool:
+    """Workers kept running from one map to the next (`started`): for work that comes in
+    rounds, such as the iterations of a fit, where starting processes each round would
+    cost more than the round."""
+
+    def __init__(self, submit: Submit | None, capacity: int):
+        self._submit, self.capacity = submit, capacity
+
+    def map(self, function: Callable[[T], R], items: Iterable[T]) -> Iterator[R]:
+        """``function(item)`` for each item, in the order of the items (`ordered_map`);
+        closing the iterator early cancels the items not yet running."""
+        if self._submit is None:
+            yield from map(function, items)
+            return
+        submit = self._submit
+        queue = iter(items)
+        pending = deque(submit(function, item) for item in
+                        itertools.islice(queue, _IN_FLIGHT_PER_WORKER * self.capacity))
+        try:
+            while pending:
+                result = pending.popleft().result()
+                for item in itertools.islice(queue, 1):
+                    pending.append(submit(function, item))
+                yield result
+        finally:
+            for future in pending:
+                future.cancel()
+
+
 @contextlib.contextmanager
-def _local_pool(workers: Workers, function: Callable[[Any], Any]
-                ) -> Iterator[tuple[Submit, int]]:
+def started(workers: Workers, preload: str) -> Iterator[Pool]:
+    """A `Pool` of `workers`, stopped when the block ends (none for ``Workers(jobs=1)``:
+    the work stays in this process). Local processes start as copies of one that has
+    imported the module `preload` (the functions' module), rather than each importing it."""
+    if workers.scheduler is None and workers.jobs == 1:
+        yield Pool(None, 1)
+        return
+    pool = _dask_pool if workers.scheduler is not None else _local_pool
+    with pool(workers, preload) as (submit, capacity):
+        yield Pool(submit, capacity)
+
+
+
+@contextlib.contextmanager
+def _local_pool(workers: Workers, preload: str) -> Iterator[tuple[Submit, int]]:
     """Helper: local worker processes, started by forkserver where there is one, else spawn
     (never fork, which copies the threads' locks of a running program)."""
     import multiprocessing
@@ -111,7 +145,7 @@ def _local_pool(workers: Workers, function: Callable[[Any], Any]
         context = multiprocessing.get_context("forkserver")
         # The server imports the function's module once (numpy, scipy: about a second) and
         # each worker starts as a copy of it, rather than importing them all again.
-        context.set_forkserver_preload([function.__module__])
+        context.set_forkserver_preload([preload])
     else:
         context = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(workers.jobs, mp_context=context,
@@ -135,8 +169,7 @@ def _leave_interrupts_to_the_parent() -> None:
 
 
 @contextlib.contextmanager
-def _dask_pool(workers: Workers, function: Callable[[Any], Any]
-               ) -> Iterator[tuple[Submit, int]]:
+def _dask_pool(workers: Workers, preload: str) -> Iterator[tuple[Submit, int]]:
     """Helper: a client of the Dask scheduler at `workers.scheduler`."""
     try:
         import distributed

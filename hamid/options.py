@@ -169,6 +169,7 @@ class FitOptions:
     decimal: str | None = None
     skip_rows: int = 0
     units_row: bool | None = None
+    jobs: int | None = None
 
     def __post_init__(self) -> None:
         _ = self.text   # building it checks the text-layout options
@@ -201,6 +202,9 @@ class FitOptions:
         object.__setattr__(self, "fix", dict(self.fix or {}))
         if self.chunk_rows is not None and self.chunk_rows < 1:
             raise UsageError("--chunk-rows: must be a positive number of rows")
+        if self.jobs is not None and (isinstance(self.jobs, bool) or not isinstance(self.jobs, int)
+                                      or self.jobs < 1):
+            raise UsageError(f"--jobs must be a whole number of at least 1, found {self.jobs!r}")
 
     @property
     def text(self) -> TextOptions:

@@ -25,6 +25,7 @@ from hamid import design, estimate, measurement, uncertainty
 from hamid.dissipation import Dissipation
 from hamid.errors import FitError
 from hamid.estimate import LinearFit, ResidualSums, Rows
+from hamid.executor import Workers, available_cores
 from hamid.expr import Func
 from hamid.model import Model
 from hamid.plan import FitPlan
@@ -110,14 +111,17 @@ class _Noise:
 def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipation,
            unknowns: Unknowns, plan: FitPlan, sigma: npt.NDArray[np.float64] | None,
            derived_velocities: bool, rows: Rows | None,
-           progress: Callable[[str], None] | None) -> tuple[LinearFit | None, dict[str, Any]]:
+           progress: Callable[[str], None] | None,
+           jobs: int | None = None) -> tuple[LinearFit | None, dict[str, Any]]:
     """The refined fit, or None when it is not kept, and what the report says of it.
 
     `sigma` is the noise the user gave (0 where not given), `rows` the linear fit's rows
     when it was made in memory (its refits without each block need them; without them
     the held-out check compares with the linear fit of the whole record). The refined
     fit's levels are the mean energies at its parameters; their standard errors need a
-    pass over the energy residuals there (`level_errors`) and are NaN here.
+    pass over the energy residuals there (`level_errors`) and are NaN here. The
+    integrations run in `jobs` processes (default one per core) when the record is long
+    enough to gain by it (`hamid.integration`); the processes last the whole refinement.
     """
     for what, kinks in (("energy", model.kinks),
                         ("dissipation", [k for part in damping.kinks for k in part])):
@@ -127,7 +131,19 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipati
                 f"the {what} is not smooth where {kink} = 0 (abs, sign or a fractional "
                 "power), and the motion reaches it; integrating its force there takes tiny "
                 "steps without end")}
-    from hamid import trajectory  # scipy.integrate: only when a fit is refined
+    from hamid import integration
+
+    with integration.parallel(Workers(jobs or available_cores())):
+        return _refine(linear, model, records, damping, unknowns, plan, sigma,
+                       derived_velocities, rows, progress)
+
+
+def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipation,
+            unknowns: Unknowns, plan: FitPlan, sigma: npt.NDArray[np.float64] | None,
+            derived_velocities: bool, rows: Rows | None,
+            progress: Callable[[str], None] | None) -> tuple[LinearFit | None, dict[str, Any]]:
+    """`refine` past its checks, its integrations' workers chosen."""
+    from hamid import trajectory  # the integrator and sympy's derivatives: when refined
 
     noise = _Noise.of(records, sigma, len(model.coordinates), derived_velocities)
     period = design.median_period(plan.scales)

@@ -30,10 +30,10 @@ from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
-from scipy.integrate import solve_ivp
 
+from hamid import integration
 from hamid.dissipation import Dissipation
-from hamid.dynamics import Dynamics, Motion
+from hamid.dynamics import Dynamics
 from hamid.model import Model
 from hamid.records import Records
 
@@ -433,93 +433,46 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
                       derivatives: bool = True) -> _Normal:
     """Residuals and forward-difference Jacobians of every segment, into _Normal.
 
-    `theta` holds every parameter, shared (P,) or one row per segment (S, P). Each batch of
-    segments is integrated as one system of 1 + 2N + p copies per segment (as is, each
-    initial-state component perturbed, each free parameter perturbed; only the first
-    without `derivatives`); the copies share the adaptive steps, so their differences carry
-    almost no integration error. Sample times of the batch that differ by less than the
-    problem's resolution are integrated to once; `batch_done` hears how many segments are
-    done after each batch.
+    `theta` holds every parameter, shared (P,) or one row per segment (S, P). The segments
+    are cut into batches of about equal size, as many as keep each within MAX_BATCH
+    segments and BATCH_VALUES values, each integrated as one system of 1 + 2N + p copies
+    per segment (`hamid.integration`: as is, each initial-state component perturbed, each
+    free parameter perturbed; only the first without `derivatives`), in worker processes
+    within an `integration.parallel` block. `batch_done` hears how many segments are done
+    after each batch.
     """
-    tau, measured, weight = problem.tau, problem.measured, problem.weight
+    tau, measured = problem.tau, problem.measured
     S, n_states, p = len(tau), X0.shape[1], len(free)
     n_x = n_states if derivatives else 0
     copies = 1 + n_x + p
-    H_tt, g_t = np.zeros((S, p, p)), np.zeros((S, p))
-    H_xx, H_xt = np.zeros((S, n_x, n_x)), np.zeros((S, n_x, p))
-    g_x, cost = np.zeros((S, n_x)), np.zeros((S, n_states))
     rows = np.broadcast_to(theta, (S, np.shape(theta)[-1]))
     parameters = np.concatenate([np.ones((S, 1)), rows], axis=1).T     # (1 + P, S)
     x_step = problem.x_step
     steps = np.concatenate([x_step[:n_x], [] if theta_step is None else theta_step])
+    tolerance = integration.Tolerance(rtol, 1e-2 * rtol / STEP * x_step, problem.resolution,
+                                      MAX_STEPS_PER_SAMPLE, MIN_STEP_BUDGET)
     batch_size = max(1, min(MAX_BATCH, BATCH_VALUES // (copies * n_states * max(map(len, tau)))))
-    for lo in range(0, S, batch_size):
-        batch = range(lo, min(lo + batch_size, S))
-        B = len(batch)
-        starts = np.repeat(X0[lo:lo + B][None], copies, axis=0)     # (copies, B, 2N)
+    edges = np.linspace(0, S, -(-S // batch_size) + 1).round().astype(int)
+    batches = []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        starts = np.repeat(X0[lo:hi][None], copies, axis=0)     # (copies, B, 2N)
         starts[1 + np.arange(n_x), :, np.arange(n_x)] += x_step[:n_x, None]
-        W = np.repeat(parameters[:, None, lo:lo + B], copies, axis=1)  # (1 + P, copies, B)
+        W = np.repeat(parameters[:, None, lo:hi], copies, axis=1)  # (1 + P, copies, B)
         for k, index in enumerate(free):
             W[1 + index, 1 + n_x + k] += theta_step[k]
-        span = max(tau[s][-1] for s in batch)
-        grid, where = _common_times([tau[s] for s in batch], problem.resolution)
-        budget = _EVALUATIONS_PER_STEP * (MAX_STEPS_PER_SAMPLE * len(grid) + MIN_STEP_BUDGET)
-        solution = solve_ivp(_rhs(problem.dynamics.at(W.reshape(len(W), -1)), budget),
-                             (0.0, span), starts.reshape(-1, n_states).T.ravel(),
-                             method="DOP853", t_eval=grid, rtol=rtol,
-                             atol=np.repeat(1e-2 * rtol / STEP * x_step, copies * B))
-        if solution.status != 0:
-            raise _SegmentFitFailed(f"the integration failed ({solution.message})")
-        values = solution.y.reshape(n_states, copies, B, len(grid))
-        if not np.all(np.isfinite(values)):
-            raise _SegmentFitFailed("the integrated motion is not finite")
-        offset = 0
-        for b, s in enumerate(batch):
-            m = len(tau[s])
-            Y = values[:, :, b, where[offset:offset + m]] * weight[:, None, None]
-            offset += m
-            base = Y[:, 0]                                              # (2N, m)
-            residual = (measured[s] * weight).T - base                  # (2N, m)
-            cost[s] = np.einsum("cm,cm->c", residual, residual)
-            if copies == 1:
-                continue
-            J = ((Y[:, 1:] - base[:, None]) / steps[None, :, None])     # (2N, c, m)
-            J = J.transpose(0, 2, 1).reshape(-1, copies - 1)
-            H = J.T @ J
-            g = J.T @ residual.ravel()
-            H_xx[s], H_xt[s] = H[:n_x, :n_x], H[:n_x, n_x:]
-            g_x[s] = g[:n_x]
-            H_tt[s], g_t[s] = H[n_x:, n_x:], g[n_x:]
-        batch_done(lo + B)
-    return _Normal(cost, H_tt, g_t, H_xx, H_xt, g_x)
-
-
-def _common_times(times: list[npt.NDArray[np.float64]],
-                  resolution: float) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.intp]]:
-    """The distinct times of all the arrays, those closer than `resolution` taken as one
-    (the earliest), and the index into them of every time of the concatenated arrays."""
-    joined = np.concatenate(times)
-    order = np.argsort(joined, kind="stable")
-    ordered = joined[order]
-    starts = np.empty(len(ordered), dtype=bool)
-    starts[0] = True
-    starts[1:] = np.diff(ordered) > resolution
-    where = np.empty(len(ordered), dtype=np.intp)
-    where[order] = np.cumsum(starts) - 1
-    return ordered[starts], where
-
-
-_EVALUATIONS_PER_STEP = 12  # DOP853's stages
-
-
-def _rhs(motion: Motion, budget: int) -> Any:
-    """solve_ivp's right-hand side (q, v)' = (v, a) for many states, flattened by variable;
-    it stops the integration after `budget` evaluations."""
-    evaluations = iter(range(budget))
-
-    def rhs(t: float, y: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        if next(evaluations, None) is None:
-            raise _SegmentFitFailed("the integration needs too many steps: the model's motion "
-                                    "is stiff or blows up")
-        return motion(t, y)
-    return rhs
+        batches.append(integration.Batch(problem.dynamics, tau[lo:hi], measured[lo:hi],
+                                         problem.weight, starts, W, steps, tolerance))
+    cost = np.zeros((S, n_states))
+    H = np.zeros((S, copies - 1, copies - 1))
+    g = np.zeros((S, copies - 1))
+    try:
+        for lo, hi, blocks in zip(edges[:-1], edges[1:], integration.run(batches),
+                                  strict=True):
+            cost[lo:hi], H[lo:hi], g[lo:hi] = blocks.cost, blocks.H, blocks.g
+            batch_done(int(hi))
+    except integration.IntegrationFailed as exc:
+        raise _SegmentFitFailed(str(exc)) from exc
+    # each block its own array: numpy's sums over strided views round otherwise
+    return _Normal(cost, *map(np.ascontiguousarray, (H[:, n_x:, n_x:], g[:, n_x:],
+                                                     H[:, :n_x, :n_x], H[:, :n_x, n_x:],
+                                                     g[:, :n_x])))

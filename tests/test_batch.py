@@ -294,7 +294,8 @@ def test_output_file_is_complete_and_no_partial_file_is_left(tmp_path, sources):
 @pytest.mark.parametrize(("args", "code", "words"), [
     (["fit", "--each", "nowhere/"], 1, ["nowhere/: no such file or folder"]),
     (["fit", "--each", "nowhere/*.csv"], 1, ["no file matches"]),
-    (["fit", "--jobs", "2", "x.csv"], 2, ["--jobs, --scheduler and --ship-data apply only"]),
+    (["fit", "--scheduler", "tcp://a:1", "x.csv"], 2,
+     ["--scheduler and --ship-data apply only"]),
     (["fit", "--each", "{runs}", "--ship-data"], 2, ["--ship-data applies only with"]),
     (["fit", "--each", "{runs}", "--jobs", "2", "--scheduler", "tcp://a:1"], 2,
      ["exclude each other"]),

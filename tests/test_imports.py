@@ -34,3 +34,14 @@ def test_fitting_a_builtin_model_imports_neither_sympy_nor_pandas(tmp_path, suff
     loaded = _loaded_after(f"import hamid\nhamid.fit({str(path)!r})")
     assert {"numpy", "pyarrow"} <= loaded  # the probe works
     assert not loaded & {"sympy", "pandas", "matplotlib"}   # figures only when asked for
+
+
+def test_the_refinement_imports_neither_scipy_integrate_nor_scipy_optimize():
+    """auto's trajectory refinement steps with hamid.dop853: scipy.integrate (and the
+    scipy.optimize it imports) would cost a small fit some 0.15 s."""
+    probe = (f"import sys, hamid\nresult = hamid.fit({str(SAMPLE)!r})\n"
+             "print(result.method['refinement']['applied'], "
+             "'scipy.integrate' in sys.modules, 'scipy.optimize' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.split() == ["True", "False", "False"]

@@ -10,9 +10,9 @@ from click.testing import CliRunner
 from conftest import DUFFING, ELASTIC_PENDULUM, PENG, TWO_MASS, with_noise
 
 import hamid
-from hamid import inputs, options, plan, trajectory, writing
+from hamid import dop853, inputs, options, plan, trajectory, writing
 from hamid.cli import cli
-from hamid.trajectory import _common_times
+from hamid.integration import common_times
 
 CLEAN = {"peng-quadratic": PENG, "duffing": DUFFING, "two-mass": TWO_MASS,
          "elastic-pendulum": ELASTIC_PENDULUM}
@@ -32,12 +32,12 @@ def test_clean_data_tighten_at_the_first_step_that_shows_them_clean(clean_record
     """On clean data one integration at the loose tolerance, not a settling at it first;
     the estimates reach the truth to the strict tolerance's accuracy."""
     tolerances = []
-    solve = trajectory.solve_ivp
+    solve = dop853.integrate
 
-    def counted(*args, **kwargs):
-        tolerances.append(kwargs["rtol"])
-        return solve(*args, **kwargs)
-    monkeypatch.setattr(trajectory, "solve_ivp", counted)
+    def counted(fun, y0, times, rtol, *args, **kwargs):
+        tolerances.append(rtol)
+        return solve(fun, y0, times, rtol, *args, **kwargs)
+    monkeypatch.setattr(dop853, "integrate", counted)
     result = hamid.fit(clean_records["peng-quadratic"])
     assert tolerances[0] == trajectory.LOOSE_RTOL
     assert set(tolerances[1:]) == {trajectory.STRICT_RTOL}
@@ -52,7 +52,7 @@ def test_segments_sampled_alike_share_their_integration_times():
     assert not np.array_equal(first, second)            # the rounding this is about
     shifted = first[:50] + 0.005
     resolution = 16 * np.finfo(float).eps * t.max()
-    grid, where = _common_times([first, second, shifted], resolution)
+    grid, where = common_times([first, second, shifted], resolution)
     assert len(grid) == 150
     joined = np.concatenate([first, second, shifted])
     assert np.max(np.abs(grid[where] - joined)) <= resolution

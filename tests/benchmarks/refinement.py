@@ -5,13 +5,18 @@ instead, as ratios measured in the same process.
 
 Records: Duffing (1 DOF), peng-quadratic (2 DOF) and a 3-DOF spring chain with a quartic
 spring (a model given as a TOML [model] table), simulated at `--noise` relative
-noise; peng-quadratic also at 10x the record length (the per-sample cost must not grow
-with it), and clean (the strict-tolerance pass).
+noise; peng-quadratic also at 10x and 100x the record length (the per-sample cost must not
+grow with it), and clean (the strict-tolerance pass).
 
-For each record the default fit runs `--repeats` times; the time spent in the trajectory
-fits (`hamid.trajectory.refine`, `fit`, `refit`) is taken from wrappers around them and
-printed in µs per sample. The peer is `scipy.optimize.least_squares` over `solve_ivp`
-(DOP853) with the same segments, weights and start: the free parameters and every
+For each record the default fit runs `--repeats` times with ``jobs=1`` and with one
+process per core; the time spent in the trajectory fits (`hamid.trajectory.refine`,
+`fit`, `refit`, starting the worker processes included) is taken from wrappers around
+them and printed in µs per sample, with the largest relative difference between the two
+fits' estimates (none: the batches do not depend on the workers). Records short enough to
+stay in one process (`hamid.integration.PARALLEL_VALUES`) cost the same both ways.
+
+The peer is `scipy.optimize.least_squares` over `solve_ivp` (DOP853) with the same
+segments, weights and start: the free parameters and every
 segment's initial state, the equations of motion written by hand, the Jacobian by
 finite differences grouped by its block sparsity (`jac_sparsity`), as a careful user
 would. Its estimates are compared to hamid's: the largest relative difference, and in
@@ -33,6 +38,7 @@ from scipy.sparse import lil_matrix
 
 import hamid
 from hamid import trajectory
+from hamid.executor import available_cores
 from hamid.model import model_from_spec
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -105,12 +111,14 @@ def main() -> None:
     parser.add_argument("--noise", type=float, default=0.01)
     args = parser.parse_args()
     chain = model_from_spec(CHAIN_SYSTEM["model"], where="chain3")
-    long_peng = {**PENG, "simulate": {**PENG["simulate"], "t_end": 400.0}}
+    longer = {f"peng-quadratic {k}x longer": {**PENG, "simulate": {**PENG["simulate"],
+                                                                   "t_end": 40.0 * k}}
+              for k in (10, 100)}
     cases = {   # label: (system, model file, rhs, run the peer)
         "duffing (1 DOF)": (DUFFING, None, _duffing, True),
         "peng-quadratic (2 DOF)": (PENG, None, _peng, True),
         "chain3 TOML (3 DOF)": (CHAIN_SYSTEM, chain, _chain, True),
-        "peng-quadratic 10x longer": (long_peng, None, _peng, False),
+        **{label: (system, None, _peng, False) for label, system in longer.items()},
     }
     spent: dict[str, float] = defaultdict(float)
     fits: list = []
@@ -134,7 +142,19 @@ def main() -> None:
             return result
         setattr(trajectory, name, wrapper)
 
-    print(f"{'record':28} {'samples':>8} {'hamid µs/sample':>16} {'peer µs/sample':>15} "
+    def timed(frame, model, jobs):
+        """µs per sample in the trajectory fits, and the estimates of the last fit."""
+        hamid.fit(frame, model, jobs=jobs)   # warm: compiled functions
+        spent.clear()
+        for _ in range(args.repeats):
+            fits.clear()
+            starts.clear()
+            result = hamid.fit(frame, model, jobs=jobs)
+        return 1e6 * spent["trajectory"] / args.repeats / len(frame), result.estimates
+
+    cores = available_cores()
+    print(f"{'record':28} {'samples':>8} {'µs/sample, 1 job':>17} "
+          f"{f'{cores} jobs':>8} {'jobs diff':>9} {'peer µs/sample':>15} "
           f"{'peer / hamid':>13} {'max rel diff':>13} {'in stderrs':>12}")
     per_sample = {}
     for label, (system, model, rhs, peer) in cases.items():
@@ -142,17 +162,13 @@ def main() -> None:
             frame = hamid.simulate(system)
             if noisy:
                 frame = with_noise(frame, args.noise, 5)
-            hamid.fit(frame, model)   # warm: compiled functions
-            spent.clear()
-            for _ in range(args.repeats):
-                fits.clear()
-                starts.clear()
-                hamid.fit(frame, model)
+            all_us, all_estimates = timed(frame, model, cores)
+            hamid_us, estimates = timed(frame, model, 1)
             samples = len(frame)
-            hamid_us = 1e6 * spent["trajectory"] / args.repeats / samples
             name = label + ("" if noisy else ", clean")
-            per_sample[name] = hamid_us
-            line = f"{name:28} {samples:8d} {hamid_us:16.2f}"
+            per_sample[name] = hamid_us, all_us
+            jobs_diff = max(abs(all_estimates[k] - v) / abs(v) for k, v in estimates.items())
+            line = f"{name:28} {samples:8d} {hamid_us:17.2f} {all_us:8.2f} {jobs_diff:9.1e}"
             if peer and noisy:
                 fit = fits[-1]
                 t, X = frame["t"].to_numpy(), frame.iloc[:, 2:].to_numpy()
@@ -164,11 +180,13 @@ def main() -> None:
                 stderr = np.sqrt(np.diag(fit.covariance("scaled")))
                 line += (f" {peer_us:15.2f} {peer_us / hamid_us:13.1f} "
                          f"{np.max(diff / np.abs(mine)):13.1e} {np.max(diff / stderr):12.1e}")
-            print(line)
+            print(line, flush=True)
     two = per_sample["peng-quadratic (2 DOF)"]
-    print(f"per-sample cost at 10x the length: "
-          f"{per_sample['peng-quadratic 10x longer'] / two:.2f}x; clean / noisy: "
-          f"{per_sample['peng-quadratic (2 DOF), clean'] / two:.2f}x")
+    ten, hundred = (per_sample[f"peng-quadratic {k}x longer"] for k in (10, 100))
+    print(f"per-sample cost, 1 job / {cores} jobs: at 10x the length {ten[0] / two[0]:.2f}x / "
+          f"{ten[1] / two[1]:.2f}x of the short record; at 100x {hundred[0] / ten[0]:.2f}x / "
+          f"{hundred[1] / ten[1]:.2f}x of the 10x record; clean / noisy: "
+          f"{per_sample['peng-quadratic (2 DOF), clean'][0] / two[0]:.2f}x")
 
 
 if __name__ == "__main__":
