@@ -419,7 +419,9 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
                     break
             # the parameters' spread, scaled by the misfit (the noise may be misjudged)
             spread = np.sqrt(np.abs(np.diag(np.linalg.inv(schur))) * normal.total / dof)
-            settled = np.all(np.abs(d_theta) <= 1e-9 * np.abs(theta[free_list]) + 1e-3 * spread)
+            # and, tied, the misfit evaluated with the gaps closed (a step after the first)
+            settled = (np.all(np.abs(d_theta) <= 1e-9 * np.abs(theta[free_list]) + 1e-3 * spread)
+                       and (chain is None or iterations > 1))
             if damping_factor == 0.0:
                 # clean data show at the first undamped step: tighten there rather than
                 # settle at the loose tolerance first (an evaluation less)
