@@ -67,7 +67,9 @@ class Batch:
 
     `starts` (copies, B, 2N) and `weights` (n_weights, copies, B) are every copy's initial
     state and weights (1, theta, damping); `steps` the perturbation of each copy past the
-    first, by which its difference from the first is divided.
+    first, by which its difference from the first is divided. `ends`, if given, are a time
+    of each segment (from its start, none before its samples) whose state and derivatives
+    `blocks` returns too, without a residual (multiple shooting's continuity conditions).
     """
 
     dynamics: Dynamics
@@ -78,6 +80,7 @@ class Batch:
     weights: Array
     steps: Array
     tolerance: Tolerance
+    ends: Array | None = None
 
     @property
     def values(self) -> int:
@@ -132,24 +135,28 @@ def _without_caches(obj: Any) -> bytes:
 class Blocks:
     """A batch's segments reduced: `cost` (B, 2N), each variable's weighted squared
     residuals; `H` (B, c, c) and `g` (B, c), J'J and J'r of each segment's Jacobian by its
-    c perturbed copies (empty when there are none)."""
+    c perturbed copies (empty when there are none); with the batch's `ends`, `end` (B, 2N)
+    each segment's state there and `E` (B, 2N, c) its derivatives by the copies."""
 
     cost: Array
     H: Array
     g: Array
+    end: Array | None = None
+    E: Array | None = None
 
 
 def blocks(batch: Batch) -> Blocks:
     """The batch integrated and reduced; raises IntegrationFailed."""
     copies, B, n_states = batch.starts.shape
     tol = batch.tolerance
-    grid, where = common_times(batch.tau, tol.resolution)
+    times = list(batch.tau) if batch.ends is None else [*batch.tau, batch.ends]
+    grid, where = common_times(times, tol.resolution)
     motion = batch.dynamics.at(batch.weights.reshape(len(batch.weights), -1))
     try:
         values = dop853.integrate(
             motion, batch.starts.reshape(-1, n_states).T.ravel(), grid, tol.rtol,
             np.repeat(tol.atol, copies * B), tol.steps_per_sample * len(grid) + tol.min_steps,
-            end=max(tau[-1] for tau in batch.tau))   # grid[-1] may be a rounding earlier
+            end=max(float(np.max(t)) for t in times))   # grid[-1] may be a rounding earlier
     except dop853.TooManySteps as exc:
         raise IntegrationFailed("the integration needs too many steps: the model's motion "
                                 "is stiff or blows up") from exc
@@ -176,7 +183,11 @@ def blocks(batch: Batch) -> Blocks:
         J = J.transpose(0, 2, 1).reshape(-1, c)
         H[b] = J.T @ J
         g[b] = J.T @ residual.ravel()
-    return Blocks(cost, H, g)
+    if batch.ends is None:
+        return Blocks(cost, H, g)
+    at_ends = values[np.arange(B), where[offset:]]                  # (B, 2N, copies)
+    end = at_ends[..., 0]
+    return Blocks(cost, H, g, end, (at_ends[..., 1:] - end[..., None]) / batch.steps)
 
 
 def common_times(times: Sequence[Array], resolution: float) -> tuple[Array, npt.NDArray[np.intp]]:

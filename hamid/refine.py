@@ -212,11 +212,13 @@ def _lengthened(fit: SegmentFit, period: float, progress: Callable[[str], None] 
     joined fit) follows Fisher's F. Beyond its LENGTHEN_LEVEL point (the motion drifts
     off the longer segments, or the joined fit fell into another minimum), or when the
     joined fit fails, the last good length stands. All segments within LONGEST_PERIODS
-    are joined at once first; when that is refused, neighbours are joined in pairs.
+    are joined at once first; when that is refused, neighbours are joined in pairs. The
+    joined segments are integrated as the short ones tied by continuity
+    (`trajectory.join`: multiple shooting), which keeps them in large batches.
     """
     from hamid import trajectory
 
-    longest, count, rounds = LONGEST_PERIODS * period, fit.segments, 0
+    longest, count, rounds = LONGEST_PERIODS * period, fit.groups, 0
     while True:
         try:
             longer = trajectory.join(fit, count, longest, progress)
@@ -224,11 +226,11 @@ def _lengthened(fit: SegmentFit, period: float, progress: Callable[[str], None] 
             longer, stopped = None, "failed"
         else:
             if longer is None:
-                whole = fit.segments == fit.problem.records.n_trajectories
+                whole = fit.groups == fit.problem.records.n_trajectories
                 stopped = "whole" if whole else "longest"
                 break
             misfit = longer.chi2_per_dof * longer.dof
-            k = fit.states.size - longer.states.size
+            k = (fit.groups - longer.groups) * fit.states.shape[1]
             added = misfit - fit.chi2_per_dof * fit.dof
             if added / k <= fdtri(k, longer.dof, LENGTHEN_LEVEL) * misfit / longer.dof:
                 fit, rounds = longer, rounds + 1
@@ -237,7 +239,7 @@ def _lengthened(fit: SegmentFit, period: float, progress: Callable[[str], None] 
         if count == 2:
             break
         count = 2   # refused at once: join in pairs, from the last good length
-    return fit, {"segments": fit.segments, "segment_seconds": fit.problem.length,
+    return fit, {"segments": fit.groups, "segment_seconds": fit.problem.span,
                  "rounds": rounds, "iterations": fit.iterations if rounds else 0,
                  "chi2_per_dof": fit.chi2_per_dof, "stopped": stopped}
 

@@ -16,8 +16,18 @@ keep the integration short enough that a wrong start cannot wander off into anot
 minimum, and the per-segment states are eliminated from the normal equations (Schur
 complement), so the work grows linearly with the record. A `SegmentFit` also gives the
 parameters' covariance (misfit-scaled, or the sandwich over segments) and what the
-parameters predict for segments left out of the fit, for `hamid.refine` to judge it by;
-`join` refits it over neighbouring segments joined into longer ones.
+parameters predict for segments left out of the fit, for `hamid.refine` to judge it by.
+
+`join` refits it over neighbouring segments joined into longer ones by multiple shooting:
+the segments stay as they were cut (short, so that many integrate together), but those of
+one group are tied by continuity, the state integrated to the next segment's first sample
+equal to that segment's initial state. The Gauss-Newton step is condensed onto each
+group's first state: with E_x, E_theta the derivatives of a segment's end state and d its
+gap to the next initial state, the next state's step is E_x dx + E_theta dtheta + d, so
+every state's step is P dx_first + Q dtheta + c along the chain (`_condensed`); each
+segment's normal equations in (dx, dtheta) become its group's in (dx_first, dtheta), and
+after the step the chain closes the gaps to first order. Converged, the gaps vanish and
+the fit is that of one segment per group.
 """
 
 from __future__ import annotations
@@ -50,6 +60,9 @@ STEP = 1e-7            # relative forward-difference step of the Jacobian
 # Integration steps allowed per sample time (and a floor): smooth motion needs about one;
 # a motion that is stiff or blows up would otherwise crawl on for hours.
 MAX_STEPS_PER_SAMPLE, MIN_STEP_BUDGET = 50, 1000
+# Largest growth of a state step along a group's chain of tied segments: beyond it the
+# motion is too unstable for the linearised continuity to carry the step.
+MAX_GROWTH = 1e8
 # Gauss-Newton runs at the loose tolerance, and tightens to the strict one at the first
 # undamped step that shows the parameters determined finely enough for it to matter
 # (clean data), without settling at the loose one first.
@@ -73,7 +86,8 @@ class _Problem:
     x_step: npt.NDArray[np.float64]           # forward-difference step of each variable
     resolution: float                         # times closer than this are one
     weight: npt.NDArray[np.float64]           # 1 / noise of each variable
-    length: float                             # seconds per segment (the longest, joined)
+    length: float                             # seconds per segment as cut
+    starts: npt.NDArray[np.intp]              # each group's first segment (tied to the next)
 
     @classmethod
     def cut(cls, model: Model, records: Records, damping: Dissipation, length: float,
@@ -90,34 +104,52 @@ class _Problem:
         return cls(Dynamics(model, damping), records, pieces,
                    [t[a:b] - t[a] for a, b in pieces], [X[a:b] for a, b in pieces],
                    STEP * np.maximum(np.abs(X).max(axis=0), X.std(axis=0)), resolution,
-                   weight, length)
+                   weight, length, np.arange(len(pieces)))
 
     def reweighted(self, weight: npt.NDArray[np.float64]) -> _Problem:
         """The same segments under other weights."""
         return dataclasses.replace(self, weight=weight)
 
-    def joined(self, count: int, longest: float,
-               most: int) -> tuple[_Problem, npt.NDArray[np.intp]]:
-        """Up to `count` neighbouring segments of one trajectory joined into one, as long
-        as it spans at most `longest` seconds and holds at most `most` samples; and the
-        index of each new segment's first part."""
-        t, X, group = self.records.t, self.records.X, self.records.group
+    def tied(self, count: int, longest: float) -> _Problem:
+        """Up to `count` neighbouring groups of one trajectory tied into one, as long as it
+        spans at most `longest` seconds."""
+        t, group = self.records.t, self.records.group
         assert t is not None
-        pieces, first, s = [], [], 0
-        while s < len(self.pieces):
-            (a, b), first_part = self.pieces[s], s
-            s += 1
-            while (s - first_part < count and s < len(self.pieces) and self.pieces[s][0] == b
-                   and group[b] == group[a] and self.pieces[s][1] - a <= most
-                   and t[self.pieces[s][1] - 1] - t[a] <= longest):
-                b = self.pieces[s][1]
-                s += 1
-            pieces.append((a, b))
-            first.append(first_part)
-        tau = [t[a:b] - t[a] for a, b in pieces]
-        return dataclasses.replace(self, pieces=pieces, tau=tau,
-                                   measured=[X[a:b] for a, b in pieces],
-                                   length=max(float(x[-1]) for x in tau)), np.array(first)
+        bounds = [*self.starts.tolist(), len(self.pieces)]
+        starts, g = [], 0
+        while g < len(self.starts):
+            first, a = bounds[g], self.pieces[bounds[g]][0]
+            g, merged = g + 1, 1
+            while (merged < count and g < len(self.starts)
+                   and self.pieces[bounds[g]][0] == self.pieces[bounds[g] - 1][1]
+                   and group[self.pieces[bounds[g]][0]] == group[a]
+                   and t[self.pieces[bounds[g + 1] - 1][1] - 1] - t[a] <= longest):
+                g, merged = g + 1, merged + 1
+            starts.append(first)
+        return dataclasses.replace(self, starts=np.array(starts))
+
+    @property
+    def groups(self) -> int:
+        return len(self.starts)
+
+    @property
+    def tied_to_next(self) -> npt.NDArray[np.bool_]:
+        """Whether each segment is tied to the next (S,)."""
+        tied = np.ones(len(self.pieces), bool)
+        tied[self.starts[1:] - 1] = False
+        tied[-1] = False
+        return tied
+
+    @property
+    def span(self) -> float:
+        """Seconds per group: the length cut, or the longest group's when tied."""
+        if self.groups == len(self.pieces):
+            return self.length
+        t = self.records.t
+        assert t is not None
+        last = [self.pieces[s - 1][1] - 1 for s in [*self.starts[1:], len(self.pieces)]]
+        return float(max(t[b] - t[self.pieces[a][0]]
+                         for a, b in zip(self.starts, last, strict=True)))
 
     @property
     def n_samples(self) -> int:
@@ -135,8 +167,9 @@ class SegmentFit:
     where its weights proved hopeless (`refine`'s `beyond`).
 
     `theta` holds every parameter (fixed ones at their values), `states` each segment's
-    fitted initial state; `normal` are the Gauss-Newton normal equations at the last point
-    evaluated, from which the final step `shift` of the free parameters was taken.
+    fitted initial state; `normal` are the Gauss-Newton normal equations of the groups of
+    tied segments (one group per segment when none are tied) at the last point evaluated,
+    from which the final step `shift` of the free parameters was taken.
     """
 
     problem: _Problem
@@ -153,13 +186,19 @@ class SegmentFit:
         return len(self.problem.tau)
 
     @property
+    def groups(self) -> int:
+        """Groups of tied segments: each one initial state free."""
+        return self.problem.groups
+
+    @property
     def dof(self) -> int:
-        """Weighted values less the free parameters and the segments' states."""
-        return max(self.problem.n_used - len(self.free) - self.states.size, 1)
+        """Weighted values less the free parameters and the groups' states."""
+        return max(self.problem.n_used - len(self.free) - self.groups * self.states.shape[1],
+                   1)
 
     @property
     def chi2_per_dof(self) -> float:
-        return float(self.normal.cost.sum()) / self.dof
+        return self.normal.total / self.dof
 
     @property
     def residual_rms(self) -> npt.NDArray[np.float64]:
@@ -172,7 +211,7 @@ class SegmentFit:
 
     @cached_property
     def _reduced(self) -> tuple[npt.NDArray[np.float64], ...]:
-        """Each segment's misfit (S,), score (S, p) and Schur complement (S, p, p) at the
+        """Each group's misfit (G,), score (G, p) and Schur complement (G, p, p) at the
         final parameters, its initial state eliminated: to second order (Gauss-Newton),
         the misfit at the final parameters plus d, the state refitted, is
         misfit - 2 score.d + d.schur.d. The scores sum to zero once converged."""
@@ -180,8 +219,7 @@ class SegmentFit:
         inverse = np.linalg.inv(normal.H_xx)
         schur = normal.H_tt - np.einsum("sak,sab,sbl->skl", normal.H_xt, inverse, normal.H_xt)
         score = normal.g_t - np.einsum("sak,sab,sb->sk", normal.H_xt, inverse, normal.g_x)
-        misfit = normal.cost.sum(axis=1) - np.einsum("sa,sab,sb->s", normal.g_x, inverse,
-                                                     normal.g_x)
+        misfit = normal.misfit - np.einsum("sa,sab,sb->s", normal.g_x, inverse, normal.g_x)
         # from the point the equations were made at to the final one
         shift = self.shift
         misfit = misfit - 2 * score @ shift + np.einsum("k,skl,l->s", shift, schur, shift)
@@ -189,8 +227,8 @@ class SegmentFit:
 
     def covariance(self, kind: Literal["scaled", "sandwich"]) -> npt.NDArray[np.float64]:
         """The free parameters' covariance: "scaled", the Gauss-Newton one times the misfit
-        per degree of freedom; "sandwich", robust to any error shared within a segment
-        (segments independent), with the small-sample factor S / (S - p)."""
+        per degree of freedom; "sandwich", robust to any error shared within a group of
+        segments (groups independent), with the small-sample factor G / (G - p)."""
         _, score, schur = self._reduced
         inverse = np.linalg.inv(schur.sum(axis=0))
         if kind == "scaled":
@@ -200,15 +238,16 @@ class SegmentFit:
 
     def held_out_folds(self, folds: npt.NDArray[np.intp]
                        ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """Every parameter refitted without each segment's fold, row by segment (S, P),
-        and each segment's misfit at its row, its initial state refitted (S,).
+        """Every parameter refitted without each group's fold, row by group (G, P), and
+        each group's misfit at its row, its initial state refitted (G,); the groups are
+        the segments when none are tied, as in `hamid.refine`'s check.
 
         Both to second order from the converged fit (one Gauss-Newton step over the other
         folds' segments): the refits move the parameters by about a standard error."""
         misfit, score, schur = self._reduced
         total = schur.sum(axis=0)
-        thetas = np.repeat(self.theta[None], self.segments, axis=0)
-        held_misfit = np.empty(self.segments)
+        thetas = np.repeat(self.theta[None], self.groups, axis=0)
+        held_misfit = np.empty(self.groups)
         for k in np.unique(folds):
             held = folds == k
             d = -np.linalg.solve(total - schur[held].sum(axis=0), score[held].sum(axis=0))
@@ -221,15 +260,15 @@ class SegmentFit:
                  progress: Callable[[str], None] | None = None) -> npt.NDArray[np.float64]:
         """Each segment's weighted misfit at other parameters (every parameter, row by
         segment: (S, P)), its initial state refitted from the fitted one by a Gauss-Newton
-        step (the misfit that step predicts)."""
+        step (the misfit that step predicts); the segments as cut, untied."""
         def batch_done(done: int) -> None:
             if progress is not None:
                 progress(f"held-out check of the trajectory fit: {done:,} of "
                          f"{self.segments:,} segments")
 
         with np.errstate(all="ignore"):
-            normal = _normal_equations(self.problem, thetas, self.states, (), None,
-                                       self.rtol, batch_done)
+            normal, _ = _normal_equations(self.problem, thetas, self.states, (), None,
+                                          self.rtol, batch_done)
             misfit = normal.cost.sum(axis=1)
             try:
                 step = np.linalg.solve(normal.H_xx, normal.g_x[..., None])[..., 0]
@@ -313,18 +352,15 @@ def refit(fit: SegmentFit, weight: npt.NDArray[np.float64],
 
 def join(fit: SegmentFit, count: int, longest: float,
          progress: Callable[[str], None] | None = None) -> SegmentFit | None:
-    """The fit over up to `count` neighbouring segments joined into one (at most `longest`
-    seconds, and no more samples than one batch integrates), from the fit's parameters,
-    each joined segment started at its first part's fitted state; None when no segments
-    can be joined. Raises RefinementFailed when the joined fit fails."""
-    n_states = fit.states.shape[1]
-    most = BATCH_VALUES // ((1 + n_states + len(fit.free)) * n_states)
-    problem, first = fit.problem.joined(count, longest, most)
-    if len(first) == fit.segments:
+    """The fit with up to `count` neighbouring groups of segments tied into one (spanning
+    at most `longest` seconds; module docstring), from the fit's parameters and states;
+    None when no groups can be joined. Raises RefinementFailed when the joined fit fails."""
+    problem = fit.problem.tied(count, longest)
+    if problem.groups == fit.groups:
         return None
     try:
-        return _fit_segments(problem, fit.theta, fit.free, fit.states[first], fit.rtol,
-                             progress, "joined, ")
+        return _fit_segments(problem, fit.theta, fit.free, fit.states, fit.rtol, progress,
+                             "joined, ")
     except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
         raise RefinementFailed(f"{exc}, over joined segments") from exc
 
@@ -337,15 +373,16 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
                   X0: npt.NDArray[np.float64] | None, rtol: float,
                   progress: Callable[[str], None] | None, stage: str = "",
                   beyond: float | None = None) -> SegmentFit:
-    """Gauss-Newton over the free parameters and every segment's initial state; stopped
-    early when the misfit per degree of freedom an undamped step heads for is over
-    `beyond`."""
+    """Gauss-Newton over the free parameters and every group's initial state (the states
+    of the segments tied to it following); stopped early when the misfit per degree of
+    freedom an undamped step heads for is over `beyond`."""
     free_list = list(free)
     if X0 is None:
         X0 = np.array([x[0] for x in problem.measured])
     damping_factor, best, converged = 0.0, None, False
     iterations = 0
-    length = problem.length
+    length = problem.span
+    dof = max(problem.n_used - len(free) - problem.groups * X0.shape[1], 1)
 
     def batch_done(done: int) -> None:   # during iteration number iterations + 1
         if progress is not None:
@@ -357,20 +394,23 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
             free_theta = theta[free_list]
             theta_step = STEP * np.maximum(np.abs(free_theta), 1e-3 * np.abs(free_theta).max())
             theta_step[theta_step == 0] = STEP   # every start at zero: no scale to go by
-            normal = _normal_equations(problem, theta, X0, free, theta_step, rtol, batch_done)
+            normal, ends = _normal_equations(problem, theta, X0, free, theta_step, rtol,
+                                              batch_done)
+            chain = None
+            if ends is not None:
+                normal, chain = _condensed(problem, normal, X0, *ends)
             if best is not None and normal.total > best[0].total * (1 + 1e-12):
                 # the step made it worse: return to the best point and damp the step
-                normal, theta, X0 = best
+                normal, theta, X0, chain = best
                 damping_factor = max(10 * damping_factor, 1e-3)
             else:
                 damping_factor = damping_factor / 10 if damping_factor > 1e-6 else 0.0
-                best = normal, theta, X0
+                best = normal, theta, X0, chain
             d_theta, d_x, schur = normal.step(damping_factor)
             theta = theta.copy()
             theta[free_list] += d_theta
-            X0 = X0 + d_x
+            X0 = X0 + (d_x if chain is None else chain.steps(d_x, d_theta))
             iterations += 1
-            dof = max(problem.n_used - len(free) - X0.size, 1)
             if beyond is not None and damping_factor == 0.0:
                 heading = normal.total - float(normal.g_t.sum(axis=0) @ d_theta
                                                + np.einsum("sa,sa->", normal.g_x, d_x))
@@ -379,7 +419,9 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
                     break
             # the parameters' spread, scaled by the misfit (the noise may be misjudged)
             spread = np.sqrt(np.abs(np.diag(np.linalg.inv(schur))) * normal.total / dof)
-            settled = np.all(np.abs(d_theta) <= 1e-9 * np.abs(theta[free_list]) + 1e-3 * spread)
+            # and, tied, the misfit evaluated with the gaps closed (a step after the first)
+            settled = (np.all(np.abs(d_theta) <= 1e-9 * np.abs(theta[free_list]) + 1e-3 * spread)
+                       and (chain is None or iterations > 1))
             if damping_factor == 0.0:
                 # clean data show at the first undamped step: tighten there rather than
                 # settle at the loose tolerance first (an evaluation less)
@@ -400,7 +442,8 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
 
 @dataclass(frozen=True)
 class _Normal:
-    """Gauss-Newton normal equations of every segment, the states not yet eliminated."""
+    """Gauss-Newton normal equations of every segment, or group of tied segments in its
+    first state, the states not yet eliminated."""
 
     cost: npt.NDArray[np.float64]   # (S, 2N): weighted squared residuals of each variable
     H_tt: npt.NDArray[np.float64]   # (S, p, p)
@@ -408,10 +451,17 @@ class _Normal:
     H_xx: npt.NDArray[np.float64]   # (S, 2N, 2N)
     H_xt: npt.NDArray[np.float64]   # (S, 2N, p)
     g_x: npt.NDArray[np.float64]    # (S, 2N)
+    # (S,): what closing a group's gaps adds to its cost, to first order in the residuals
+    closing: npt.NDArray[np.float64] | float = 0.0
+
+    @property
+    def misfit(self) -> npt.NDArray[np.float64]:
+        """Each segment's or group's weighted misfit, its gaps closed."""
+        return self.cost.sum(axis=1) + self.closing
 
     @property
     def total(self) -> float:
-        return float(self.cost.sum())
+        return float(self.cost.sum() + np.sum(self.closing))
 
     def step(self, damping: float) -> tuple[Any, Any, Any]:
         """Parameter step, segment-state steps and the Schur complement (Marquardt-damped)."""
@@ -430,8 +480,11 @@ class _Normal:
 
 def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, ...],
                       theta_step: Any, rtol: float, batch_done: Callable[[int], None],
-                      derivatives: bool = True) -> _Normal:
-    """Residuals and forward-difference Jacobians of every segment, into _Normal.
+                      derivatives: bool = True
+                      ) -> tuple[_Normal, tuple[npt.NDArray[np.float64], ...] | None]:
+    """Residuals and forward-difference Jacobians of every segment, into _Normal; and,
+    when segments are tied, each one's state at its next one's start time (S, 2N) and that
+    state's derivatives (S, 2N, 2N + p), else None.
 
     `theta` holds every parameter, shared (P,) or one row per segment (S, P). The segments
     are cut into batches of about equal size, as many as keep each within MAX_BATCH
@@ -453,6 +506,14 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
                                       MAX_STEPS_PER_SAMPLE, MIN_STEP_BUDGET)
     batch_size = max(1, min(MAX_BATCH, BATCH_VALUES // (copies * n_states * max(map(len, tau)))))
     edges = np.linspace(0, S, -(-S // batch_size) + 1).round().astype(int)
+    ends = None
+    if problem.groups < S:
+        t = problem.records.t
+        assert t is not None
+        starts = np.array([a for a, _ in problem.pieces])
+        ends = np.array([tau[-1] for tau in problem.tau])
+        tied = problem.tied_to_next
+        ends[tied] = t[starts[1:][tied[:-1]]] - t[starts[:-1][tied[:-1]]]
     batches = []
     for lo, hi in zip(edges[:-1], edges[1:], strict=True):
         starts = np.repeat(X0[lo:hi][None], copies, axis=0)     # (copies, B, 2N)
@@ -461,18 +522,75 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
         for k, index in enumerate(free):
             W[1 + index, 1 + n_x + k] += theta_step[k]
         batches.append(integration.Batch(problem.dynamics, tau[lo:hi], measured[lo:hi],
-                                         problem.weight, starts, W, steps, tolerance))
+                                         problem.weight, starts, W, steps, tolerance,
+                                         None if ends is None else ends[lo:hi]))
     cost = np.zeros((S, n_states))
     H = np.zeros((S, copies - 1, copies - 1))
     g = np.zeros((S, copies - 1))
+    end, E = np.zeros((S, n_states)), np.zeros((S, n_states, copies - 1))
     try:
         for lo, hi, blocks in zip(edges[:-1], edges[1:], integration.run(batches),
                                   strict=True):
             cost[lo:hi], H[lo:hi], g[lo:hi] = blocks.cost, blocks.H, blocks.g
+            if ends is not None:
+                end[lo:hi], E[lo:hi] = blocks.end, blocks.E
             batch_done(int(hi))
     except integration.IntegrationFailed as exc:
         raise _SegmentFitFailed(str(exc)) from exc
     # each block its own array: numpy's sums over strided views round otherwise
     return _Normal(cost, *map(np.ascontiguousarray, (H[:, n_x:, n_x:], g[:, n_x:],
                                                      H[:, :n_x, :n_x], H[:, :n_x, n_x:],
-                                                     g[:, :n_x])))
+                                                     g[:, :n_x]))), (
+        None if ends is None else (end, E))
+
+
+@dataclass(frozen=True)
+class _Chain:
+    """Each tied segment's state step from its group's: P dx_first + Q dtheta + c."""
+
+    group: npt.NDArray[np.intp]     # (S,) each segment's group
+    P: npt.NDArray[np.float64]      # (S, 2N, 2N)
+    Q: npt.NDArray[np.float64]      # (S, 2N, p)
+    c: npt.NDArray[np.float64]      # (S, 2N)
+
+    def steps(self, d_first: npt.NDArray[np.float64],
+              d_theta: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """Every segment's state step (S, 2N) from its group's (G, 2N)."""
+        return (np.einsum("sab,sb->sa", self.P, d_first[self.group])
+                + self.Q @ d_theta + self.c)
+
+
+def _condensed(problem: _Problem, normal: _Normal, X0: npt.NDArray[np.float64],
+               end: npt.NDArray[np.float64], E: npt.NDArray[np.float64]
+               ) -> tuple[_Normal, _Chain]:
+    """The segments' normal equations condensed onto each group's first state (module
+    docstring), and the chain that gives every segment's state step."""
+    S, n = X0.shape
+    E_x, E_t = E[:, :, :n], E[:, :, n:]
+    group = np.cumsum(np.isin(np.arange(S), problem.starts)) - 1
+    position = np.arange(S) - problem.starts[group]
+    P = np.repeat(np.eye(n)[None], S, axis=0)
+    Q, c = np.zeros((S, n, E_t.shape[2])), np.zeros((S, n))
+    for k in range(1, int(position.max()) + 1):
+        now = np.flatnonzero(position == k)
+        before = now - 1
+        P[now] = E_x[before] @ P[before]
+        Q[now] = E_x[before] @ Q[before] + E_t[before]
+        c[now] = np.einsum("sab,sb->sa", E_x[before], c[before]) + end[before] - X0[now]
+    if not np.all(np.abs(P) <= MAX_GROWTH):
+        raise _SegmentFitFailed("the motion is too unstable to tie its segments")
+    H_xx, H_xt = normal.H_xx, normal.H_xt
+    Pt, Qt = P.transpose(0, 2, 1), Q.transpose(0, 2, 1)
+    H_xx_Q = H_xx @ Q
+    r = normal.g_x - np.einsum("sab,sb->sa", H_xx, c)
+    per_segment = (
+        Pt @ H_xx @ P,                                                    # H_00
+        Pt @ (H_xx_Q + H_xt),                                             # H_0t
+        Qt @ H_xx_Q + Qt @ H_xt + H_xt.transpose(0, 2, 1) @ Q + normal.H_tt,   # H_tt
+        np.einsum("sba,sb->sa", P, r),                                    # g_0
+        np.einsum("sbk,sb->sk", Q, r) + normal.g_t - np.einsum("sak,sa->sk", H_xt, c),
+        np.einsum("sa,sa->s", c, normal.g_x - r) - 2 * np.einsum("sa,sa->s", c, normal.g_x))
+    H_00, H_0t, H_tt, g_0, g_t, closing = (np.add.reduceat(a, problem.starts, axis=0)
+                                           for a in per_segment)
+    cost = np.add.reduceat(normal.cost, problem.starts, axis=0)
+    return _Normal(cost, H_tt, g_t, H_00, H_0t, g_0, closing), _Chain(group, P, Q, c)

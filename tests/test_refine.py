@@ -93,12 +93,13 @@ def test_the_right_model_predicts_held_out_segments_better():
     acceptance = refinement["acceptance"]
     segments = refinement["segments"]
     checked = f"held-out check of the trajectory fit: {segments:,} of {segments:,} segments"
-    # then the segments are lengthened: one per trajectory, the stage heard after the check
+    # then the segments are lengthened: one per trajectory, the stage heard after the check;
+    # the short segments are integrated still, tied to each other
     lengthening = refinement["lengthening"]
     assert lengthening["stopped"] == "whole" and lengthening["segments"] == 2
     assert heard[-1] == (f"trajectory fit over segments of "
                          f"{lengthening['segment_seconds']:.3g} s: joined, iteration "
-                         f"{lengthening['iterations']}, 2 of 2 segments")
+                         f"{lengthening['iterations']}, {segments} of {segments} segments")
     assert heard.index(checked) < min(i for i, text in enumerate(heard) if "joined" in text)
     assert refinement["applied"] is True and refinement["covariance"] == "misfit-scaled"
     assert acceptance["rule"] == "held-out" and acceptance["linear_refitted"] is True
@@ -194,7 +195,7 @@ def test_held_out_folds_match_refits_without_them(clean_records):
         problem = dataclasses.replace(
             fit.problem, pieces=[fit.problem.pieces[s] for s in kept],
             tau=[fit.problem.tau[s] for s in kept],
-            measured=[fit.problem.measured[s] for s in kept])
+            measured=[fit.problem.measured[s] for s in kept], starts=np.arange(len(kept)))
         refit = trajectory._fit_segments(problem, fit.theta, fit.free, fit.states[kept],
                                          fit.rtol, None)
         assert np.all(np.abs(thetas[held][0] - refit.theta) < 0.02 * spread)

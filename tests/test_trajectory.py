@@ -255,3 +255,49 @@ def test_refined_bounds_cover_the_truth(clean_records, name):
     covered = coverage(clean_records[name], CLEAN[name]["parameters"], 0.01, 100)
     for parameter, fraction in covered.items():
         assert 0.88 <= fraction <= 0.99, (parameter, fraction)
+
+
+def _peng_fit(length: float, noise: float = 0.01) -> trajectory.SegmentFit:
+    """peng-quadratic, two trajectories of 40 s at `noise`, fitted over segments of
+    `length` seconds from the truth."""
+    from hamid.records import Records
+
+    frame = with_noise(hamid.simulate(PENG), noise, seed=1)
+    columns = ["u1", "u2", "v1", "v2"]
+    records = Records(frame[columns].to_numpy(), frame["t"].to_numpy(),
+                      frame["trajectory"].to_numpy() - 1, (1, 2))
+    model = hamid.load_model("peng-quadratic")
+    weight = 1 / (noise * frame[columns].std().to_numpy())
+    truth = [PENG["parameters"][name] for name in model.parameters]
+    return trajectory.fit(model, records, model.dissipative(), truth,
+                          list(range(len(truth))), length, weight)
+
+
+def test_tied_segments_fit_as_one_segment_per_trajectory():
+    """Short segments tied by continuity (multiple shooting) give the fit of one segment
+    per trajectory, integrated whole: the same parameters, states, misfit and errors."""
+    short = _peng_fit(10.0)
+    assert short.segments == 8 and short.groups == 8
+    tied = trajectory.join(short, 100, np.inf)
+    whole = _peng_fit(1000.0)
+    assert tied.segments == 8 and tied.groups == 2 and whole.segments == 2
+    free = list(whole.free)
+    errors = np.sqrt(np.diag(whole.covariance("scaled")))
+    assert np.all(np.abs(tied.theta[free] - whole.theta[free]) < 1e-3 * errors)
+    assert tied.dof == whole.dof
+    assert tied.chi2_per_dof == pytest.approx(whole.chi2_per_dof, rel=1e-6)
+    assert tied.covariance("scaled") == pytest.approx(whole.covariance("scaled"), rel=1e-3)
+    assert tied.states[tied.problem.starts] == pytest.approx(whole.states, rel=1e-5, abs=1e-8)
+    assert tied.problem.span == pytest.approx(40.0, abs=0.1)
+    # the untied short fit sets the state free at every boundary: the stiffnesses' errors
+    # are twice as large
+    assert np.all(np.sqrt(np.diag(short.covariance("scaled")))[:2] > 1.5 * errors[:2])
+
+
+def test_tying_fails_where_the_state_steps_grow_too_much(monkeypatch):
+    """The continuity carries a state step along the chain of tied segments; past
+    MAX_GROWTH the tied fit fails (and the refinement keeps the segments untied)."""
+    short = _peng_fit(10.0)
+    monkeypatch.setattr(trajectory, "MAX_GROWTH", 1e-3)
+    with pytest.raises(trajectory.RefinementFailed, match="too unstable to tie"):
+        trajectory.join(short, 100, np.inf)

@@ -10,10 +10,11 @@ grow with it), and clean (the strict-tolerance pass).
 
 For each record the default fit runs `--repeats` times with ``jobs=1`` and with one
 process per core; the time spent in the trajectory fits (`hamid.trajectory.refine`,
-`fit`, `refit`, starting the worker processes included) is taken from wrappers around
-them and printed in µs per sample, with the largest relative difference between the two
-fits' estimates (none: the batches do not depend on the workers). Records short enough to
-stay in one process (`hamid.integration.PARALLEL_VALUES`) cost the same both ways.
+`fit`, `refit`, `join`: the lengthening counted, starting the worker processes included)
+is taken from wrappers around them and printed in µs per sample, with the largest
+relative difference between the two fits' estimates (none: the batches do not depend on
+the workers). Records short enough to stay in one process
+(`hamid.integration.PARALLEL_VALUES`) cost the same both ways.
 
 The peer is `scipy.optimize.least_squares` over `solve_ivp` (DOP853) with the same
 segments, weights and start: the free parameters and every
@@ -129,7 +130,7 @@ def main() -> None:
     fits: list = []
     starts: list = []
     depth = [0]
-    for name in ("refine", "fit", "refit"):
+    for name in ("refine", "fit", "refit", "join"):
         original = getattr(trajectory, name)
 
         def wrapper(*a, _original=original, _name=name, **k):
@@ -143,7 +144,8 @@ def main() -> None:
                 spent["trajectory"] += time.perf_counter() - begin
             if _name == "refine":
                 starts.append(np.array(a[3], float)[list(a[4])])
-            fits.append(result)
+            if _name != "join":   # the peer fits the segments as cut
+                fits.append(result)
             return result
         setattr(trajectory, name, wrapper)
 
