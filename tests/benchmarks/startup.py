@@ -12,8 +12,8 @@ Then where a fit's time above the floor goes: the imports of a linear fit (hamid
 modules, scipy.special for the t quantiles, scipy.sparse for the windows, pyarrow's
 reader, click and rich),
 the linear fit itself (the joint fit's time less those imports), and the trajectory
-refinement of auto (auto's time less the joint fit's), of which importing
-scipy.integrate (with the scipy.optimize it imports) is measured alone.
+refinement of auto (auto's time less the joint fit's), of which importing its modules
+(hamid.trajectory with its DOP853 integrator: no scipy.integrate) is measured alone.
 
 DATA.csv is a peng-quadratic record of `--rows` rows (2 trajectories, with hamid's
 metadata line) made with `hamid.simulate` in a temporary folder, noise-free and with 1%
@@ -144,7 +144,7 @@ def main():
     # with what a fit imports on its way: pyarrow's reader, scipy.sparse for the windows
     modules = "import hamid.api, hamid.cli, hamid.report, rich.console, pyarrow.csv, scipy.sparse"
     imports = {"imports of a linear fit": [py, "-c", modules],
-               "the same and scipy.integrate": [py, "-c", modules + ", scipy.integrate"]}
+               "the same and the refinement's": [py, "-c", modules + ", hamid.trajectory"]}
     with tempfile.TemporaryDirectory() as folder:
         clean, noisy = make_data(folder, args.rows), make_data(folder, args.rows, 0.01)
         fits = {f"hamid fit ({args.rows} rows, noise-free)": [*hamid_cmd, "fit", str(clean)],
@@ -172,7 +172,7 @@ def main():
                   f"{'ok' if ratios[name] <= TARGET else 'ABOVE'} (<= {TARGET:g}x) |")
         print(f"\n(interpreter alone, `python -c pass`: {medians['python -c pass'] * 1e3:.0f} ms)")
         floor = medians["import numpy, scipy.linalg, pyarrow.csv"]
-        linear, integrate = (medians[name] for name in imports)
+        linear, refinement = (medians[name] for name in imports)
         joint, noisy, clean = (medians[name] for name in (
             f"hamid fit --method joint ({args.rows} rows, 1% noise)",
             f"hamid fit ({args.rows} rows, 1% noise)",
@@ -182,7 +182,7 @@ def main():
                          ("the linear joint fit, reading and writing", joint - linear),
                          ("auto's refinement, 1% noise", noisy - joint),
                          ("auto's refinement, noise-free", clean - joint),
-                         ("  of which importing scipy.integrate", integrate - linear)):
+                         ("  of which importing its modules", refinement - linear)):
             print(f"    {what:45s} {ms * 1e3:6.0f} ms  {ms / floor:5.2f}x")
 
         above = [name for name in fits if ratios[name] > TARGET]
