@@ -54,61 +54,73 @@ __all__ = ["Moments", "adjusted_energy", "adjusted_moments", "unbiased"]
 
 
 class _Hermite:
-    """Unbiased estimates of polynomials of the states y, sharing the work between them.
+    """Unbiased estimates of polynomials of the states y, each kept once made, since the
+    sums of products ask for the same ones often.
 
-    The table of s^n He_n(y/s) of each variable (H_0 = 1, H_1 = y,
-    H_n+1 = y H_n - n s^2 H_n-1) grows to the highest power asked for, and the estimate
-    of each polynomial is kept, since the sums of products ask for the same ones often.
+    The tables of s^n He_n(y/s) of each variable (H_0 = 1, H_1 = y,
+    H_n+1 = y H_n - n s^2 H_n-1), a column per power, are made `solve.PIECE_ROWS` samples
+    at a time and dropped: held whole, those of a product of cubics took 28 columns of
+    the record (a joint fit's noise check peaked at 15 times its decoded data).
     """
 
     def __init__(self, Y: npt.NDArray[np.float64], sigma: npt.NDArray[np.float64]) -> None:
         self.Y, self.sigma = Y, sigma
-        self.tables: list[list[Any]] = [[np.ones(len(Y)), Y[:, j]] for j in range(Y.shape[1])]
         self.known: dict[Polynomial, npt.NDArray[np.float64]] = {}
-
-    def power(self, j: int, n: int) -> npt.NDArray[np.float64]:
-        table, s2 = self.tables[j], float(self.sigma[j]) ** 2
-        while len(table) <= n:
-            k = len(table) - 1
-            table.append(self.Y[:, j] * table[k] - k * s2 * table[k - 1])
-        return table[n]
 
     def of(self, poly: Polynomial) -> npt.NDArray[np.float64]:
         """The unbiased estimate of poly(x) at every sample."""
         if poly not in self.known:
-            out = np.zeros(len(self.Y))
-            for coefficient, row in zip(poly.coefficients, poly.exponents, strict=True):
-                term = np.full(len(self.Y), coefficient)
-                for j in np.flatnonzero(row):
-                    term = term * self.power(int(j), int(row[j]))
-                out += term
-            self.known[poly] = out
+            self.known[poly] = self.made(poly)
         return self.known[poly]
 
+    def made(self, poly: Polynomial) -> npt.NDArray[np.float64]:
+        """The unbiased estimate of poly(x) at every sample, not kept."""
+        out = np.zeros(len(self.Y))
+        if not len(poly.coefficients):
+            return out
+        highest = poly.exponents.max(axis=0)
+        for start in range(0, len(self.Y), solve.PIECE_ROWS):
+            Y = self.Y[start:start + solve.PIECE_ROWS]
+            tables = [_hermite_table(Y[:, j], float(self.sigma[j]), int(top))
+                      for j, top in enumerate(highest)]
+            part = out[start:start + solve.PIECE_ROWS]
+            for coefficient, row in zip(poly.coefficients, poly.exponents, strict=True):
+                term = np.full(len(Y), coefficient)
+                for j in np.flatnonzero(row):
+                    term = term * tables[j][row[j]]
+                part += term
+        return out
+
+    def columns(self, polys: Sequence[Polynomial]) -> npt.NDArray[np.float64]:
+        """The estimates of `polys` as the columns of one array, each kept as a view of
+        it (not a second copy)."""
+        out = np.empty((len(self.Y), len(polys)), order="F")
+        for k, poly in enumerate(polys):
+            out[:, k] = self.of(poly) if poly in self.known else self.made(poly)
+            self.known[poly] = out[:, k]
+        return out
+
     def release(self) -> None:
-        """Forget the tables and estimates (as large as the record), until asked again."""
-        self.tables = [table[:2] for table in self.tables]
+        """Forget the estimates (each as large as the record), until asked again."""
         self.known.clear()
 
     def self_pair(self, p: Polynomial, q: Polynomial) -> npt.NDArray[np.float64]:
         """H[pq] - H[p] H[q] at every sample: the bias of pairing a sample with itself."""
-        product = _product(p, q)
-        pair = self.of(product) - self.of(p) * self.of(q)
-        del self.known[product]   # products are asked for once
-        return pair
+        return self.made(_product(p, q)) - self.of(p) * self.of(q)
+
+
+def _hermite_table(y: npt.NDArray[np.float64], sigma: float, top: int) -> list[Any]:
+    """s^n He_n(y/s) for n = 0..top."""
+    table: list[Any] = [np.ones_like(y), y]
+    for n in range(1, top):
+        table.append(y * table[n] - n * sigma**2 * table[n - 1])
+    return table[:top + 1]
 
 
 def unbiased(poly: Polynomial, Y: npt.NDArray[np.float64],
              sigma: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    """Unbiased estimate of poly(x) from y = x + Gaussian noise of std sigma (per variable).
-
-    Its tables of Hermite polynomials are made for `solve.PIECE_ROWS` samples at a time
-    (one per power of each variable: for a product of cubics, 28 columns of the samples)."""
-    out = np.zeros(len(Y))
-    for start in range(0, len(Y), solve.PIECE_ROWS):
-        rows = slice(start, start + solve.PIECE_ROWS)
-        out[rows] = _Hermite(Y[rows], sigma).of(poly)
-    return out
+    """Unbiased estimate of poly(x) from y = x + Gaussian noise of std sigma (per variable)."""
+    return _Hermite(Y, sigma).made(poly)
 
 
 def _product(p: Polynomial, q: Polynomial) -> Polynomial:
@@ -269,7 +281,7 @@ def _pairs_at(functions: Sequence[Polynomial], g: Polynomial, H: _Hermite) -> np
 def _energy_moments(block: Block, phi: list[Polynomial], minus_E0: Polynomial,
                     P: Any, H: _Hermite, sample_group: np.ndarray) -> Moments:
     """Energy rows (per sample, or window means P), centred within each trajectory."""
-    columns = np.column_stack([H.of(f) for f in phi]) if phi else np.zeros((len(H.Y), 0))
+    columns = H.columns(phi)
     target = H.of(minus_E0)
     w = block.weight
     n_groups = int(sample_group.max()) + 1  # every trajectory, with windows or not
@@ -317,7 +329,7 @@ def _weak_moments(block: Block, functions: list[Any], target: list[Any], operato
         per_target = [tv, tq]
         for Q, fs, t in zip(operators, per_operator, per_target, strict=True):
             if p:
-                A[i::N] += Q @ np.column_stack([H.of(f) for f in fs])
+                A[i::N] += Q @ H.columns(fs)
             b[i::N] += Q @ H.of(t)
         w = block.weight[i::N]
         for a, (Qa, fa) in enumerate(zip(operators, per_operator, strict=True)):
@@ -337,6 +349,7 @@ def _weak_moments(block: Block, functions: list[Any], target: list[Any], operato
                         AA[k, m] += value
                         if a != c or m != k:
                             AA[m, k] += value
+        H.release()   # this coordinate's functions are not asked for again
 
     def row_shares(theta: Any) -> Any:
         out = np.zeros((n_windows * N, p))
@@ -346,7 +359,7 @@ def _weak_moments(block: Block, functions: list[Any], target: list[Any], operato
                 for Qc, fc, tc in zip(operators, per_operator, per_target, strict=True):
                     d = _pairs_at(fa, _at(fc, tc, theta), H)
                     out[i::N] += w[:, None] * (Qa.multiply(Qc) @ d)
-        H.release()
+            H.release()
         return out
 
     H.release()
