@@ -392,3 +392,17 @@ def test_lengthened_bounds_cover_the_truth(system):
         assert 0.88 <= covered <= 0.99, (name, covered)
         spread = np.std([p.estimate for p in parameters], ddof=1)
         assert 0.75 < spread / np.mean([p.stderr for p in parameters]) < 1.25, name
+
+
+def test_noise_free_data_are_not_lengthened(clean_records):
+    """On clean data the misfit is the integrator's error: no tie is tried, and the
+    estimates are the truth to the integrator's tolerance."""
+    result = hamid.fit(clean_records["duffing"])
+    refinement = result.method["refinement"]
+    assert refinement["applied"] is True
+    assert refinement["chi2_per_dof"] < refine.CLEAN_CHI2
+    assert refinement["lengthening"] == {
+        "segments": refinement["segments"], "segment_seconds": refinement["segment_seconds"],
+        "rounds": 0, "iterations": 0, "chi2_per_dof": refinement["chi2_per_dof"],
+        "stopped": "clean"}
+    assert result.estimates == pytest.approx(DUFFING["parameters"], rel=1e-8)
