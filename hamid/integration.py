@@ -164,15 +164,16 @@ def blocks(batch: Batch) -> Blocks:
         raise IntegrationFailed(f"the integration failed ({exc})") from exc
     if not np.all(np.isfinite(values)):
         raise IntegrationFailed("the integrated motion is not finite")
-    # segment by segment, each a block of rows (B, grid, 2N, copies): its samples gathered
-    # by row rather than element by element
-    values = np.moveaxis(values.reshape(len(grid), n_states, copies, B), 3, 0).copy()
+    # segment by segment, its samples (m, 2N, copies) gathered from the integrated values
+    # (grid, 2N, copies, B) as they are: putting the segments first would copy them all once
+    # more, for no faster a gathering
+    values = values.reshape(len(grid), n_states, copies, B)
     weight, c = batch.weight, copies - 1
     cost, H, g = np.empty((B, n_states)), np.empty((B, c, c)), np.empty((B, c))
     offset = 0
     for b, (tau, measured) in enumerate(zip(batch.tau, batch.measured, strict=True)):
         m = len(tau)
-        Y = values[b, where[offset:offset + m]].transpose(1, 2, 0) * weight[:, None, None]
+        Y = values[where[offset:offset + m], :, :, b].transpose(1, 2, 0) * weight[:, None, None]
         offset += m
         base = Y[:, 0]                                              # (2N, m)
         residual = (measured * weight).T - base                     # (2N, m)
@@ -185,7 +186,7 @@ def blocks(batch: Batch) -> Blocks:
         g[b] = J.T @ residual.ravel()
     if batch.ends is None:
         return Blocks(cost, H, g)
-    at_ends = values[np.arange(B), where[offset:]]                  # (B, 2N, copies)
+    at_ends = values[where[offset:], :, :, np.arange(B)]            # (B, 2N, copies)
     end = at_ends[..., 0]
     return Blocks(cost, H, g, end, (at_ends[..., 1:] - end[..., None]) / batch.steps)
 
