@@ -360,10 +360,7 @@ def test_segments_stay_short_where_longer_ones_miss_the_motion():
     assert "lengthened" not in render(result.to_dict(), "table", width=200)
     assert refinement["applied"] is True
     assert refinement["noise_chi2_per_dof"] < refine.CHI2_LIMIT
-    assert refinement["lengthening"] == {
-        "segments": refinement["segments"], "segment_seconds": refinement["segment_seconds"],
-        "rounds": 0, "iterations": 0, "chi2_per_dof": refinement["chi2_per_dof"],
-        "stopped": "misfit"}
+    assert refinement["lengthening"] == _not_lengthened(refinement, "misfit")
 
 
 def test_segments_beyond_the_noise_are_not_lengthened(friction):
@@ -394,6 +391,13 @@ def test_lengthened_bounds_cover_the_truth(system):
         assert 0.75 < spread / np.mean([p.stderr for p in parameters]) < 1.25, name
 
 
+def _not_lengthened(refinement, stopped):
+    """The report's lengthening of a fit whose first segments stood, for `stopped`."""
+    return {"segments": refinement["segments"], "segment_seconds": refinement["segment_seconds"],
+            "rounds": 0, "iterations": 0, "chi2_per_dof": refinement["chi2_per_dof"],
+            "stopped": stopped}
+
+
 def test_noise_free_data_are_not_lengthened(clean_records):
     """On clean data the misfit is the integrator's error: no tie is tried, and the
     estimates are the truth to the integrator's tolerance."""
@@ -401,8 +405,5 @@ def test_noise_free_data_are_not_lengthened(clean_records):
     refinement = result.method["refinement"]
     assert refinement["applied"] is True
     assert refinement["chi2_per_dof"] < refine.CLEAN_CHI2
-    assert refinement["lengthening"] == {
-        "segments": refinement["segments"], "segment_seconds": refinement["segment_seconds"],
-        "rounds": 0, "iterations": 0, "chi2_per_dof": refinement["chi2_per_dof"],
-        "stopped": "clean"}
+    assert refinement["lengthening"] == _not_lengthened(refinement, "clean")
     assert result.estimates == pytest.approx(DUFFING["parameters"], rel=1e-8)
