@@ -50,6 +50,9 @@ class Loaded:
     notes: tuple[str, ...]
     velocity_gain: float | None  # noise gain of derived velocities, None when measured
     row_sources: tuple[tuple[str, int], ...]  # (source, first row) of each input table
+    # each trajectory's period and time step (`design.trajectory_scales`), None without a
+    # time column: found once, for the velocity check, the derivation and the plan
+    trajectory_scales: list[tuple[float | None, float]] | None
     file_rows: Any = None   # the row read of each row of the records, when rows were dropped
 
     def locate(self, row: int) -> tuple[str, int]:
@@ -61,9 +64,7 @@ class Loaded:
 
     def scales(self) -> list[tuple[float | None, float]] | None:
         """Each trajectory's period and time step, None without a time column."""
-        if self.records.t is None:
-            return None
-        return design.trajectory_scales(self.records, len(self.model.coordinates))
+        return self.trajectory_scales
 
     def durations(self) -> list[float] | None:
         """Each trajectory's length in seconds, None without a time column."""
@@ -131,11 +132,17 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
     row_sources = tuple((name, int(f)) for name, f in zip(sources, firsts, strict=True))
     records, file_rows = _split_gaps(records, options.gaps, row_sources, notes)
     labels = list(records.labels)
+    # from the coordinates, which a derivation of the velocities leaves as they are
+    scales = (None if records.t is None
+              else design.trajectory_scales(records, len(m.coordinates)))
+    period = None if scales is None else design.median_period(scales)
     if not derived and records.t is not None:
-        notes.extend(measurement.velocity_check(records, m.coordinates, m.velocities, mapping))
+        notes.extend(measurement.velocity_check(records, m.coordinates, m.velocities, mapping,
+                                                period))
     derivation = None
     if derived:
-        records, derivation = _derive_velocities(records, m, options.window, options.order)
+        records, derivation = _derive_velocities(records, m, options.window, options.order,
+                                                 period)
         notes.append(f"velocities derived from the positions (Savitzky-Golay, window "
                      f"{derivation[0]} samples, order {options.order}); their noise is "
                      "correlated with the positions'")
@@ -144,7 +151,7 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
     if derivation:
         data_info.update(velocity_window=derivation[0], velocity_order=options.order)
     return Loaded(m, records, _truth(metadata, m), data_info, tuple(notes),
-                  derivation[1] if derivation else None, row_sources, file_rows)
+                  derivation[1] if derivation else None, row_sources, scales, file_rows)
 
 
 class Reader:
@@ -655,9 +662,10 @@ def _locate(row_sources: tuple[tuple[str, int], ...], row: int) -> tuple[str, in
     return source, row - first + 1
 
 
-def _derive_velocities(records: Records, model: Model, window: int | None,
-                       order: int) -> tuple[Records, tuple[int, float]]:
-    """Records whose velocities come from Savitzky-Golay differentiation of the positions."""
+def _derive_velocities(records: Records, model: Model, window: int | None, order: int,
+                       period: float | None) -> tuple[Records, tuple[int, float]]:
+    """Records whose velocities come from Savitzky-Golay differentiation of the positions
+    (`period`, the dominant one, sets the default window)."""
     from hamid import measurement
 
     if records.t is None:
@@ -665,7 +673,6 @@ def _derive_velocities(records: Records, model: Model, window: int | None,
                          "(and its unit with --time-unit)")
     N = len(model.coordinates)
     if window is None:
-        period = design.dominant_period(records, N)
         dt = float(np.median(np.diff(records.t)))
         window = measurement.default_savgol_window(None if period is None else period / dt,
                                                    order)

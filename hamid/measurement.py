@@ -8,7 +8,6 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from hamid.design import dominant_period
 from hamid.errors import DataError, UsageError
 from hamid.records import Records
 
@@ -114,7 +113,7 @@ LAG_SIGNIFICANCE = 4.0   # standard errors: a lag the noise could fake is not sa
 
 
 def velocity_check(records: Records, coordinates: Sequence[str], velocities: Sequence[str],
-                   mapping: Mapping[str, str]) -> list[str]:
+                   mapping: Mapping[str, str], period: float | None) -> list[str]:
     """Warnings when the measured velocities disagree with the rate of change of the
     positions: a column in other units (mm with m/s), a wrong time unit, or a lag (a
     velocity channel filtered after the fact).
@@ -123,13 +122,12 @@ def velocity_check(records: Records, coordinates: Sequence[str], velocities: Seq
     the integral of its velocity and on the change of the velocity: x(t+s) - x(t) =
     ratio * integral(v) + lag * (v(t+s) - v(t)) to first order in a lag. A ratio beyond
     `VELOCITY_RATIO` either way is said, and so is a lag that acts like damping of ratio
-    over `LAG_DAMPING_RATIO` at the dominant period and is `LAG_SIGNIFICANCE` standard
-    errors from zero. Integrals rather than differences keep
+    over `LAG_DAMPING_RATIO` at the dominant `period` (None: no lag is judged) and is
+    `LAG_SIGNIFICANCE` standard errors from zero. Integrals rather than differences keep
     the position noise from being amplified.
     """
     assert records.t is not None
     N = len(coordinates)
-    period = dominant_period(records, N)
     warnings = []
     for k, (q, v) in enumerate(zip(coordinates, velocities, strict=True)):
         normal, right, squares, count = np.zeros((2, 2)), np.zeros(2), 0.0, 0

@@ -17,6 +17,7 @@ from helpers import hamid_command
 from scipy.integrate import solve_ivp
 
 import hamid
+from hamid import design
 from hamid.dissipation import Dissipation
 from hamid.errors import HamidError, ModelError, UsageError
 from hamid.measurement import velocity_check
@@ -226,7 +227,8 @@ def check(frame: pd.DataFrame) -> list[str]:
     groups = frame["trajectory"].to_numpy() - 1
     records = Records(frame[["x1", "x2", "v1", "v2"]].to_numpy(), frame["t"].to_numpy(),
                       groups, ("1", "2"))
-    return velocity_check(records, ("x1", "x2"), ("v1", "v2"), {})
+    return velocity_check(records, ("x1", "x2"), ("v1", "v2"), {},
+                          design.dominant_period(records, 2))
 
 
 def test_a_lag_of_the_velocities_is_measured_and_said():
