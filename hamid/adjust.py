@@ -96,7 +96,7 @@ class _Hermite:
         it (not a second copy)."""
         out = np.empty((len(self.Y), len(polys)), order="F")
         for k, poly in enumerate(polys):
-            out[:, k] = self.of(poly) if poly in self.known else self.made(poly)
+            out[:, k] = self.known[poly] if poly in self.known else self.made(poly)
             self.known[poly] = out[:, k]
         return out
 

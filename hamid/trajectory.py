@@ -140,6 +140,20 @@ class _Problem:
         tied[-1] = False
         return tied
 
+    @cached_property
+    def end_times(self) -> npt.NDArray[np.float64] | None:
+        """Each segment's time, from its start, of the state its tie compares with the next
+        one's first sample (its own last sample when untied); None without ties."""
+        if self.groups == len(self.pieces):
+            return None
+        t = self.records.t
+        assert t is not None
+        first = np.array([a for a, _ in self.pieces])
+        ends = np.array([tau[-1] for tau in self.tau])
+        tied = self.tied_to_next
+        ends[tied] = t[first[1:][tied[:-1]]] - t[first[:-1][tied[:-1]]]
+        return ends
+
     @property
     def span(self) -> float:
         """Seconds per group: the length cut, or the longest group's when tied."""
@@ -506,14 +520,7 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
                                       MAX_STEPS_PER_SAMPLE, MIN_STEP_BUDGET)
     batch_size = max(1, min(MAX_BATCH, BATCH_VALUES // (copies * n_states * max(map(len, tau)))))
     edges = np.linspace(0, S, -(-S // batch_size) + 1).round().astype(int)
-    ends = None
-    if problem.groups < S:
-        t = problem.records.t
-        assert t is not None
-        starts = np.array([a for a, _ in problem.pieces])
-        ends = np.array([tau[-1] for tau in problem.tau])
-        tied = problem.tied_to_next
-        ends[tied] = t[starts[1:][tied[:-1]]] - t[starts[:-1][tied[:-1]]]
+    ends = problem.end_times
     batches = []
     for lo, hi in zip(edges[:-1], edges[1:], strict=True):
         starts = np.repeat(X0[lo:hi][None], copies, axis=0)     # (copies, B, 2N)
