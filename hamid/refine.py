@@ -227,6 +227,8 @@ def _lengthened(fit: SegmentFit, period: float, progress: Callable[[str], None] 
     while True:
         try:
             longer = trajectory.join(fit, count, longest, progress)
+        except trajectory.TooUnstable:
+            longer, stopped = None, "unstable"
         except trajectory.RefinementFailed:
             longer, stopped = None, "failed"
         else:

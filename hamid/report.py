@@ -272,7 +272,8 @@ def _conditioning_section(result: Mapping[str, Any]) -> _Section:
 _LENGTHENING_STOPPED = {
     "whole": "one per trajectory", "longest": "the longest integrated at once",
     "misfit": "longer ones missed the recording beyond the noise",
-    "failed": "longer ones could not be fitted"}
+    "failed": "longer ones could not be fitted",
+    "unstable": "the motion too unstable over longer ones for their errors to hold"}
 
 
 def _refinement_checks(refinement: Mapping[str, Any]) -> list[tuple[str, str]]:

@@ -98,7 +98,7 @@ class LengtheningInfo(TypedDict):
     rounds: int                          # joins kept
     iterations: int                      # Gauss-Newton iterations of the last one kept
     chi2_per_dof: float
-    stopped: Literal["whole", "longest", "misfit", "failed"]
+    stopped: Literal["whole", "longest", "misfit", "failed", "unstable", "clean"]
 
 
 class RefinementInfo(TypedDict):

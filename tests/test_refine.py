@@ -391,6 +391,59 @@ def test_lengthened_bounds_cover_the_truth(system):
         assert 0.75 < spread / np.mean([p.stderr for p in parameters]) < 1.25, name
 
 
+# Henon-Heiles near its escape energy (0.145 and 0.140 of 1/6): chaotic over 200 s
+CHAOTIC = {"model": {"builtin": "henon-heiles"},
+           "parameters": {"a": 1.0, "b": 1.0, "c": 1.0, "d": -1 / 3},
+           "initial": [{"x": 0.0, "y": -0.1, "vx": 0.49, "vy": 0.2},
+                       {"x": 0.1, "y": 0.25, "vx": 0.35, "vy": -0.3}],
+           "simulate": {"t_end": 200.0, "dt": 0.05}}
+
+
+def test_the_chaotic_test_motion_is_chaotic():
+    """Independent of hamid: states 1e-9 apart part by over 1e4 times that in 200 s."""
+    from scipy.integrate import solve_ivp
+
+    def motion(_, s):
+        x, y, vx, vy = s
+        return [vx, vy, -x - 2 * x * y, -y - x * x + y * y]
+
+    for initial in CHAOTIC["initial"]:
+        start = np.array([initial[k] for k in ("x", "y", "vx", "vy")])
+        ends = [solve_ivp(motion, (0, 200), start + [dx, 0, 0, 0], rtol=1e-12,
+                          atol=1e-14).y[:, -1] for dx in (0.0, 1e-9)]
+        assert np.max(np.abs(ends[1] - ends[0])) > 1e-5
+
+
+def test_chaotic_motion_is_not_tied_beyond_what_its_errors_can_carry():
+    """Over chaotic motion a state step grows exponentially along tied segments: the
+    joins stop before 1,000-fold growth, and the truth is within the standard errors."""
+    result = hamid.fit(with_noise(hamid.simulate(CHAOTIC), 0.01, seed=100))
+    refinement = result.method["refinement"]
+    lengthening = refinement["lengthening"]
+    assert refinement["covariance"] == "misfit-scaled"
+    assert lengthening["stopped"] == "unstable"
+    assert refinement["segments"] > lengthening["segments"] > 2
+    assert re.search(r"lengthened +\d+ segments of up to [0-9.]+ s, misfit [0-9.]+ × noise "
+                     r"variance \(the motion too unstable over longer ones for their errors "
+                     r"to hold\)", render(result.to_dict(), "table", width=300))
+    for p in result.parameters:
+        assert abs(p.estimate - CHAOTIC["parameters"][p.name]) < 4 * p.stderr, p.name
+        assert p.stderr > 1e-6, p.name   # tied over 200 s it reported 1e-10 or 0
+
+
+@pytest.mark.slow
+def test_chaotic_motion_errors_are_the_spread():
+    """20 noise realizations of the chaotic record: the errors in units of the standard
+    errors have a root mean square near one (1e4 when tied whole)."""
+    clean = hamid.simulate(CHAOTIC)
+    z = []
+    for seed in range(20):
+        fit = hamid.fit(with_noise(clean, 0.01, seed=100 + seed))
+        z.append([(p.estimate - CHAOTIC["parameters"][p.name]) / p.stderr
+                  for p in fit.parameters])
+    assert np.sqrt(np.mean(np.square(z), axis=0)) == pytest.approx(1.0, abs=0.35)
+
+
 def _not_lengthened(refinement, stopped):
     """The report's lengthening of a fit whose first segments stood, for `stopped`."""
     return {"segments": refinement["segments"], "segment_seconds": refinement["segment_seconds"],

@@ -299,5 +299,5 @@ def test_tying_fails_where_the_state_steps_grow_too_much(monkeypatch):
     MAX_GROWTH the tied fit fails (and the refinement keeps the segments untied)."""
     short = _peng_fit(10.0)
     monkeypatch.setattr(trajectory, "MAX_GROWTH", 1e-3)
-    with pytest.raises(trajectory.RefinementFailed, match="too unstable to tie"):
+    with pytest.raises(trajectory.TooUnstable, match="too unstable to tie"):
         trajectory.join(short, 100, np.inf)
