@@ -88,6 +88,11 @@ class _Noise:
         beyond = self.used & ~self.given & (rms**2 >= CHI2_LIMIT * self.base**2)
         return dataclasses.replace(self, levels=np.where(beyond, rms, self.base))
 
+    @property
+    def any_raised(self) -> bool:
+        """Whether a level is above its base."""
+        return bool(np.any(self.levels > self.base))
+
     def misfit(self, fit: SegmentFit) -> float:
         """The fit's misfit per degree of freedom weighted by the base levels (the noise
         given or estimated from differences)."""
@@ -164,6 +169,9 @@ def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipat
             fit, noise = _beyond_noise(fit, noise, length, lambda weight: trajectory.fit(
                 model, records, damping, fit.theta, free, length, weight, progress,
                 "reweighted, "), progress)
+            # no level raised in the end: the first fit had stopped far from its minimum
+            # (over chaotic motion a first step can misjudge the misfit it heads for)
+            within = not noise.any_raised and fit.chi2_per_dof < CHI2_LIMIT
     except trajectory.RefinementFailed as exc:
         return None, {"applied": False, "reason": f"the integrated model does not fit the "
                       f"recording: {exc}"}

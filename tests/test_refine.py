@@ -431,6 +431,20 @@ def test_chaotic_motion_is_not_tied_beyond_what_its_errors_can_carry():
         assert p.stderr > 1e-6, p.name   # tied over 200 s it reported 1e-10 or 0
 
 
+def test_a_first_fit_stopped_far_off_is_within_the_noise_once_refitted():
+    """This noise on the chaotic record makes the first Gauss-Newton step head for a
+    misfit beyond the noise (a linear model wrong far from the minimum): the fit stops
+    there and is refitted at levels raised to its residuals, which then come back to the
+    noise. Nothing raised, the fit is within the noise after all: its covariance is
+    scaled by its misfit, not the sandwich, and its segments are joined."""
+    refinement = hamid.fit(with_noise(hamid.simulate(CHAOTIC), 0.01, seed=3)).method[
+        "refinement"]
+    assert {entry["source"] for entry in refinement["noise"].values()} == {"differences"}
+    assert refinement["noise_chi2_per_dof"] < refine.CHI2_LIMIT
+    assert refinement["covariance"] == "misfit-scaled"
+    assert refinement["lengthening"]["rounds"] >= 1
+
+
 @pytest.mark.slow
 def test_chaotic_motion_errors_are_the_spread():
     """20 noise realizations of the chaotic record: the errors in units of the standard
