@@ -267,12 +267,10 @@ def _corrections(phi: list[Polynomial], minus_E0: Polynomial, Y: np.ndarray,
 
 def _weighted_pairs(weight: np.ndarray, H: _Hermite,
                     pairs: Sequence[tuple[Polynomial, Polynomial]]) -> np.ndarray:
-    """Helper: weight @ self_pair(f, g) for each pair, in one product (as many small
-    ones, each a wait on BLAS's threads, took half the time on a busy machine)."""
-    biases = np.empty((len(H.Y), len(pairs)), order="F")
-    for j, (f, g) in enumerate(pairs):
-        biases[:, j] = H.self_pair(f, g)
-    return weight @ biases
+    """Helper: weight @ self_pair(f, g) for each pair. By einsum's own loop, not BLAS:
+    many short products through BLAS each waited on its threads, which on a busy
+    machine took half the time."""
+    return np.array([np.einsum("i,i->", weight, H.self_pair(f, g)) for f, g in pairs])
 
 
 def _block_pairs(H: _Hermite, weights: Sequence[np.ndarray],
