@@ -36,7 +36,7 @@ carry the self-pair bias as a mean, which the sandwich counts as variance.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -176,24 +176,17 @@ def adjusted_moments(block: Block, model: Model, records: Records, sigma: np.nda
     known = _known_side(model, fixed)
     if block.kind == "energy":
         phi, minus_E0 = _energy_functions(model, parameters, fixed)
-        functions, target = [phi], [minus_E0]
-        operators = [None if windows is None else windows.means]
-        coordinates = [None]
-    else:
-        assert windows is not None
-        lag = model.lagrangian
-        parts = (lag.L0, *lag.L)
-        coordinates = list(range(len(model.coordinates)))
-        functions, target, operators = [], [], [windows.Q_dpsi, windows.Q_psi]
-        for i in coordinates:
-            dv = [f.diff(model.velocities[i]) for f in parts]
-            dq = [f.diff(model.coordinates[i]) for f in parts]
-            functions.append(([dv[k + 1] for k in index], [dq[k + 1] for k in index]))
-            target.append((known(dv[0], dv[1:]), known(dq[0], dq[1:])))
-    H = _Hermite(records.X, sigma)
-    if block.kind == "energy":
-        return _energy_moments(block, functions[0], target[0], operators[0], H, records.group)
-    return _weak_moments(block, functions, target, operators, H)
+        return _energy_moments(block, phi, minus_E0, windows, records, sigma)
+    assert windows is not None
+    lag = model.lagrangian
+    parts = (lag.L0, *lag.L)
+    functions, target = [], []
+    for i in range(len(model.coordinates)):
+        dv = [f.diff(model.velocities[i]) for f in parts]
+        dq = [f.diff(model.coordinates[i]) for f in parts]
+        functions.append(([dv[k + 1] for k in index], [dq[k + 1] for k in index]))
+        target.append((known(dv[0], dv[1:]), known(dq[0], dq[1:])))
+    return _weak_moments(block, functions, target, windows, records, sigma)
 
 
 def adjusted_energy(block: Block, model: Model, records: Records, sigma: np.ndarray,
@@ -258,13 +251,40 @@ def _corrections(phi: list[Polynomial], minus_E0: Polynomial, Y: np.ndarray,
                  sigma: np.ndarray, self_weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Helper: the self-pair corrections AA, Ab of energy rows, a piece of samples at a
     time, with each sample's weight in them (c_s)."""
-    AA, Ab = np.zeros((len(phi), len(phi))), np.zeros(len(phi))
+    p = len(phi)
+    upper = list(zip(*np.triu_indices(p), strict=True))
+    pairs = [(phi[k], phi[m]) for k, m in upper] + [(f, minus_E0) for f in phi]
+    sums = np.zeros(len(pairs))
     for start in range(0, len(Y), solve.PIECE_ROWS):
         rows = slice(start, start + solve.PIECE_ROWS)
         H = _Hermite(Y[rows], sigma)
-        AA += [[self_weight[rows] @ H.self_pair(p, q) for q in phi] for p in phi]
-        Ab += [self_weight[rows] @ H.self_pair(p, minus_E0) for p in phi]
-    return AA, Ab
+        sums += _weighted_pairs(self_weight[rows], H, pairs)
+    AA = np.zeros((p, p))
+    for (k, m), value in zip(upper, sums, strict=False):
+        AA[k, m] = AA[m, k] = value
+    return AA, sums[len(upper):]
+
+
+def _weighted_pairs(weight: np.ndarray, H: _Hermite,
+                    pairs: Sequence[tuple[Polynomial, Polynomial]]) -> np.ndarray:
+    """Helper: weight @ self_pair(f, g) for each pair. By einsum's own loop, not BLAS:
+    many short products through BLAS each waited on its threads, which on a busy
+    machine took half the time."""
+    return np.array([np.einsum("i,i->", weight, H.self_pair(f, g)) for f, g in pairs])
+
+
+def _block_pairs(H: _Hermite, weights: Sequence[np.ndarray],
+                 pairs: Sequence[Sequence[tuple[Polynomial, Polynomial]]]) -> list[np.ndarray]:
+    """Helper: `_weighted_pairs` of each weight with its pairs, over the samples of H a
+    piece at a time (the biases of a block of windows' samples would be many columns of
+    them)."""
+    sums = [np.zeros(len(these)) for these in pairs]
+    for start in range(0, len(H.Y), solve.PIECE_ROWS):
+        rows = slice(start, start + solve.PIECE_ROWS)
+        piece = _Hermite(H.Y[rows], H.sigma)
+        for total, weight, these in zip(sums, weights, pairs, strict=True):
+            total += _weighted_pairs(weight[rows], piece, these)
+    return sums
 
 
 def _at(functions: Sequence[Polynomial], target: Polynomial, theta: Any) -> Polynomial:
@@ -278,89 +298,129 @@ def _pairs_at(functions: Sequence[Polynomial], g: Polynomial, H: _Hermite) -> np
         else np.zeros((len(H.Y), 0))
 
 
+def _energy_parts(windows: Windows | None, n_samples: int) -> Iterator[tuple[slice, slice, Any]]:
+    """Helper: energy rows a block at a time: the rows, the samples they are made of, and
+    the operator from those samples to the rows (the windows' means, or None for rows of
+    single samples, a piece of samples at a time)."""
+    if windows is None:
+        for start in range(0, n_samples, solve.PIECE_ROWS):
+            piece = slice(start, min(start + solve.PIECE_ROWS, n_samples))
+            yield piece, piece, None
+        return
+    for lo, hi, a, b in windows.blocks():
+        yield slice(lo, hi), slice(a, b), windows.means_part(lo, hi, a, b)
+
+
 def _energy_moments(block: Block, phi: list[Polynomial], minus_E0: Polynomial,
-                    P: Any, H: _Hermite, sample_group: np.ndarray) -> Moments:
-    """Energy rows (per sample, or window means P), centred within each trajectory."""
-    columns = H.columns(phi)
-    target = H.of(minus_E0)
+                    windows: Windows | None, records: Records, sigma: np.ndarray) -> Moments:
+    """Energy rows (per sample, or the windows' means P), centred within each trajectory,
+    made a block of rows at a time (`_energy_parts`)."""
+    Y, sample_group, p = records.X, records.group, len(phi)
     w = block.weight
     n_groups = int(sample_group.max()) + 1  # every trajectory, with windows or not
     W = np.bincount(block.group, weights=w, minlength=n_groups)
+    u = w / W[block.group]
     # c_s = sum_r w_r P_rs^2 - W_j (u'P)_s^2, u = w / W_j within the trajectory (P = I for
     # rows of single samples; every such trajectory has W > 0)
-    if P is None:
-        A, b, squares = columns, target, None
-        shares, own = w / W[block.group], w
-    else:
-        A, b, squares = P @ columns, P @ target, P.multiply(P)
-        shares, own = P.T @ (w / W[block.group]), squares.T @ w
-    centring = W[sample_group] * shares**2
-    self_weight = own - centring
-    AA = np.zeros((len(phi), len(phi)))
-    for k, m in zip(*np.triu_indices(len(phi)), strict=True):
-        AA[k, m] = AA[m, k] = self_weight @ H.self_pair(phi[k], phi[m])
-    Ab = np.array([self_weight @ H.self_pair(p, minus_E0) for p in phi])
+    A, b = np.empty((block.n_rows, p)), np.empty(block.n_rows)
+    self_weight, centring = np.zeros(len(Y)), np.zeros(len(Y))
+    for rows, samples, P in _energy_parts(windows, len(Y)):
+        H = _Hermite(Y[samples], sigma)
+        if P is None:
+            A[rows], b[rows] = H.columns(phi), H.of(minus_E0)
+            self_weight[samples], centring[samples] = w[rows], u[rows]
+        else:
+            A[rows], b[rows] = P @ H.columns(phi), P @ H.of(minus_E0)
+            self_weight[samples] += P.multiply(P).T @ w[rows]
+            centring[samples] += P.T @ u[rows]
+    centring **= 2
+    centring *= W[sample_group]
+    self_weight -= centring
+    AA, Ab = _corrections(phi, minus_E0, Y, sigma, self_weight)
+    del self_weight
 
     def row_shares(theta: Any) -> Any:
         """Each row's own self-pairs, less its weight's share of the centring term."""
-        d = _pairs_at(phi, _at(phi, minus_E0, theta), H)
-        total = np.stack([np.bincount(sample_group, weights=centring * d[:, k],
-                                      minlength=n_groups) for k in range(len(phi))], axis=1)
-        mine = w[:, None] * (d if squares is None else squares @ d)
-        H.release()
-        return mine - (w / W[block.group])[:, None] * total[block.group]
+        g = _at(phi, minus_E0, theta)
+        total, mine = np.zeros((n_groups, p)), np.empty((block.n_rows, p))
+        done = 0   # the samples before are in `total`: neighbouring blocks share some
+        for rows, samples, P in _energy_parts(windows, len(Y)):
+            d = _pairs_at(phi, g, _Hermite(Y[samples], sigma))
+            new = slice(max(done, samples.start), samples.stop)
+            for k in range(p):
+                total[:, k] += np.bincount(sample_group[new], minlength=n_groups,
+                                           weights=centring[new] * d[new.start
+                                                                     - samples.start:, k])
+            done = samples.stop
+            mine[rows] = w[rows, None] * (d if P is None else P.multiply(P) @ d)
+        return mine - u[:, None] * total[block.group]
 
-    H.release()
-    return Moments(dataclasses.replace(block, A=A, b=b), AA.reshape(len(phi), len(phi)), Ab,
-                   row_shares)
+    return Moments(dataclasses.replace(block, A=A, b=b), AA, Ab, row_shares)
 
 
-def _weak_moments(block: Block, functions: list[Any], target: list[Any], operators: list[Any],
-                  H: _Hermite) -> Moments:
-    """Weak rows (window, coordinate) = sum over operators (psi', psi) of Q f(y)."""
+def _weak_moments(block: Block, functions: list[Any], target: list[Any], windows: Windows,
+                  records: Records, sigma: np.ndarray) -> Moments:
+    """Weak rows (window, coordinate) = sum over operators (psi', psi) of Q f(y), made a
+    block of windows at a time (`Windows.blocks`)."""
     N = len(functions)
     p = len(functions[0][0])
-    n_windows = operators[0].shape[0]
-    A = np.zeros((n_windows * N, p))
-    b = np.zeros(n_windows * N)
+    A = np.zeros((windows.n_windows * N, p))
+    b = np.zeros(windows.n_windows * N)
     AA, Ab = np.zeros((p, p)), np.zeros(p)
-    for i, ((fv, fq), (tv, tq)) in enumerate(zip(functions, target, strict=True)):
-        per_operator = [fv, fq]
-        per_target = [tv, tq]
-        for Q, fs, t in zip(operators, per_operator, per_target, strict=True):
-            if p:
-                A[i::N] += Q @ H.columns(fs)
-            b[i::N] += Q @ H.of(t)
-        w = block.weight[i::N]
-        for a, (Qa, fa) in enumerate(zip(operators, per_operator, strict=True)):
-            live = [k for k in range(p) if not fa[k].is_zero()]
-            for c, (Qc, fc, tc) in enumerate(zip(operators, per_operator, per_target,
-                                                 strict=True)):
-                pair = Qa.multiply(Qc).T @ w  # c^ac_s, which is c^ca_s
-                for k in live:
-                    Ab[k] += pair @ H.self_pair(fa[k], tc)
-                if c < a:   # the pairs (a, c) are those of (c, a), transposed
-                    continue
-                for k in live:
-                    for m in range(k if a == c else 0, p):
-                        if fc[m].is_zero():
-                            continue
-                        value = pair @ H.self_pair(fa[k], fc[m])
-                        AA[k, m] += value
-                        if a != c or m != k:
-                            AA[m, k] += value
-        H.release()   # this coordinate's functions are not asked for again
+    for lo, hi, operators, H in _weak_parts(windows, records, sigma):
+        for i, ((fv, fq), (tv, tq)) in enumerate(zip(functions, target, strict=True)):
+            per_operator = [fv, fq]
+            per_target = [tv, tq]
+            rows = slice(lo * N + i, hi * N, N)
+            for Q, fs, t in zip(operators, per_operator, per_target, strict=True):
+                if p:
+                    A[rows] += Q @ H.columns(fs)
+                b[rows] += Q @ H.of(t)
+            w = block.weight[rows]
+            # per pair of operators (a, c): c^ac_s, which is c^ca_s, and the pairs of
+            # functions whose self-pair biases it weighs: those of Ab, and of AA for
+            # c >= a (the pairs (a, c) of AA are those of (c, a), transposed)
+            terms, weights, pairs = [], [], []
+            for a, (Qa, fa) in enumerate(zip(operators, per_operator, strict=True)):
+                live = [k for k in range(p) if not fa[k].is_zero()]
+                for c, (Qc, fc, tc) in enumerate(zip(operators, per_operator, per_target,
+                                                     strict=True)):
+                    both = [(k, m) for k in live for m in range(k if a == c else 0, p)
+                            if c >= a and not fc[m].is_zero()]
+                    terms.append((live, both, a != c))
+                    weights.append(Qa.multiply(Qc).T @ w)
+                    pairs.append([(fa[k], tc) for k in live]
+                                 + [(fa[k], fc[m]) for k, m in both])
+            values = _block_pairs(H, weights, pairs)
+            for (live, both, mixed), value in zip(terms, values, strict=True):
+                Ab[live] += value[:len(live)]
+                for (k, m), v in zip(both, value[len(live):], strict=True):
+                    AA[k, m] += v
+                    if mixed or m != k:
+                        AA[m, k] += v
+            H.release()   # this coordinate's functions are not asked for again
 
     def row_shares(theta: Any) -> Any:
-        out = np.zeros((n_windows * N, p))
-        for i, (per_operator, per_target) in enumerate(zip(functions, target, strict=True)):
-            w = block.weight[i::N]
-            for Qa, fa in zip(operators, per_operator, strict=True):
-                for Qc, fc, tc in zip(operators, per_operator, per_target, strict=True):
-                    d = _pairs_at(fa, _at(fc, tc, theta), H)
-                    out[i::N] += w[:, None] * (Qa.multiply(Qc) @ d)
-            H.release()
+        out = np.zeros((windows.n_windows * N, p))
+        for lo, hi, operators, H in _weak_parts(windows, records, sigma):
+            for i, (per_operator, per_target) in enumerate(zip(functions, target,
+                                                               strict=True)):
+                rows = slice(lo * N + i, hi * N, N)
+                w = block.weight[rows]
+                for Qa, fa in zip(operators, per_operator, strict=True):
+                    for Qc, fc, tc in zip(operators, per_operator, per_target, strict=True):
+                        d = _pairs_at(fa, _at(fc, tc, theta), H)
+                        out[rows] += w[:, None] * (Qa.multiply(Qc) @ d)
+                H.release()
         return out
 
-    H.release()
     return Moments(dataclasses.replace(block, A=A, b=b), AA, Ab, row_shares)
+
+
+def _weak_parts(windows: Windows, records: Records,
+                sigma: np.ndarray) -> Iterator[tuple[int, int, list[Any], _Hermite]]:
+    """Helper: blocks of windows lo:hi, their operators (psi', psi) on the samples they
+    cover, and those samples' unbiased estimates."""
+    for lo, hi, a, b in windows.blocks():
+        psi, dpsi = windows.operators(lo, hi)
+        yield lo, hi, [dpsi[:, a:b], psi[:, a:b]], _Hermite(records.X[a:b], sigma)

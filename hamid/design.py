@@ -241,7 +241,7 @@ class Windows:
         if not self.n_windows:
             return sparse.csr_matrix((0, len(self.t)))
         return sparse.vstack([self.operators(lo, hi, derivative=bool(which))[which]
-                              for lo, hi, _, _ in self._blocks()], format="csr")
+                              for lo, hi, _, _ in self.blocks()], format="csr")
 
     def operators(self, lo: int, hi: int, derivative: bool = True) -> tuple[Any, Any]:
         """The rows lo:hi of Q_psi and of Q_dpsi (None unless `derivative`), CSR matrices
@@ -282,18 +282,19 @@ class Windows:
     def means(self) -> Any:
         """Operator of the psi-weighted window means: rows of Q_psi divided by their sums
         (made on each use)."""
-        return self._means(0, self.n_windows, 0, len(self.t))
+        return self.means_part(0, self.n_windows, 0, len(self.t))
 
-    def _means(self, lo: int, hi: int, a: int, b: int) -> Any:
-        """Helper: the rows lo:hi of `means`, its columns (samples) a:b."""
+    def means_part(self, lo: int, hi: int, a: int, b: int) -> Any:
+        """The rows lo:hi of `means`, its columns (samples) a:b (a block of `blocks`)."""
         from scipy import sparse
 
         rows = self.operators(lo, hi, derivative=False)[0][:, a:b]
         mass = rows @ np.ones(b - a)
         return sparse.diags(1.0 / mass) @ rows
 
-    def _blocks(self) -> Iterator[tuple[int, int, int, int]]:
-        """Helper: blocks of windows lo:hi and the samples a:b they cover."""
+    def blocks(self) -> Iterator[tuple[int, int, int, int]]:
+        """Blocks of windows lo:hi and the samples a:b they cover, in order: what is made
+        for one block stays small however long the record."""
         for lo in range(0, self.n_windows, _WINDOW_BLOCK):
             hi = min(lo + _WINDOW_BLOCK, self.n_windows)
             yield lo, hi, int(self.first[lo]), int(self.last[hi - 1]) + 1
@@ -303,14 +304,14 @@ class Windows:
         sum as in one product; the operator and the values of all samples are not copied,
         as a product with all of them would copy values not in C order)."""
         return np.concatenate([np.zeros((0, *values.shape[1:]))] + [
-            self._means(lo, hi, a, b) @ values[a:b] for lo, hi, a, b in self._blocks()])
+            self.means_part(lo, hi, a, b) @ values[a:b] for lo, hi, a, b in self.blocks()])
 
     def spread(self, values: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         """`means.T @ values`: values of the windows spread over their samples, a block of
         windows at a time."""
         total = np.zeros((len(self.t), *values.shape[1:]))
-        for lo, hi, a, b in self._blocks():
-            total[a:b] += self._means(lo, hi, a, b).T @ values[lo:hi]
+        for lo, hi, a, b in self.blocks():
+            total[a:b] += self.means_part(lo, hi, a, b).T @ values[lo:hi]
         return total
 
     def psi_at(self, t: npt.NDArray[np.float64], interval: npt.NDArray[np.int64],

@@ -12,7 +12,7 @@ import pytest
 from conftest import DUFFING, PENG, TWO_MASS, with_noise
 
 import hamid
-from hamid import adjust, design
+from hamid import adjust, design, solve
 from hamid.model import load_model, model_from_spec
 from hamid.records import Records
 
@@ -227,3 +227,116 @@ def test_bias_corrected_bounds_hold_the_truth_as_often_as_they_say(system, t_end
     assert np.all(np.abs(mean) < 1 / 3), mean
     assert np.all((spread >= 0.8) & (spread <= 1.2)), spread
     assert np.all((coverage >= 0.90) & (coverage <= 0.98)), coverage
+
+
+# The adjusted moments a block of windows (and a piece of samples) at a time, against the
+# same moments worked out here over the whole record with dense operators.
+
+def _unbiased(terms: dict, Y: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """sum c prod_j s_j^n He_n(y_j / s_j) over the terms {exponents: c} (numpy's HermiteE)."""
+    from numpy.polynomial import hermite_e
+
+    out = np.zeros(len(Y))
+    for powers, c in terms.items():
+        term = np.full(len(Y), float(c))
+        for j, n in enumerate(powers):
+            term *= sigma[j] ** n * hermite_e.hermeval(Y[:, j] / sigma[j], [0] * n + [1])
+        out += term
+    return out
+
+
+def _times(f: dict, g: dict) -> dict:
+    out: dict = {}
+    for ef, cf in f.items():
+        for eg, cg in g.items():
+            key = tuple(a + b for a, b in zip(ef, eg, strict=True))
+            out[key] = out.get(key, 0.0) + cf * cg
+    return out
+
+
+def _bias(f: dict, g: dict, Y: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """H[fg] - H[f] H[g] at every sample."""
+    return _unbiased(_times(f, g), Y, sigma) - _unbiased(f, Y, sigma) * _unbiased(g, Y, sigma)
+
+
+def _combined(functions: list, theta, target: dict) -> dict:
+    """sum_k theta_k f_k - target."""
+    out: dict = {}
+    for f, c in [*zip(functions, theta, strict=True), (target, -1.0)]:
+        for e, v in f.items():
+            out[e] = out.get(e, 0.0) + c * v
+    return out
+
+
+def _dense_moments(functions: list, target: dict, operators: list, block, sample_group,
+                   Y, sigma, theta):
+    """A, b, AA, Ab and the rows' shares at theta of rows sum_a Q^a f^a(y) (one function
+    per operator a and column), centred within trajectories when the block has levels:
+    c^ac_s = sum_r w_r Q^a_rs Q^c_rs, less W_j (u'Q)_s^2 for levels (u = w / W_j)."""
+    w, p = block.weight, len(functions[0])
+    A = sum(Q @ np.column_stack([_unbiased(f, Y, sigma) for f in fs])
+            for Q, fs in zip(operators, functions, strict=True))
+    b = sum(Q @ _unbiased(t, Y, sigma) for Q, t in zip(operators, target, strict=True))
+    AA, Ab = np.zeros((p, p)), np.zeros(p)
+    shares = np.zeros((block.n_rows, p))
+    for Qa, fa in zip(operators, functions, strict=True):
+        for Qc, fc, tc in zip(operators, functions, target, strict=True):
+            c = (Qa * Qc).T @ w
+            d = np.column_stack([_bias(fa[k], _combined(fc, theta, tc), Y, sigma)
+                                 for k in range(p)])
+            mine = w[:, None] * ((Qa * Qc) @ d)
+            if block.has_level:
+                W = np.bincount(block.group, weights=w)
+                u = w / W[block.group]
+                centring = W[sample_group] * ((Qa.T @ u) * (Qc.T @ u))
+                c = c - centring
+                total = np.stack([np.bincount(sample_group, weights=centring * d[:, k])
+                                  for k in range(p)], axis=1)
+                mine -= u[:, None] * total[block.group]
+            shares += mine
+            AA += [[c @ _bias(fa[k], fc[m], Y, sigma) for m in range(p)] for k in range(p)]
+            Ab += [c @ _bias(fa[k], tc, Y, sigma) for k in range(p)]
+    return A, b, AA, Ab, shares
+
+
+@pytest.mark.parametrize("kind", ["energy", "window means", "weak"])
+def test_the_moments_made_by_blocks_are_those_of_the_whole_record(monkeypatch, kind):
+    """A growing mass (its rows pair the noise of x and v, its weak rows the operators
+    psi and psi'), with weights that are not 1: the adjusted rows,
+    the corrections AA, Ab and the rows' shares equal a dense computation over all
+    samples, with blocks of 5 windows (and pieces of 97 samples) as with one block."""
+    model, records, sigma = _records(GROWING_MASS, 0.03)
+    rng = np.random.default_rng(5)
+    noisy = dataclasses.replace(records, X=records.X + sigma * rng.standard_normal(
+        records.X.shape))
+    block, spans = _blocks(model, noisy, seed=6)[["energy", "window means", "weak"]
+                                                 .index(kind)]
+    n = len(noisy.X)
+    theta = rng.uniform(0.5, 1.5, len(model.parameters))   # m2, k, k3
+    if kind == "weak":   # dL/dv = (1 + m2 x^2) v, dL/dq = m2 x v^2 - k x - k3 x^3
+        zero = {(0, 0): 0.0}
+        functions = [[{(2, 1): 1.0}, zero, zero], [{(1, 2): 1.0}, {(1, 0): -1.0},
+                                                  {(3, 0): -1.0}]]
+        target = [{(0, 1): -1.0}, zero]
+        operators = [spans.Q_dpsi.toarray(), spans.Q_psi.toarray()]
+    else:   # E = v^2/2 + m2 x^2 v^2/2 + k x^2/2 + k3 x^4/4
+        functions = [[{(2, 2): 0.5}, {(2, 0): 0.5}, {(4, 0): 0.25}]]
+        target = [{(0, 2): -0.5}]
+        operators = [np.eye(n) if spans is None else spans.means.toarray()]
+    expected = _dense_moments(functions, target, operators, block, noisy.group, noisy.X,
+                              sigma, theta)
+    assert np.abs(expected[3]).max() > 1e-3 * np.abs(expected[2]).max()   # Ab is no 0
+    made = {}
+    for size, rows in ((10**9, 10**9), (5, 97)):
+        monkeypatch.setattr(design, "_WINDOW_BLOCK", size)
+        monkeypatch.setattr(solve, "PIECE_ROWS", rows)
+        moments = adjust.adjusted_moments(block, model, noisy, sigma, spans,
+                                          list(model.parameters), {})
+        made[size] = (moments.block.A, moments.block.b, moments.AA, moments.Ab,
+                      moments.shares(theta))
+        for name, value, truth in zip(["A", "b", "AA", "Ab", "shares"], made[size],
+                                      expected, strict=True):
+            np.testing.assert_allclose(value, truth, rtol=1e-9,
+                                       atol=1e-12 * np.abs(truth).max(), err_msg=name)
+    for one, blocks in zip(made[10**9], made[5], strict=True):
+        np.testing.assert_allclose(blocks, one, rtol=1e-12, atol=1e-14 * np.abs(one).max())
