@@ -3,7 +3,11 @@ its values wanted at given times: what the trajectory refinement integrates with
 
 `integrate` is scipy's ``solve_ivp(method="DOP853", t_eval=...)`` cut to what the
 refinement uses, step for step the same arithmetic (initial step, error norm, step-size
-control, dense output), so that the two agree to round-off. Written out here because
+control), so that the two take the same steps; the dense output is scipy's nested form
+expanded into one matrix product, which agrees with it to round-off (1e-13 relative).
+The error norm must stay scipy's sums in scipy's order: its estimate cancels down to
+round-off on small steps, and another order of summing moves the step sizes and the
+values at the tolerance. Written out here because
 importing `scipy.integrate` costs a small fit more than its integration (it imports
 `scipy.optimize` and `scipy.sparse`: about 0.15 s), and because the refinement calls it
 for a few large systems, where the per-step bookkeeping of the general solver (a
@@ -258,7 +262,7 @@ def integrate(fun: Function, y0: Array, times: Array, rtol: float, atol: Array,
     written = steps = 0
     while t < t_end:
         min_step = 10 * abs(np.nextafter(t, np.inf) - t)
-        h_abs, rejected = max(h_abs, min_step), False
+        h_abs, rejected, size = max(h_abs, min_step), False, np.abs(y)
         while True:
             if h_abs < min_step:
                 raise IntegrationFailed("Required step size is less than spacing between "
@@ -270,7 +274,11 @@ def integrate(fun: Function, y0: Array, times: Array, rtol: float, atol: Array,
             h = t_new - t
             h_abs = abs(h)
             y_new, f_new = _step(fun, t, y, f, h, K)
-            error = _error_norm(K, h, atol + np.maximum(np.abs(y), np.abs(y_new)) * rtol)
+            scale = np.abs(y_new)
+            np.maximum(scale, size, out=scale)
+            scale *= rtol
+            scale += atol
+            error = _error_norm(K, h, scale)
             if error < 1:
                 factor = (MAX_FACTOR if error == 0
                           else min(MAX_FACTOR, SAFETY * error ** ERROR_EXPONENT))
@@ -281,7 +289,7 @@ def integrate(fun: Function, y0: Array, times: Array, rtol: float, atol: Array,
         stop = int(np.searchsorted(times, t_new, side="right"))
         if stop > written:
             x = (times[written:stop] - t) / h
-            out[written:stop] = _interpolate(_dense(fun, t, y, y_new, f_new, h, K), y, x)
+            _interpolate(_dense(fun, t, y, y_new, f_new, h, K), y, x, out[written:stop])
             written = stop
         t, y, f = t_new, y_new, f_new
     return out
@@ -309,17 +317,27 @@ def _step(fun: Function, t: float, y: Array, f: Array, h: float,
     """One step of h from (t, y): the new state and its derivative; the stages in K."""
     K[0] = f
     for s in range(1, N_STAGES):
-        K[s] = fun(t + _C[s] * h, y + np.dot(K[:s].T, _A[s, :s]) * h)
-    y_new = y + h * np.dot(K[:N_STAGES].T, _B)
+        K[s] = fun(t + _C[s] * h, _stage(K, s, _A[s, :s], h, y))
+    y_new = _stage(K, N_STAGES, _B, h, y)
     K[N_STAGES] = f_new = fun(t + h, y_new)
     return y_new, f_new
+
+
+def _stage(K: Array, s: int, a: Array, h: float, y: Array) -> Array:
+    """y + h sum_j a_j K_j over the first s stages, rounded as scipy does (a product by
+    h after the sum), without temporaries."""
+    dy = np.dot(K[:s].T, a)
+    dy *= h
+    dy += y
+    return dy
 
 
 def _error_norm(K: Array, h: float, scale: Array) -> float:
     """The step's error relative to `scale`: the 5th-order estimate corrected by the 3rd."""
     stages = K[:N_STAGES + 1].T
-    err5 = np.dot(stages, E5) / scale
-    err3 = np.dot(stages, E3) / scale
+    err5, err3 = np.dot(stages, E5), np.dot(stages, E3)
+    err5 /= scale
+    err3 /= scale
     err5_2, err3_2 = np.linalg.norm(err5) ** 2, np.linalg.norm(err3) ** 2
     if err5_2 == 0 and err3_2 == 0:
         return 0.0
@@ -330,21 +348,24 @@ def _dense(fun: Function, t: float, y: Array, y_new: Array, f_new: Array, h: flo
            K: Array) -> Array:
     """The coefficients of the step's interpolant (three more stages)."""
     for s, (a, c) in enumerate(zip(_A_EXTRA, _C_EXTRA, strict=True), start=N_STAGES + 1):
-        K[s] = fun(t + c * h, y + np.dot(K[:s].T, a[:s]) * h)
+        K[s] = fun(t + c * h, _stage(K, s, a[:s], h, y))
     F = np.empty((INTERPOLATOR_POWER, len(y)))
     f_old, delta = K[0], y_new - y
     F[0] = delta
     F[1] = h * f_old - delta
     F[2] = 2 * delta - h * (f_new + f_old)
-    F[3:] = h * np.dot(D, K)
+    np.dot(D, K, out=F[3:])
+    F[3:] *= h
     return F
 
 
-def _interpolate(F: Array, y: Array, x: Array) -> Array:
-    """The interpolant at fractions `x` of the step, one row per fraction."""
-    x = x[:, None]
-    out = np.zeros((len(x), len(y)))
-    for i, f in enumerate(F[::-1]):
-        out += f
-        out *= x if i % 2 == 0 else 1 - x
-    return out + y
+def _interpolate(F: Array, y: Array, x: Array, out: Array) -> None:
+    """The interpolant at fractions `x` of the step into `out`, one row per fraction: one
+    product of F with its basis x, x(1 - x), x^2(1 - x), x^2(1 - x)^2, ... (scipy's
+    nested form, expanded: the same to round-off)."""
+    basis = np.empty((len(x), INTERPOLATOR_POWER))
+    basis[:, 0] = x
+    for j in range(1, INTERPOLATOR_POWER):
+        basis[:, j] = basis[:, j - 1] * (1 - x if j % 2 else x)
+    np.dot(basis, F, out=out)
+    out += y

@@ -26,13 +26,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from functools import cached_property, partial
+from functools import cached_property
 
 import numpy as np
 import numpy.typing as npt
 
 from hamid.dissipation import Dissipation
-from hamid.expr import Func
+from hamid.expr import Func, Stack
 from hamid.model import Model
 
 __all__ = ["Dynamics", "Motion"]
@@ -73,15 +73,15 @@ class _Terms:
         return cls(N, mixed, upper, forces, mass, constant)
 
     @cached_property
-    def force_stack(self) -> Callable[[Array], Array]:
+    def force_stack(self) -> Stack:
         return Func.stack([f for row in self.forces for f in row])
 
     @cached_property
-    def mass_stack(self) -> Callable[[Array], Array]:
+    def mass_stack(self) -> Stack:
         return Func.stack([f for row in self.mass for f in row])
 
     @cached_property
-    def full_stack(self) -> Callable[[Array], Array]:
+    def full_stack(self) -> Stack:
         """Forces, mixed and mass entries in one call, for a mass that changes with q."""
         return Func.stack([f for forces, mass in zip(self.forces, self.mass, strict=True)
                            for f in (*forces, *mass)])
@@ -156,68 +156,79 @@ class Motion:
     (trajectories, or copies of segments). Made by `Dynamics.at`.
 
     What keeps the calls cheap (each runs once per integrator stage):
-    - everything the equations need comes from one compiled call (`Func.stack`);
-    - a constant mass matrix is inverted once: with shared weights its inverse is folded
-      into the forces, so that call returns the accelerations themselves; with weights
-      per state it is applied by a product and a sum over (N, N, n), much faster than
-      einsum over n;
-    - with weights per state, values are broadcast only when they are constant
-      (np.broadcast_to costs about 10 us a call);
+    - everything the equations need comes from one compiled call (`Func.stack`), the
+      parts weighed state by state inside it when the weights are per state
+      (`Func.stack_combined`: a polynomial's coefficients are weighed once, not its
+      values at every call);
+    - a constant mass matrix is inverted once and folded into the forces, so that the
+      call returns the accelerations themselves (unless velocity-dependent forces must be
+      added first: then its inverse is applied by a product and a sum over (N, N, n),
+      much faster than einsum over n);
     - a changing mass matrix is solved by division (N = 1), Cramer's rule (N = 2, where a
       batched LU costs far more) or LU.
     """
 
     def __init__(self, terms: _Terms, weights: Array | None, forces: _Forces | None,
                  drained: bool):
-        self.n = N = terms.n
-        self.rows = 2 * N + bool(drained)
+        self.n = terms.n
+        self.rows = 2 * terms.n + bool(drained)
         self.drained = drained
         self.constant_mass = terms.constant_mass
         self._terms, self._weights, self._forces = terms, weights, forces
         self._folded = False
-        self._inverse: Array | None = None   # (N, N) folded, or (N, N, n) per state
-        self._mass: Array | None = None      # constant mass entries of one coordinate, (1, n)
+        self._inverse: Array | None = None   # (N, N) shared, or (N, N, n) per state
         stack = self._invert_constant_mass() if terms.constant_mass else None
         if stack is None:
-            stack = terms.full_stack
-        # with shared weights the stack's values are the equations' own: called directly
-        self._values = stack if weights is None else partial(self._weighted, stack)
+            stack = terms.full_stack if weights is None else self._weighted(terms.full_stack)
+        self._values = stack
 
     def _invert_constant_mass(self) -> Callable[[Array], Array] | None:
         """Invert a constant mass matrix once; the stack that goes with the inverse."""
         N, terms, weights = self.n, self._terms, self._weights
         M = self.mass_matrix(np.zeros((2 * N, 1 if weights is None else weights.shape[1])))
-        if weights is not None and N == 1:
-            self._mass = M[:, 0, 0][None]   # a division is as cheap as a product
-            return terms.force_stack
         try:
             inverse = np.linalg.inv(M)
         except np.linalg.LinAlgError:
             # a singular one is no kinetic energy: left to the general path, where the
             # simulator's check names it before any step and the refinement's solve fails
             return None
-        if weights is not None:
-            self._inverse = inverse.transpose(1, 2, 0).copy()
-            return terms.force_stack
-        # (dM/dq) v vanishes, and M^-1 dL/dq are the accelerations
-        self._inverse = inverse[0]
+        if weights is None:
+            # (dM/dq) v vanishes, and M^-1 dL/dq are the accelerations
+            self._inverse = inverse[0]
+            self._folded = True
+            return Func.stack([Func.combine(terms.forces[0][:N], [float(x) for x in row])
+                               for row in self._inverse])
+        self._inverse = inverse.transpose(1, 2, 0).copy()
+        if terms.mixed:   # added to the forces before the inverse applies
+            return self._weighted(terms.force_stack)
         self._folded = True
-        return Func.stack([Func.combine(terms.forces[0][:N], [float(x) for x in row])
-                           for row in self._inverse])
+        return self._weighted(terms.force_stack, self._inverse)
 
-    def _weighted(self, stack: Callable[[Array], Array], Y: Array) -> Array:
-        """The stack's values at Y, the parts weighed state by state when they have weights."""
-        values = stack(Y)
-        if self._weights is None:
-            return values
-        parts, n = self._weights.shape
-        if values.shape[1:] != (n,):   # constant entries (broadcast is slow)
-            values = np.broadcast_to(values, (len(values), n))
-        return np.einsum("pfn,pn->fn", values.reshape(parts, -1, n), self._weights)
+    def _weighted(self, stack: Stack, mix: Array | None = None) -> Callable[[Array], Array]:
+        """The stack's values (F of each part, part after part) summed with each state's
+        weights, then mixed by `mix` (G, F, n) when given: a callable of the states
+        (2N, n) returning (F or G, n)."""
+        W = self._weights
+        assert W is not None
+        P, n = W.shape
+        F = stack.n_funcs // P
+        if mix is None:
+            mix = np.broadcast_to(np.eye(F)[..., None], (F, F, n))
+        K = mix[:, None] * W[None, :, None]                  # (G, P, F, n)
+        return stack.combined(K.reshape(len(mix), P * F, n))
+
+    def _apply_inverse(self, x: Array) -> Array:
+        """The constant mass matrix's inverse times x (N, n)."""
+        assert self._inverse is not None
+        if self._inverse.ndim == 2:
+            return self._inverse @ x
+        return (self._inverse * x).sum(axis=1)
 
     def mass_matrix(self, Y: Array) -> Array:
         """M at states Y, shape (2N, ...) -> (..., N, N)."""
-        return _assemble(self._weighted(self._terms.mass_stack, Y), self._terms.upper, self.n)
+        stack = self._terms.mass_stack
+        values = stack(Y) if self._weights is None else self._weighted(stack)(Y)
+        return _assemble(values, self._terms.upper, self.n)
 
     def accelerations(self, Y: Array) -> Array:
         """a (N, n) at states Y (2N, n)."""
@@ -233,8 +244,7 @@ class Motion:
             if forces is None:
                 out[:] = values
             else:
-                assert self._inverse is not None
-                np.add(values, self._inverse @ forces, out=out)
+                np.add(values, self._apply_inverse(forces), out=out)
             return
         N, mixed = self.n, self._terms.mixed
         rhs = values[:N]
@@ -244,9 +254,9 @@ class Motion:
         if forces is not None:
             rhs += forces
         if self._inverse is not None:
-            out[:] = (self._inverse * rhs).sum(axis=1)
+            out[:] = self._apply_inverse(rhs)
             return
-        upper = self._mass if self._mass is not None else values[N + len(mixed):]
+        upper = values[N + len(mixed):]
         if N == 1:
             out[0] = rhs[0] / upper[0]
         elif N == 2:  # Cramer's rule: a batched LU costs far more at this size

@@ -33,6 +33,7 @@ __all__ = [
     "MAX_LENGTH",
     "Func",
     "Polynomial",
+    "Stack",
     "Symbolic",
     "parse",
     "split_linear",
@@ -300,7 +301,7 @@ class Func:
         return kinds.pop()._combine(funcs, weights)
 
     @staticmethod
-    def stack(funcs: Sequence[Func]) -> Callable[[npt.NDArray[np.float64]], np.ndarray]:
+    def stack(funcs: Sequence[Func]) -> Stack:
         """One compiled evaluation of several functions of one kind and the same variables.
 
         The returned callable takes the state with the variables on the first axis,
@@ -311,6 +312,25 @@ class Func:
         if len(kinds) != 1:
             raise TypeError("cannot stack functions of different kinds")
         return kinds.pop()._stack(funcs)
+
+
+class Stack:
+    """Several functions evaluated together (`Func.stack`)."""
+
+    n_funcs: int
+
+    def __call__(self, Xt: npt.NDArray[np.float64]) -> np.ndarray:
+        raise NotImplementedError
+
+    def combined(self, K: npt.NDArray[np.float64]
+                 ) -> Callable[[npt.NDArray[np.float64]], np.ndarray]:
+        """Linear combinations of the functions, their own for each state.
+
+        `K` (G, n_funcs, n) is fixed; the returned callable takes n states ``Xt``
+        (n_variables, n) and returns shape (G, n): sum_k K[g, k, j] f_k(Xt[:, j]). Here
+        the values weighed at every call; polynomials fold K into their coefficients once.
+        """
+        return lambda Xt: np.einsum("gkn,kn->gn", K, self(Xt))
 
 
 @dataclass(frozen=True, eq=False)
@@ -379,7 +399,7 @@ class Polynomial(Func):
                            self.variables)
 
 
-class _PolynomialStack:
+class _PolynomialStack(Stack):
     """Several polynomials as one table of their monomials times one coefficient matrix.
 
     The table holds the constant (if used), every variable, then the monomials of degree
@@ -423,6 +443,7 @@ class _PolynomialStack:
                                     slice(j, j + 1)))
         self.n_variables = n_vars
         self.n_rows = len(order)
+        self.n_funcs = len(funcs)
         self.coefficients = np.zeros((len(funcs), len(order)))
         for i, f in enumerate(funcs):
             assert isinstance(f, Polynomial)
@@ -438,19 +459,28 @@ class _PolynomialStack:
     def __call__(self, Xt: npt.NDArray[np.float64]) -> np.ndarray:
         Xt = np.asarray(Xt, dtype=np.float64)
         if Xt.ndim == 2 and Xt.shape[1] <= self._CHUNK:  # the common small case, kept lean
-            return self.coefficients @ self._table(Xt)
+            return self.coefficients @ self.table(Xt)
         shape = Xt.shape[1:]
         flat = Xt.reshape(self.n_variables, -1)
         size = flat.shape[1]
         if size <= self._CHUNK:
-            return (self.coefficients @ self._table(flat)).reshape(-1, *shape)
+            return (self.coefficients @ self.table(flat)).reshape(-1, *shape)
         out = np.empty((len(self.coefficients), size))
         for start in range(0, size, self._CHUNK):
             part = flat[:, start:start + self._CHUNK]
-            out[:, start:start + part.shape[1]] = self.coefficients @ self._table(part)
+            out[:, start:start + part.shape[1]] = self.coefficients @ self.table(part)
         return out.reshape(-1, *shape)
 
-    def _table(self, flat: np.ndarray) -> np.ndarray:
+    def combined(self, K: npt.NDArray[np.float64]
+                 ) -> Callable[[npt.NDArray[np.float64]], np.ndarray]:
+        """As `Stack.combined`, K folded into the coefficients once: a call costs one
+        product per monomial and output (the trajectory refinement's equations, whose
+        parameters differ from copy to copy of a segment), not one per function."""
+        folded = np.einsum("gkn,kr->grn", K, self.coefficients)   # (G, monomials, n)
+        return lambda Xt: np.einsum("grn,rn->gn", folded, self.table(Xt))
+
+    def table(self, flat: np.ndarray) -> np.ndarray:
+        """The monomials (rows) at the states `flat` (n_variables, n)."""
         table = np.empty((self.n_rows, flat.shape[1]))
         if self.constant:
             table[0] = 1.0
@@ -562,7 +592,7 @@ class Symbolic(Func):
         return cls(funcs[0].variables, total)
 
     @classmethod
-    def _stack(cls, funcs: Sequence[Func]) -> Callable[[npt.NDArray[np.float64]], np.ndarray]:
+    def _stack(cls, funcs: Sequence[Func]) -> Stack:
         import sympy
 
         expressions = []
@@ -571,20 +601,26 @@ class Symbolic(Func):
             expressions.append(f.expression)
         symbols = [sympy.Symbol(v, real=True) for v in funcs[0].variables]
         # one function, so that subexpressions common to several functions are shared
-        compiled = sympy.lambdify(symbols, expressions, modules="numpy", cse=True)
+        return _CompiledStack(sympy.lambdify(symbols, expressions, modules="numpy", cse=True),
+                              len(funcs))
 
-        def evaluate(Xt: npt.NDArray[np.float64]) -> np.ndarray:
-            Xt = np.asarray(Xt, dtype=np.float64)
-            out = np.empty((len(funcs), *Xt.shape[1:]))
-            with np.errstate(all="ignore"):
-                for i, value in enumerate(compiled(*Xt)):
-                    value = np.asarray(value)
-                    if np.iscomplexobj(value):  # outside the domain, as in __call__
-                        value = np.where(value.imag == 0, value.real, np.nan)
-                    out[i] = value
-            return out
 
-        return evaluate
+class _CompiledStack(Stack):
+    """Symbolic functions compiled together by sympy."""
+
+    def __init__(self, compiled: Callable[..., Any], n_funcs: int):
+        self._compiled, self.n_funcs = compiled, n_funcs
+
+    def __call__(self, Xt: npt.NDArray[np.float64]) -> np.ndarray:
+        Xt = np.asarray(Xt, dtype=np.float64)
+        out = np.empty((self.n_funcs, *Xt.shape[1:]))
+        with np.errstate(all="ignore"):
+            for i, value in enumerate(self._compiled(*Xt)):
+                value = np.asarray(value)
+                if np.iscomplexobj(value):  # outside the domain, as in Symbolic.__call__
+                    value = np.where(value.imag == 0, value.real, np.nan)
+                out[i] = value
+        return out
 
 
 # --- linear split -----------------------------------------------------------------------

@@ -42,6 +42,9 @@ Array = npt.NDArray[np.float64]
 # values, about 0.15 s on one core; a refinement makes five rounds or more
 # (docs/scaling.md, "The refinement on every core").
 PARALLEL_VALUES = 1 << 22
+# Segments whose Gauss-Newton blocks are formed together (`blocks`): enough that numpy's
+# calls are few, few enough that their arrays stay in cache.
+GATHERED = 32
 
 
 class IntegrationFailed(Exception):
@@ -151,10 +154,12 @@ def blocks(batch: Batch) -> Blocks:
     tol = batch.tolerance
     times = list(batch.tau) if batch.ends is None else [*batch.tau, batch.ends]
     grid, where = common_times(times, tol.resolution)
-    motion = batch.dynamics.at(batch.weights.reshape(len(batch.weights), -1))
+    # the columns of the integrated system segment by segment, each segment's copies
+    # together: the values of a few neighbouring segments are then one contiguous run
+    motion = batch.dynamics.at(batch.weights.transpose(0, 2, 1).reshape(len(batch.weights), -1))
     try:
         values = dop853.integrate(
-            motion, batch.starts.reshape(-1, n_states).T.ravel(), grid, tol.rtol,
+            motion, batch.starts.transpose(2, 1, 0).ravel(), grid, tol.rtol,
             np.repeat(tol.atol, copies * B), tol.steps_per_sample * len(grid) + tol.min_steps,
             end=max(float(np.max(t)) for t in times))   # grid[-1] may be a rounding earlier
     except dop853.TooManySteps as exc:
@@ -164,31 +169,44 @@ def blocks(batch: Batch) -> Blocks:
         raise IntegrationFailed(f"the integration failed ({exc})") from exc
     if not np.all(np.isfinite(values)):
         raise IntegrationFailed("the integrated motion is not finite")
-    # segment by segment, its samples (m, 2N, copies) gathered from the integrated values
-    # (grid, 2N, copies, B) as they are: putting the segments first would copy them all once
-    # more, for no faster a gathering
-    values = values.reshape(len(grid), n_states, copies, B)
-    weight, c = batch.weight, copies - 1
+    values = values.reshape(len(grid), n_states, B, copies)
+    weight, steps, c = batch.weight, batch.steps, copies - 1
     cost, H, g = np.empty((B, n_states)), np.empty((B, c, c)), np.empty((B, c))
-    offset = 0
-    for b, (tau, measured) in enumerate(zip(batch.tau, batch.measured, strict=True)):
-        m = len(tau)
-        Y = values[where[offset:offset + m], :, :, b].transpose(1, 2, 0) * weight[:, None, None]
-        offset += m
-        base = Y[:, 0]                                              # (2N, m)
-        residual = (measured * weight).T - base                     # (2N, m)
-        cost[b] = np.einsum("cm,cm->c", residual, residual)
+    offsets = np.cumsum([0, *map(len, batch.tau)])
+    for lo, hi in _alike(where, offsets):
+        # neighbouring segments sampled alike: (m, 2N, G, copies) gathered at once
+        Y = values[where[offsets[lo]:offsets[lo + 1]], :, lo:hi]
+        measured = np.stack(batch.measured[lo:hi], axis=-1)                     # (m, 2N, G)
+        residual = (measured - Y[..., 0]) * weight[:, None]
+        cost[lo:hi] = np.einsum("msg,msg->gs", residual, residual)
         if c == 0:
             continue
-        J = ((Y[:, 1:] - base[:, None]) / batch.steps[None, :, None])   # (2N, c, m)
-        J = J.transpose(0, 2, 1).reshape(-1, c)
-        H[b] = J.T @ J
-        g[b] = J.T @ residual.ravel()
+        # each variable's forward differences (G, 2N, c, m), weighed and divided by the
+        # steps once their products are summed
+        D = (Y[..., 1:] - Y[..., :1]).transpose(2, 1, 3, 0)
+        products = np.matmul(D, D.transpose(0, 1, 3, 2))                        # (G, 2N, c, c)
+        H[lo:hi] = np.einsum("gscd,s->gcd", products, weight**2) / np.outer(steps, steps)
+        scores = np.matmul(D, residual.transpose(2, 1, 0)[..., None])[..., 0]   # (G, 2N, c)
+        g[lo:hi] = np.einsum("gsc,s->gc", scores, weight) / steps
+    offset = offsets[-1]
     if batch.ends is None:
         return Blocks(cost, H, g)
-    at_ends = values[where[offset:], :, :, np.arange(B)]            # (B, 2N, copies)
+    at_ends = values[where[offset:], :, np.arange(B)]               # (B, 2N, copies)
     end = at_ends[..., 0]
     return Blocks(cost, H, g, end, (at_ends[..., 1:] - end[..., None]) / batch.steps)
+
+
+def _alike(where: npt.NDArray[np.intp], offsets: npt.NDArray[np.intp]
+           ) -> Iterator[tuple[int, int]]:
+    """Runs of at most GATHERED neighbouring segments (lo, hi) that sample the common
+    times alike (the same indices into them: usually all but a trajectory's last)."""
+    lo = 0
+    for b in range(1, len(offsets)):
+        if (b == len(offsets) - 1 or b - lo == GATHERED
+                or not np.array_equal(where[offsets[lo]:offsets[lo + 1]],
+                                      where[offsets[b]:offsets[b + 1]])):
+            yield lo, b
+            lo = b
 
 
 def common_times(times: Sequence[Array], resolution: float) -> tuple[Array, npt.NDArray[np.intp]]:

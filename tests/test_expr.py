@@ -578,3 +578,19 @@ def test_a_slow_to_simplify_energy_fits_at_once(clean_records):
     result = hamid.fit(clean_records["duffing"], model, method="energy")
     assert set(result.estimates) == {"k", "k3"}
     assert all(np.isfinite(list(result.estimates.values())))
+
+
+@pytest.mark.parametrize("text", ["x**2*y/3 - 0.7*x*y**3 + 2.5*y + 1.25",      # polynomial
+                                  "cos(x)*y**2 + exp(y)/7"])                     # symbolic
+def test_a_stack_combined_state_by_state_sums_the_functions_with_each_states_weights(text):
+    """Each state's own linear combination of the functions, checked against calling
+    each function at each state alone."""
+    E0, _ = _split(text, ["x", "y"], [])
+    funcs = [E0.diff("x"), E0.diff("y"), E0]
+    assert isinstance(E0, Polynomial if "cos" not in text else Symbolic)
+    states = _states(2, n=7)
+    K = np.random.default_rng(3).normal(size=(2, len(funcs), len(states)))
+    combined = Func.stack(funcs).combined(K)(states.T)
+    expected = np.array([[sum(K[g, k, j] * float(f(states[j])) for k, f in enumerate(funcs))
+                          for j in range(len(states))] for g in range(2)])
+    np.testing.assert_allclose(combined, expected, rtol=1e-13, atol=1e-13)
