@@ -68,10 +68,14 @@ MAX_STEPS_PER_SAMPLE, MIN_STEP_BUDGET = 50, 1000
 # grows exponentially (2e6 over 200 s of Henon-Heiles at energy 0.145, where the tied
 # fit reported standard errors 1e4 times too small).
 MAX_GROWTH = 1e3
-# Gauss-Newton runs at the loose tolerance, and tightens to the strict one at the first
-# undamped step that shows the parameters determined finely enough for it to matter
-# (clean data), without settling at the loose one first.
+# Gauss-Newton runs at the loose tolerance, and tightens at the first undamped step
+# that shows the parameters determined finely enough for it to matter, without settling
+# at the loose one first: to TOLERANCE_SHARE of the smallest relative spread (halved, so
+# that the spread's next estimate does not tighten it again), down to the strict
+# tolerance (clean data). DOP853's steps grow as rtol^(-1/8): a long record whose spread
+# is 1e-5 integrates at 5e-9, 1.1 times the loose tolerance's steps, not at 1e-11, 2.4.
 LOOSE_RTOL, STRICT_RTOL = 1e-8, 1e-11
+TOLERANCE_SHARE = 1e-3
 TIME_ROUNDING = 16     # in units of the rounding of the largest time: times that close are one
 
 
@@ -453,11 +457,12 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
             settled = (np.all(np.abs(d_theta) <= 1e-9 * np.abs(theta[free_list]) + 1e-3 * spread)
                        and (chain is None or iterations > 1))
             if damping_factor == 0.0:
-                # clean data show at the first undamped step: tighten there rather than
+                # a fine spread shows at the first undamped step: tighten there rather than
                 # settle at the loose tolerance first (an evaluation less)
                 relative_spread = spread / np.maximum(np.abs(theta[free_list]), 1e-300)
-                if rtol > STRICT_RTOL and np.min(relative_spread) < 1e3 * rtol:
-                    rtol, best = STRICT_RTOL, None
+                wanted = TOLERANCE_SHARE * float(np.min(relative_spread))
+                if rtol > STRICT_RTOL and wanted < rtol:
+                    rtol, best = max(STRICT_RTOL, wanted / 2), None
                     continue
                 if settled:
                     converged = True

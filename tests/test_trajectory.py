@@ -44,6 +44,31 @@ def test_clean_data_tighten_at_the_first_step_that_shows_them_clean(clean_record
     assert result.estimates == pytest.approx(PENG["parameters"], rel=1e-9)
 
 
+def test_a_fine_spread_tightens_the_tolerance_only_as_far_as_it_needs(monkeypatch):
+    """A long record at low noise: its parameters' spread (some 1e-6 relative) asks for a
+    tolerance between the loose and the strict one, and the estimates equal those of a
+    fit made at the strict tolerance throughout within 1e-3 standard errors."""
+    tolerances = []
+    solve = dop853.integrate
+
+    def counted(fun, y0, times, rtol, *args, **kwargs):
+        tolerances.append(rtol)
+        return solve(fun, y0, times, rtol, *args, **kwargs)
+    monkeypatch.setattr(dop853, "integrate", counted)
+    frame = with_noise(hamid.simulate({**PENG, "simulate": {**PENG["simulate"],
+                                                            "t_end": 1000.0}}), 0.003, 5)
+    adaptive = hamid.fit(frame, jobs=1).to_frame()
+    tightened = set(tolerances) - {trajectory.LOOSE_RTOL}
+    assert tightened and all(trajectory.STRICT_RTOL < t < trajectory.LOOSE_RTOL
+                             for t in tightened)
+    monkeypatch.setattr(trajectory, "TOLERANCE_SHARE", 0.0)   # the strict one at once
+    tolerances.clear()
+    strict = hamid.fit(frame, jobs=1).to_frame()
+    assert set(tolerances) == {trajectory.LOOSE_RTOL, trajectory.STRICT_RTOL}
+    assert np.all(np.abs(adaptive.estimate - strict.estimate) < 1e-3 * strict.stderr)
+    assert np.all(np.abs(adaptive.stderr / strict.stderr - 1) < 1e-4)
+
+
 def test_segments_sampled_alike_share_their_integration_times():
     """Times of two segments that differ only by rounding are integrated to once; times
     further apart than the resolution stay apart, and every sample finds its time."""
