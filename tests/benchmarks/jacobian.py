@@ -1,7 +1,7 @@
 """The refinement's Jacobian two ways, both integrated with `hamid.dop853`: forward
 differences (hamid's way) against the variational equations (issue 22).
 
-    python tests/benchmarks/jacobian.py [--repeats 5] [--segments 64 256]
+    python tests/benchmarks/jacobian.py [--repeats 7] [--segments 64 256]
 
 For a batch of segments (4 dominant periods each, as the refinement cuts conftest's
 records: 20.96 s of peng-quadratic, 22.69 s of Duffing; 0.05 s sampling), cut from
@@ -23,17 +23,22 @@ computed
 
 Both integrate the same number of values, 2N (1 + 2N + p) per segment, as one system, the
 right-hand sides written by hand here in vectorised numpy (neither uses hamid's
-`Dynamics`). Printed per case: the median wall time of `--repeats` runs (alternated),
-the ratio to (a), the steps taken (rejected included) and the share of the time spent in
-the right-hand side (one further run, each call timed); and the accuracy against a
-reference, the variational equations at rtol 1e-12 with `scipy.integrate.solve_ivp`
-(itself checked against central differences of `solve_ivp` at rtol 1e-12 on two
-segments, and the hand-written equations against `hamid.simulate`): the largest error of
-a Jacobian column relative to that column's largest value (`x0 col`, `theta col`), the
-largest relative error of J'J's diagonal (`J'J diag`), and the error of the parameters'
-Gauss-Newton step from a residual of pure noise in the reference's standard errors
-(`GN step`; the bundle adjustment of `trajectory._Normal.step`): how far the Jacobian's
-error moves the estimates.
+`Dynamics`), from the same monomials of q: (a) with each copy's coefficients folded once
+per integration (as hamid folds its polynomial coefficients), (b) as one product of a
+matrix (a, da/dq, da/dtheta by the monomials) with the monomials, and da/dq S summed over
+q's N components. Printed per case: the median wall time of `--repeats` integrations
+(alternated, after one of each to warm up), its ratio to (a)'s and that of the shortest
+times and of the median CPU times (the surer ones when other work shares the cores); the
+steps taken (rejected included) and the median share of the time spent in the right-hand
+side (each call timed) and its cost per call (`rhs µs`, the best of 500 calls); and the
+accuracy against a reference, the variational equations at rtol 1e-12 with
+`scipy.integrate.solve_ivp` (itself checked against central differences of `solve_ivp` at
+rtol 1e-12 on two segments, and the hand-written equations against `hamid.simulate`): the
+largest error of a Jacobian column relative to that column's largest value (`x0 col`,
+`theta col`), the largest relative error of J'J's diagonal (`JJ diag`), and the error of
+the parameters' Gauss-Newton step from a residual of pure noise, in the reference's
+standard errors (`GN step`; the bundle adjustment of `trajectory._Normal.step`): about how
+far the Jacobian's error moves the estimates.
 
 numpy's BLAS runs on one thread (`OPENBLAS_NUM_THREADS=1` unless set): the stepper's
 products of an 11,000-value system on the threaded BLAS of 2 shared cores took 3-10x
@@ -51,6 +56,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse
 import sys
 import time
+import timeit
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -237,34 +243,51 @@ METHODS = {"a diff": forward_differences,
            "b state": lambda batch, rtol: variational(batch, rtol, state_only=True)}
 
 
-def run(label: str, batch: Batch, rtol: float, counted: bool = False):
-    """The Jacobian (B, m, 2N, c), the seconds taken, and with `counted` the steps
-    (taken and rejected) and the seconds in the right-hand side."""
+@dataclass(frozen=True)
+class Run:
+    """One integration: the Jacobian (B, m, 2N, c), its wall and CPU seconds, the steps
+    (taken and rejected) and the seconds in the right-hand side (each call timed: 0.2 µs
+    of 20-50)."""
+
+    jacobian: np.ndarray
+    seconds: float
+    cpu: float
+    steps: int
+    rhs: float
+
+
+def run(label: str, batch: Batch, rtol: float) -> Run:
     from hamid import dop853
 
     system = METHODS[label](batch, rtol)
-    fun = system.fun
+    fun, step = system.fun, dop853._step
     steps, rhs = [0], [0.0]
-    step, call = dop853._step, fun
-    if counted:
-        def call(t, y):
-            begin = time.perf_counter()
-            out = fun(t, y)
-            rhs[0] += time.perf_counter() - begin
-            return out
 
-        def counting(*a):
-            steps[0] += 1
-            return step(*a)
-        dop853._step = counting
-    try:
+    def call(t, y):
         begin = time.perf_counter()
+        out = fun(t, y)
+        rhs[0] += time.perf_counter() - begin
+        return out
+
+    def counting(*a):
+        steps[0] += 1
+        return step(*a)
+    dop853._step = counting
+    try:
+        begin, cpu = time.perf_counter(), time.process_time()
         values = dop853.integrate(call, system.y0, batch.times, system.rtol, system.atol,
                                   10**6)
-        seconds = time.perf_counter() - begin
+        seconds, cpu = time.perf_counter() - begin, time.process_time() - cpu
     finally:
         dop853._step = step
-    return system.jacobian(values), seconds, steps[0], rhs[0]
+    return Run(system.jacobian(values), seconds, cpu, steps[0], rhs[0])
+
+
+def call_cost(label: str, batch: Batch) -> float:
+    """Seconds per call of the right-hand side at the start, the best of 5 x 100 calls
+    (little moved by other work on the cores)."""
+    system = METHODS[label](batch, 1e-8)
+    return min(timeit.repeat(lambda: system.fun(0.0, system.y0), number=100, repeat=5)) / 100
 
 
 def reference(batch: Batch) -> np.ndarray:
@@ -375,7 +398,7 @@ def cut(system: dict, equations: Equations, length: float, segments: int
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--segments", type=int, nargs="+", default=[64, 256])
     args = parser.parse_args()
     sys.path.insert(0, str(ROOT / "tests"))
@@ -384,8 +407,9 @@ def main() -> None:
     cases = {"peng-quadratic (2 DOF)": (PENG, PENG_EQUATIONS, 20.96),
              "duffing (1 DOF)": (DUFFING, DUFFING_EQUATIONS, 22.69)}
     rng = np.random.default_rng(0)
-    print(f"{'case':34} {'method':8} {'rtol':>6} {'ms':>8} {'/ a':>6} {'steps':>6} "
-          f"{'rhs %':>6} {'x0 col':>8} {'theta col':>9} {'JJ diag':>8} {'GN step':>8}")
+    print(f"{'case':34} {'method':8} {'rtol':>6} {'ms':>8} {'/ a':>6} {'min/a':>6} "
+          f"{'cpu/a':>6} {'steps':>6} {'rhs %':>6} {'rhs µs':>7} {'x0 col':>8} "
+          f"{'theta col':>9} {'JJ diag':>8} {'GN step':>8}")
     for name, (system, equations, length) in cases.items():
         for segments in args.segments:
             batch, first = cut(system, equations, length, segments)
@@ -397,20 +421,25 @@ def main() -> None:
                   f"{ref_error:.1e}")
             noise = rng.standard_normal(ref.shape[:3])
             for rtol in RTOLS:
-                counted = {label: run(label, batch, rtol, counted=True) for label in METHODS}
-                seconds = {label: [] for label in METHODS}
+                warm = {label: run(label, batch, rtol) for label in METHODS}
+                runs = {label: [] for label in METHODS}
                 for _ in range(args.repeats):
                     for label in METHODS:
-                        seconds[label].append(run(label, batch, rtol)[1])
-                base = np.median(seconds["a diff"])
-                for label, (J, total, steps, rhs) in counted.items():
-                    errors = accuracy(J, ref, batch, noise)
+                        runs[label].append(run(label, batch, rtol))
+                seconds = {label: [r.seconds for r in runs[label]] for label in METHODS}
+                cpu = {label: np.median([r.cpu for r in runs[label]]) for label in METHODS}
+                base, fastest = np.median(seconds["a diff"]), min(seconds["a diff"])
+                for label, first in warm.items():
+                    errors = accuracy(first.jacobian, ref, batch, noise)
                     median = np.median(seconds[label])
+                    share = np.median([r.rhs / r.seconds for r in runs[label]])
                     print(f"{'':34} {label:8} {rtol:6.0e} {1e3 * median:8.1f} "
-                          f"{median / base:6.2f} {steps:6d} {100 * rhs / total:6.0f} "
+                          f"{median / base:6.2f} {min(seconds[label]) / fastest:6.2f} "
+                          f"{cpu[label] / cpu['a diff']:6.2f} "
+                          f"{first.steps:6d} {100 * share:6.0f} "
+                          f"{1e6 * call_cost(label, batch):7.1f} "
                           f"{errors['x0 col']:8.1e} {errors['theta col']:9.1e} "
-                          f"{errors['JJ diag']:8.1e} "
-                          f"{errors['GN step']:8.1e}", flush=True)
+                          f"{errors['JJ diag']:8.1e} {errors['GN step']:8.1e}", flush=True)
 
 
 def _simulation_error(batch: Batch, first: np.ndarray) -> float:
