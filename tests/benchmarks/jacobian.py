@@ -12,7 +12,10 @@ computed
 - (a) by forward differences: 1 + 2N + p copies of each segment's state, the initial
   states perturbed by `trajectory.STEP` times each variable's scale and the parameters by
   `STEP * max(|theta|, 1e-3 max |theta|)`, as `hamid.trajectory` does, with its atol
-  (1e-2 rtol times each variable's scale, the same for every copy);
+  (1e-2 rtol times each variable's scale, the same for every copy); `a diff` with the
+  hand-written right-hand side, and `a hamid` with hamid's own (`Dynamics.at`, as the
+  refinement integrates: the same values, a check that `a diff` is hamid's way, and
+  hamid's cost per call; not part of the comparison);
 - (b) by the variational equations: the state and its sensitivity matrix S (2N x (2N + p)),
   dS/dt = J_x S + [0 | df/dtheta], with the analytic derivatives; the atol of S[s, c] is
   the state's atol divided by the scale of variable c (S times that scale is the change
@@ -23,22 +26,22 @@ computed
 
 Both integrate the same number of values, 2N (1 + 2N + p) per segment, as one system, the
 right-hand sides written by hand here in vectorised numpy (neither uses hamid's
-`Dynamics`), from the same monomials of q: (a) with each copy's coefficients folded once
-per integration (as hamid folds its polynomial coefficients), (b) as one product of a
-matrix (a, da/dq, da/dtheta by the monomials) with the monomials, and da/dq S summed over
-q's N components. Printed per case: the median wall time of `--repeats` integrations
-(alternated, after one of each to warm up), its ratio to (a)'s and that of the shortest
-times and of the median CPU times (the surer ones when other work shares the cores); the
-steps taken (rejected included) and the median share of the time spent in the right-hand
-side (each call timed) and its cost per call (`rhs µs`, the best of 500 calls); and the
-accuracy against a reference, the variational equations at rtol 1e-12 with
-`scipy.integrate.solve_ivp` (itself checked against central differences of `solve_ivp` at
-rtol 1e-12 on two segments, and the hand-written equations against `hamid.simulate`): the
-largest error of a Jacobian column relative to that column's largest value (`x0 col`,
-`theta col`), the largest relative error of J'J's diagonal (`JJ diag`), and the error of
-the parameters' Gauss-Newton step from a residual of pure noise, in the reference's
-standard errors (`GN step`; the bundle adjustment of `trajectory._Normal.step`): about how
-far the Jacobian's error moves the estimates.
+`Dynamics`), from the same table of q's monomials, filled in place: (a) with each copy's
+coefficients folded once per integration (as hamid folds its polynomial coefficients) and
+summed by one einsum, (b) as one product of a matrix (a, da/dq, da/dtheta by the
+monomials) with the table, and da/dq S by one einsum. Printed per case: the median wall
+time of `--repeats` integrations (alternated, after one of each to warm up), its ratio to
+(a)'s and that of the shortest times and of the median CPU times (the surer ones when
+other work shares the cores); the steps taken (rejected included) and the median share of
+the time spent in the right-hand side (each call timed) and its cost per call (`rhs µs`,
+the best of 500 calls); and the accuracy against a reference, the variational equations at
+rtol 1e-12 with `scipy.integrate.solve_ivp` (itself checked against central differences of
+`solve_ivp` at rtol 1e-12 on two segments, and the hand-written equations against
+`hamid.simulate`): the largest error of a Jacobian column relative to that column's
+largest value (`x0 col`, `theta col`), the largest relative error of J'J's diagonal (`JJ
+diag`), and the error of the parameters' Gauss-Newton step from a residual of pure noise,
+in the reference's standard errors (`GN step`; the bundle adjustment of
+`trajectory._Normal.step`): about how far the Jacobian's error moves the estimates.
 
 numpy's BLAS runs on one thread (`OPENBLAS_NUM_THREADS=1` unless set): the stepper's
 products of an 11,000-value system on the threaded BLAS of 2 shared cores took 3-10x
@@ -71,9 +74,10 @@ RTOLS = (1e-8, 1e-11)   # hamid's loose and strict tolerances
 @dataclass(frozen=True)
 class Equations:
     """Hand-written equations of a conservative system q'' = a(q, theta), polynomial in q
-    and affine in theta: a and its derivatives are the product `terms(theta) @
-    monomials(q)`, rows a (N), da/dq (N x N, row by row), da/dtheta (N x p, row by row).
-    `accel(q, theta)` (N, ...) is a written out again, independently, to check them."""
+    and affine in theta: a and its derivatives are the product `terms(theta) @ M`, rows a
+    (N), da/dq (N x N, row by row), da/dtheta (N x p, row by row), where
+    `monomials(q, M)` writes q's monomials into M but for its first row, ones.
+    `accel(q, theta)` (N, ...) is a, written out again, independently, to check them."""
 
     accel: Callable
     monomials: Callable
@@ -86,9 +90,12 @@ def _peng(q, th):
                      -w2 * u2 + a2 * u1**2 / 2 + 2 * a3 * u1 * u2 + a6 * u2**2])
 
 
-def _peng_monomials(q):
+def _peng_monomials(q, out):
     u1, u2 = q
-    return np.stack([np.ones_like(u1), u1, u2, u1 * u1, u1 * u2, u2 * u2])
+    out[1:3] = q
+    np.multiply(u1, u1, out=out[3])
+    np.multiply(u1, u2, out=out[4])
+    np.multiply(u2, u2, out=out[5])
 
 
 def _peng_terms(th):
@@ -113,10 +120,11 @@ def _duffing(q, th):
     return np.array([-k * x - k3 * x * x * x])
 
 
-def _duffing_monomials(q):
+def _duffing_monomials(q, out):
     (x,) = q
-    x2 = x * x
-    return np.stack([np.ones_like(x), x, x2, x2 * x])
+    out[1] = x
+    np.multiply(x, x, out=out[2])
+    np.multiply(out[2], x, out=out[3])
 
 
 def _duffing_terms(th):
@@ -132,9 +140,10 @@ DUFFING_EQUATIONS = Equations(_duffing, _duffing_monomials, _duffing_terms)
 
 @dataclass(frozen=True)
 class Batch:
-    """Segments to differentiate: start states (B, 2N), sample times, true theta (p,),
-    each variable's scale (2N,) and weight (2N,)."""
+    """Segments of a built-in model to differentiate: start states (B, 2N), sample
+    times, true theta (p,), each variable's scale (2N,) and weight (2N,)."""
 
+    model: str
     equations: Equations
     x0: np.ndarray
     times: np.ndarray
@@ -163,8 +172,9 @@ class System:
     jacobian: Callable
 
 
-def forward_differences(batch: Batch, rtol: float) -> System:
-    """(a): 1 + 2N + p copies of each segment, hamid's steps and atol."""
+def forward_differences(batch: Batch, rtol: float, hamid_rhs: bool = False) -> System:
+    """(a): 1 + 2N + p copies of each segment, hamid's steps and atol; with `hamid_rhs`,
+    hamid's own right-hand side (`Dynamics.at`) in place of the hand-written one."""
     from hamid import trajectory
 
     x0, theta = batch.x0, batch.theta
@@ -184,14 +194,24 @@ def forward_differences(batch: Batch, rtol: float) -> System:
     G0 = eq.terms(np.zeros(p))[:n]
     by_theta = np.array([eq.terms(e)[:n] - G0 for e in np.eye(p)])       # (p, N, monomials)
     C = G0[..., None] + np.einsum("kim,kc->imc", by_theta, W.reshape(p, -1))
+    M = np.ones((C.shape[1], y0.shape[1]))
 
     def fun(_t, y):
         Y = y.reshape(n2, -1)
         out = np.empty_like(Y)
         out[:n] = Y[n:]
-        out[n:] = np.einsum("imc,mc->ic", C, eq.monomials(Y[:n]))
+        eq.monomials(Y[:n], M)
+        np.einsum("imc,mc->ic", C, M, out=out[n:])
         return out.ravel()
 
+    if hamid_rhs:
+        from hamid.dissipation import Dissipation
+        from hamid.dynamics import Dynamics
+        from hamid.model import builtin_model
+
+        model = builtin_model(batch.model)
+        fun = Dynamics(model, Dissipation(model.coordinates, model.velocities)).at(
+            np.concatenate([np.ones((1, y0.shape[1])), W.reshape(p, -1)]))
     atol = np.repeat(1e-2 * rtol * batch.scale, y0.shape[1])
 
     def jacobian(values):
@@ -212,18 +232,17 @@ def variational(batch: Batch, rtol: float, state_only: bool = False) -> System:
     Y0[np.arange(n2), 1 + np.arange(n2)] = 1.0
     G = batch.equations.terms(theta)
     monomials = batch.equations.monomials
+    M = np.ones((G.shape[1], B))
 
     def fun(_t, y):
         Y = y.reshape(n2, 1 + c, B)
         out = np.empty_like(Y)
         out[:n] = Y[n:]                                  # x' = v and S_q' = S_v
-        R = G @ monomials(Y[:n, 0])
+        monomials(Y[:n, 0], M)
+        R = G @ M
         out[n:, 0] = R[:n]
         H = R[n:n + n * n].reshape(n, n, B)              # da/dq
-        J_S = H[:, 0, None] * Y[0, 1:]                   # da/dq S_q
-        for j in range(1, n):
-            J_S += H[:, j, None] * Y[j, 1:]
-        out[n:, 1:] = J_S
+        np.einsum("ijb,jcb->icb", H, Y[:n, 1:], out=out[n:, 1:])   # da/dq S_q
         out[n:, 1 + n2:] += R[n + n * n:].reshape(n, p, B)
         return out.ravel()
 
@@ -240,6 +259,7 @@ def variational(batch: Batch, rtol: float, state_only: bool = False) -> System:
 
 
 METHODS = {"a diff": forward_differences,
+           "a hamid": lambda batch, rtol: forward_differences(batch, rtol, hamid_rhs=True),
            "b all": variational,
            "b state": lambda batch, rtol: variational(batch, rtol, state_only=True)}
 
@@ -250,7 +270,7 @@ class Run:
     (taken and rejected) and the seconds in the right-hand side (each call timed: 0.2 µs
     of 20-50)."""
 
-    jacobian: np.ndarray
+    jacobian: np.ndarray | None
     seconds: float
     cpu: float
     steps: int
@@ -301,34 +321,39 @@ def reference(batch: Batch) -> np.ndarray:
     return system.jacobian(solution.y.T)
 
 
-def checked(batch: Batch, ref: np.ndarray) -> float:
-    """The hand-written equations against hamid's simulation (largest difference over
-    the first segment, relative to the scales), and the reference's largest column error
-    against central differences of solve_ivp at rtol 1e-12 on two segments."""
+def motion(batch: Batch, x: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """One segment's states from x under theta by `accel`, solve_ivp at rtol 1e-12."""
     from scipy.integrate import solve_ivp
 
-    x0, theta = batch.x0, batch.theta
-    n = x0.shape[1] // 2
-    accel = batch.equations.accel
+    n, accel = len(x) // 2, batch.equations.accel
 
-    def motion(x, th):
-        def fun(_t, y):
-            return np.concatenate([y[n:], accel(y[:n], th)])
-        return solve_ivp(fun, (0.0, batch.times[-1]), x, method="DOP853", t_eval=batch.times,
-                         rtol=1e-12, atol=1e-14 * batch.scale).y.T
-    worst = 0.0
+    def fun(_t, y):
+        return np.concatenate([y[n:], accel(y[:n], theta)])
+    return solve_ivp(fun, (0.0, batch.times[-1]), x, method="DOP853", t_eval=batch.times,
+                     rtol=1e-12, atol=1e-14 * batch.scale).y.T
+
+
+def simulation_error(batch: Batch, first: np.ndarray) -> float:
+    """The hand-written equations against hamid's simulation: the largest difference over
+    the first segment's samples, relative to the scales."""
+    return float(np.max(np.abs(motion(batch, first[0], batch.theta) - first) / batch.scale))
+
+
+def reference_error(batch: Batch, ref: np.ndarray) -> float:
+    """The reference's largest column error against central differences of `motion`
+    (steps of 1e-4 of the scales) on two segments."""
+    x0, theta = batch.x0, batch.theta
+    n2 = x0.shape[1]
     h = 1e-4 * batch.columns_scale
+    worst = 0.0
     for b in range(2):
         columns = []
         for k in range(len(h)):
-            up_x, down_x, up_t, down_t = x0[b].copy(), x0[b].copy(), theta.copy(), theta.copy()
-            if k < 2 * n:
-                up_x[k] += h[k]
-                down_x[k] -= h[k]
-            else:
-                up_t[k - 2 * n] += h[k]
-                down_t[k - 2 * n] -= h[k]
-            columns.append((motion(up_x, up_t) - motion(down_x, down_t)) / (2 * h[k]))
+            shift = np.zeros(len(h))
+            shift[k] = h[k]
+            up = motion(batch, x0[b] + shift[:n2], theta + shift[n2:])
+            down = motion(batch, x0[b] - shift[:n2], theta - shift[n2:])
+            columns.append((up - down) / (2 * h[k]))
         worst = max(worst, column_error(np.stack(columns, axis=-1)[None], ref[b:b + 1],
                                         batch.weight))
     return worst
@@ -390,10 +415,10 @@ def cut(system: dict, equations: Equations, length: float, segments: int
         starts.extend(X[rows[0] + k * (samples - 1)] for k in range(per_trajectory))
     scale = np.maximum(np.abs(X).max(axis=0), X.std(axis=0))   # as trajectory's x_step / STEP
     # the first segment's samples, to check the hand-written equations against
-    first = X[: samples]
-    batch = Batch(equations, np.array(starts[:segments]), np.arange(samples) * dt,
-                  np.array(list(system["parameters"].values()), float), scale,
-                  1 / (0.01 * X.std(axis=0)))
+    first = X[:samples]
+    batch = Batch(system["model"]["builtin"], equations, np.array(starts[:segments]),
+                  np.arange(samples) * dt, np.array(list(system["parameters"].values()), float),
+                  scale, 1 / (0.01 * X.std(axis=0)))
     return batch, first
 
 
@@ -415,8 +440,8 @@ def main() -> None:
         for segments in args.segments:
             batch, first = cut(system, equations, length, segments)
             ref = reference(batch)
-            simulated = _simulation_error(batch, first)
-            ref_error = checked(batch, ref)
+            simulated = simulation_error(batch, first)
+            ref_error = reference_error(batch, ref)
             print(f"{name}, {segments} segments of {len(batch.times)} samples: equations vs "
                   f"hamid.simulate {simulated:.1e}, reference vs central differences "
                   f"{ref_error:.1e}")
@@ -432,30 +457,17 @@ def main() -> None:
                 seconds = {label: [r.seconds for r in runs[label]] for label in METHODS}
                 cpu = {label: np.median([r.cpu for r in runs[label]]) for label in METHODS}
                 base, fastest = np.median(seconds["a diff"]), min(seconds["a diff"])
-                for label, first in warm.items():
-                    errors = accuracy(first.jacobian, ref, batch, noise)
+                for label, warm_run in warm.items():
+                    errors = accuracy(warm_run.jacobian, ref, batch, noise)
                     median = np.median(seconds[label])
                     share = np.median([r.rhs / r.seconds for r in runs[label]])
                     print(f"{'':34} {label:8} {rtol:6.0e} {1e3 * median:8.1f} "
                           f"{median / base:6.2f} {min(seconds[label]) / fastest:6.2f} "
                           f"{cpu[label] / cpu['a diff']:6.2f} "
-                          f"{first.steps:6d} {100 * share:6.0f} "
+                          f"{warm_run.steps:6d} {100 * share:6.0f} "
                           f"{1e6 * call_cost(label, batch):7.1f} "
                           f"{errors['x0 col']:8.1e} {errors['theta col']:9.1e} "
                           f"{errors['JJ diag']:8.1e} {errors['GN step']:8.1e}", flush=True)
-
-
-def _simulation_error(batch: Batch, first: np.ndarray) -> float:
-    from scipy.integrate import solve_ivp
-
-    n = batch.x0.shape[1] // 2
-    accel, theta = batch.equations.accel, batch.theta
-
-    def fun(_t, y):
-        return np.concatenate([y[n:], accel(y[:n], theta)])
-    y = solve_ivp(fun, (0.0, batch.times[-1]), first[0], method="DOP853", t_eval=batch.times,
-                  rtol=1e-12, atol=1e-14).y.T
-    return float(np.max(np.abs(y - first) / batch.scale))
 
 
 if __name__ == "__main__":
