@@ -44,7 +44,7 @@ in the reference's standard errors (`GN step`; the bundle adjustment of
 `trajectory._Normal.step`): about how far the Jacobian's error moves the estimates.
 
 numpy's BLAS runs on one thread (`OPENBLAS_NUM_THREADS=1` unless set): the stepper's
-products of an 11,000-value system on the threaded BLAS of 2 shared cores took 3-10x
+products of an 11,000-value system on the threaded BLAS of 2 shared cores took 1-20x
 longer, at random, for either method.
 """
 
