@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 from hamid import estimate, inputs, loading, plan, refine, summary
 from hamid.design import Block
 from hamid.errors import UsageError
+from hamid.executor import one_blas_thread
 from hamid.fitted import Recording
 from hamid.model import Model, load_model
 from hamid.options import SAVGOL_ORDER, FitOptions
@@ -169,7 +170,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                       skip_rows=skip_rows, units_row=units_row, jobs=jobs)
     if isinstance(data, list | tuple) and len(data) == 1:
         data = data[0]
-    with inputs.spooled(data) as readable:   # standard input in a file, read like one
+    # standard input in a file, read like one; BLAS on one thread (`one_blas_thread`)
+    with inputs.spooled(data) as readable, one_blas_thread():
         chunks = opts.chunking(readable, loading.dissipative(model))
         run = summary.run_provenance(data, opts)   # inputs hashed before they are read
         return _fit(readable, model, opts, chunks, run, progress)

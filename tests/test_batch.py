@@ -128,6 +128,22 @@ def test_ordered_map_raises_an_items_error_at_its_turn():
         next(results)
 
 
+def _blas_threads(_: int) -> int:
+    from threadpoolctl import threadpool_info
+
+    return max(pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas")
+
+
+def test_worker_processes_run_blas_on_one_thread():
+    """Processes share the cores: BLAS threads in each would wait on each other. This
+    process keeps its own."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(2, user_api="blas"):
+        assert set(executor.ordered_map(_blas_threads, range(4), executor.Workers(jobs=2))) == {1}
+        assert _blas_threads(0) == 2
+
+
 def test_workers_are_chosen_from_jobs_scheduler_and_the_environment(monkeypatch):
     monkeypatch.delenv(executor.SCHEDULER_VARIABLE, raising=False)
     assert executor.Workers.choose(None, None, 1) == executor.Workers(jobs=1)

@@ -14,7 +14,7 @@ from conftest import PENG, with_noise
 from scipy.integrate import solve_ivp
 
 import hamid
-from hamid import dop853, integration, trajectory
+from hamid import dop853, estimate, integration, trajectory
 from hamid.cli import cli
 from hamid.dynamics import Dynamics
 from hamid.errors import UsageError
@@ -107,6 +107,31 @@ def test_results_do_not_depend_on_the_number_of_workers(noisy_peng, monkeypatch,
                                atol=0)
     assert heard[1] == heard[2]
     assert any("3 of " in m for m in heard[2]) and any("6 of " in m for m in heard[2])
+
+
+def _blas_threads() -> int:
+    from threadpoolctl import threadpool_info
+
+    return max(pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas")
+
+
+def test_a_fit_runs_blas_on_one_thread(noisy_peng, monkeypatch):
+    """The linear fit and the refinement's products run BLAS on one thread in this
+    process; afterwards BLAS has its threads back."""
+    from threadpoolctl import threadpool_limits
+
+    seen = []
+    for module, name in ((integration, "blocks"), (estimate, "fit_rows")):
+        real = getattr(module, name)
+
+        def spy(*args, _real=real, **kwargs):
+            seen.append(_blas_threads())
+            return _real(*args, **kwargs)
+        monkeypatch.setattr(module, name, spy)
+    with threadpool_limits(2, user_api="blas"):
+        hamid.fit(noisy_peng, jobs=1)
+        assert _blas_threads() == 2
+    assert len(seen) > 2 and set(seen) == {1}
 
 
 def test_a_batch_pickles_once_its_equations_are_compiled():
