@@ -11,7 +11,7 @@ import pytest
 from conftest import with_noise
 
 import hamid
-from hamid import adjust, design, loading, measurement, plan, solve, writing
+from hamid import adjust, design, estimate, loading, measurement, plan, solve, writing
 from hamid.options import FitOptions
 from hamid.unknowns import Unknowns
 
@@ -151,3 +151,22 @@ def test_a_joint_fit_in_memory_peaks_under_five_times_its_decoded_data(clean_rec
     assert n > 8 * solve.PIECE_ROWS and result.samples is not None
     assert adjusted == ["energy", "weak"]
     assert peak < 4.5 * decoded, peak / decoded
+
+
+def test_energy_rows_let_go_are_made_again_the_same(noisy):
+    """`Rows.release` lets every sample's energy rows go (the trajectory refinement runs
+    without them); asked for again, they are made anew, equal to the first."""
+    options = FitOptions(method="joint", damping="none")
+    loaded = loading.load(noisy, "peng-quadratic", options)
+    m = loaded.model
+    unknowns = Unknowns.of(m.parameters, (), {"a2": -0.4})
+    _, _, rows = estimate.fit_rows(loaded, unknowns, m.dissipative(options.damping),
+                                   plan.decide(options, m, loaded.scales()), options, None)
+    first, every = rows.energy, rows.all_energy
+    assert first.A.shape[1] == every.A.shape[1] - 1   # a2 held fixed
+    rows.release()
+    assert rows.kept is None
+    for made, before in ((rows.energy, first), (rows.all_energy, every)):
+        assert made is not before
+        assert np.array_equal(made.A, before.A) and np.array_equal(made.b, before.b)
+        assert np.array_equal(made.group, before.group)
