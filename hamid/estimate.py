@@ -72,8 +72,8 @@ class Rows:
 
     Every sample's energy row is made again when asked for after `release`: the
     trajectory refinement, which does not use them, runs without these arrays of the
-    records' length (a column per parameter, 1.75 times the records' columns for the
-    6 parameters of two coupled oscillators).
+    records' length (8 columns for the 6 parameters of two coupled oscillators, more
+    than the records' own 6), and so do the last per-sample outputs (`summary.samples`).
     """
 
     blocks: list[Block]    # the rows fitted, as weighted
