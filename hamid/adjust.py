@@ -423,4 +423,4 @@ def _weak_parts(windows: Windows, records: Records,
     cover, and those samples' unbiased estimates."""
     for lo, hi, a, b in windows.blocks():
         psi, dpsi = windows.operators(lo, hi)
-        yield lo, hi, [dpsi[:, a:b], psi[:, a:b]], _Hermite(records.X[a:b], sigma)
+        yield lo, hi, [dpsi, psi], _Hermite(records.X[a:b], sigma)

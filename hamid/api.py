@@ -199,7 +199,7 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
     if chunks is None:
         linear, fit_plan, rows = estimate.fit_rows(source, unknowns, damping_forces, fit_plan,
                                                    opts, sigma)
-        energy_rows: Iterable[Block] = [rows.energy]
+        energy_rows: Iterable[Block] = rows.pieces()
     else:
         from hamid import stream
 
@@ -216,6 +216,8 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
         if obstacle is None:
             records = source.records if chunks is None else source.whole(n_samples)
             given = sigma if isinstance(opts.noise, Mapping) else None   # not --noise auto
+            if chunks is None:   # the energy rows of every sample, made again after it
+                rows.release()
             refined, refinement = refine.refine(linear, m, records, damping_forces, unknowns,
                                                 fit_plan, given, opts.velocity == "savgol",
                                                 rows if chunks is None else None, progress,

@@ -228,24 +228,30 @@ class Windows:
     @property
     def Q_psi(self) -> Any:
         """The operator of psi (all windows; made on each use)."""
-        return self._whole(0)
+        return self._whole(lambda lo, hi, a, b: self.operators(lo, hi, derivative=False)[0])
 
     @property
     def Q_dpsi(self) -> Any:
         """The operator of psi' (all windows; made on each use)."""
-        return self._whole(1)
+        return self._whole(lambda lo, hi, a, b: self.operators(lo, hi)[1])
 
-    def _whole(self, which: int) -> Any:
+    def _whole(self, part: Callable[[int, int, int, int], Any]) -> Any:
+        """Helper: the blocks' operators `part(lo, hi, a, b)` over their samples a:b, as
+        one operator over all samples."""
         from scipy import sparse
 
+        n = len(self.t)
         if not self.n_windows:
-            return sparse.csr_matrix((0, len(self.t)))
-        return sparse.vstack([self.operators(lo, hi, derivative=bool(which))[which]
-                              for lo, hi, _, _ in self.blocks()], format="csr")
+            return sparse.csr_matrix((0, n))
+        return sparse.vstack([sparse.csr_matrix((m.data, m.indices + a, m.indptr),
+                                                shape=(hi - lo, n))
+                              for lo, hi, a, b in self.blocks() for m in [part(lo, hi, a, b)]],
+                             format="csr")
 
     def operators(self, lo: int, hi: int, derivative: bool = True) -> tuple[Any, Any]:
         """The rows lo:hi of Q_psi and of Q_dpsi (None unless `derivative`), CSR matrices
-        over all samples.
+        over the samples those windows cover, first[lo] to last[hi - 1] (the columns a:b
+        of `blocks`): slicing operators over all samples copied them.
 
         Each window's nodes are consecutive samples; the integrals use the trapezoid rule
         on the recorded times, with Simpson's where a window is sampled unevenly; psi and
@@ -271,7 +277,7 @@ class Windows:
         lower = weights.copy()   # base^(order - 1) * weights: serves psi and its derivative
         for _ in range(self.order - 1):   # products: numpy's power is ten times slower
             lower *= base
-        shape, col = (hi - lo, len(self.t)), (col + a).astype(index)
+        shape, col = (hi - lo, len(t)), col.astype(index)
         psi = sparse.csr_matrix((base * lower, col, indptr), shape=shape)
         if not derivative:
             return psi, None
@@ -282,13 +288,13 @@ class Windows:
     def means(self) -> Any:
         """Operator of the psi-weighted window means: rows of Q_psi divided by their sums
         (made on each use)."""
-        return self.means_part(0, self.n_windows, 0, len(self.t))
+        return self._whole(self.means_part)
 
     def means_part(self, lo: int, hi: int, a: int, b: int) -> Any:
         """The rows lo:hi of `means`, its columns (samples) a:b (a block of `blocks`)."""
         from scipy import sparse
 
-        rows = self.operators(lo, hi, derivative=False)[0][:, a:b]
+        rows = self.operators(lo, hi, derivative=False)[0]
         mass = rows @ np.ones(b - a)
         return sparse.diags(1.0 / mass) @ rows
 
@@ -389,7 +395,7 @@ def windows_at(records: Records, first: npt.NDArray[np.int64], last: npt.NDArray
                    BUMP_ORDER if order is None else order, uneven)
 
 
-_WINDOW_BLOCK = 4096   # windows built at once: their temporaries stay small
+_WINDOW_BLOCK = 1024   # windows built at once: their temporaries stay small (README, Performance)
 
 
 def _window_weights(t: np.ndarray, step: np.ndarray, first: np.ndarray, last: np.ndarray,
@@ -432,13 +438,16 @@ def weak_block(model: Model, records: Records, windows: Windows,
     for a in range(0, n, _GRADIENT_ROWS):
         b = min(a + _GRADIENT_ROWS, n)
         dLdv, dLdq = model.lagrangian.gradients(records.X[a:b])   # (b - a, N, 1 + p)
+        dLdv, dLdq = dLdv.reshape(b - a, -1), dLdq.reshape(b - a, -1)
         w_lo = int(np.searchsorted(windows.last, a, side="left"))
         w_hi = int(np.searchsorted(windows.first, b, side="left"))
         for lo in range(w_lo, w_hi, _WINDOW_BLOCK):
             hi = min(lo + _WINDOW_BLOCK, w_hi)
-            psi, dpsi = windows.operators(lo, hi)
-            integrals[lo:hi] += (dpsi[:, a:b] @ dLdv.reshape(b - a, -1)
-                                 + psi[:, a:b] @ dLdq.reshape(b - a, -1))
+            psi, dpsi = windows.operators(lo, hi)   # over the samples from first[lo] on
+            start = int(windows.first[lo])
+            c, d = max(a, start), min(b, int(windows.last[hi - 1]) + 1)   # those in a:b
+            cols, values = slice(c - start, d - start), slice(c - a, d - a)
+            integrals[lo:hi] += dpsi[:, cols] @ dLdv[values] + psi[:, cols] @ dLdq[values]
     integrals = integrals.reshape(rows, parts)   # rows (window, coordinate)
     A = integrals[:, 1:]
     if dissipation:
@@ -595,7 +604,7 @@ def fitted_energy(rows: Block, model: Model, estimates: dict[str, float]) -> Any
     return energy
 
 
-def sample_weights(kind: str, blocks: list[Block], energy_rows: Block, spans: Any) -> Any:
+def sample_weights(kind: str, blocks: list[Block], n_samples: int, spans: Any) -> Any:
     """The weight each sample's energy equation carried in the fit.
 
     In `joint` the energy rows are window means, so a sample's weight is its share of the
@@ -604,5 +613,5 @@ def sample_weights(kind: str, blocks: list[Block], energy_rows: Block, spans: An
     if kind == "energy":
         return blocks[0].weight
     if kind == "weak":
-        return np.zeros(energy_rows.n_rows)
+        return np.zeros(n_samples)
     return spans.spread(blocks[0].weight)

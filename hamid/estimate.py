@@ -9,7 +9,7 @@ same balance (`balance`).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -66,14 +66,43 @@ class LinearFit:
     residuals: ResidualSums | None = None   # the residual summary's sums, when at hand
 
 
-@dataclass(frozen=True)
+@dataclass
 class Rows:
-    """The rows of a fit in memory, kept for what the report says of each sample."""
+    """The rows of a fit in memory, kept for what the report says of each sample.
 
-    energy: Block          # every sample's energy row, fixed parameters held
-    all_energy: Block      # the same with every parameter's column
+    Every sample's energy row is made again when asked for after `release`: the
+    trajectory refinement, which does not use them, runs without these arrays of the
+    records' length (8 columns for the 6 parameters of two coupled oscillators, more
+    than the records' own 6), and so do the last per-sample outputs (`summary.samples`).
+    """
+
     blocks: list[Block]    # the rows fitted, as weighted
     windows: Windows | None
+    made: Callable[[], tuple[Block, Block]]   # the energy rows of every sample, anew
+    kept: tuple[Block, Block] | None = None
+
+    @property
+    def energy(self) -> Block:
+        """Every sample's energy row, fixed parameters held."""
+        return self._energy()[0]
+
+    @property
+    def all_energy(self) -> Block:
+        """Every sample's energy row, with every parameter's column."""
+        return self._energy()[1]
+
+    def _energy(self) -> tuple[Block, Block]:
+        if self.kept is None:
+            self.kept = self.made()
+        return self.kept
+
+    def pieces(self) -> Iterator[Block]:
+        """The energy rows as the pieces `residual_sums` takes, made when iterated."""
+        yield self.energy
+
+    def release(self) -> None:
+        """Let the energy rows of every sample go, until asked for again."""
+        self.kept = None
 
 
 @dataclass(frozen=True)
@@ -316,9 +345,13 @@ def rows_of(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: FitP
     plan falls back to the energy rows when `auto` finds too few windows."""
     m, records = loaded.model, loaded.records
     names, J = unknowns.free_names, records.n_trajectories
-    all_energy = design.energy_block(m, records, damping)
+
+    def energy_rows() -> tuple[Block, Block]:
+        every = design.energy_block(m, records, damping)
+        return unknowns.hold_fixed(every), every
+
+    energy, all_energy = energy_rows()
     design.check_finite(all_energy, loaded.locate, list(unknowns.names))
-    energy = unknowns.hold_fixed(all_energy)
     spans = design.windows(records, plan.window) if plan.kind != "energy" else None
     if spans is not None:
         plan = plan.check_windows(spans.n_windows, names, J, options)
@@ -327,7 +360,7 @@ def rows_of(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: FitP
         *([design.window_means(energy, spans)] if plan.kind == "joint" else []),
         unknowns.hold_fixed(design.weak_block(m, records, spans, damping))]
     design.check_weak_rows(blocks[-1], records.labels)
-    return Rows(energy, all_energy, blocks, spans), plan
+    return Rows(blocks, spans, energy_rows, (energy, all_energy)), plan
 
 
 def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: FitPlan,
@@ -337,7 +370,7 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
     m, records = loaded.model, loaded.records
     names, J = unknowns.free_names, records.n_trajectories
     rows, plan = rows_of(loaded, unknowns, damping, plan, options)
-    energy, all_energy, blocks, spans = rows.energy, rows.all_energy, rows.blocks, rows.windows
+    energy, blocks, spans = rows.energy, rows.blocks, rows.windows
     window_group = None if spans is None else spans.group
     if sigma is None:
         blocks, block_variance = _balance_blocks(blocks, names, J, window_group)
@@ -382,7 +415,7 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
     linear = LinearFit(fit.theta, theta_cov, text, df, h, h_stderr, block_variance,
                        block_stats, solve.conditioning(blocks, names, records.labels), each,
                        (means_A, means_b), sizes, rounds)
-    return linear, plan, Rows(energy, all_energy, blocks, spans)
+    return linear, plan, dataclasses.replace(rows, blocks=blocks)
 
 
 def resampling_units(blocks: Sequence[Block]) -> tuple[np.ndarray, np.ndarray]:

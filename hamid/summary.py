@@ -165,16 +165,21 @@ def _version(package: str) -> str | None:
 def samples(rows: Rows, fit: LinearFit, model: Model, unknowns: Unknowns, plan: FitPlan,
             labels: tuple[Any, ...]) -> dict[str, Any]:
     """Each sample's trajectory, time, fitted energy, energy residual and the weight its
-    energy equation carried (for --residuals)."""
+    energy equation carried (for --residuals). The last use of the rows' energy rows of
+    every sample: they are let go (`Rows.release`) before the outputs that do not need
+    them are made."""
     energy = rows.energy
     estimates = unknowns.estimates(fit.theta)
     residual = energy.A @ fit.theta   # then in place: no more arrays of the record's length
     residual -= energy.b
     residual -= fit.h[energy.group]
-    return {"trajectory": np.asarray(labels, dtype=object)[energy.group], "t": energy.time,
-            "energy": design.fitted_energy(rows.all_energy, model, estimates),
-            "residual": residual,
-            "weight": design.sample_weights(plan.kind, rows.blocks, energy, rows.windows)}
+    group, time, n_samples = energy.group, energy.time, energy.n_rows
+    fitted = design.fitted_energy(rows.all_energy, model, estimates)
+    del energy
+    rows.release()
+    return {"trajectory": np.asarray(labels, dtype=object)[group], "t": time,
+            "energy": fitted, "residual": residual,
+            "weight": design.sample_weights(plan.kind, rows.blocks, n_samples, rows.windows)}
 
 
 def _symmetric(covariance: Any) -> Any:
