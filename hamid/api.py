@@ -170,8 +170,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                       skip_rows=skip_rows, units_row=units_row, jobs=jobs)
     if isinstance(data, list | tuple) and len(data) == 1:
         data = data[0]
-    # standard input in a file, read like one; BLAS on one thread (`one_blas_thread`)
-    with inputs.spooled(data) as readable, one_blas_thread():
+    with inputs.spooled(data) as readable, one_blas_thread():   # stdin spooled to a file
         chunks = opts.chunking(readable, loading.dissipative(model))
         run = summary.run_provenance(data, opts)   # inputs hashed before they are read
         return _fit(readable, model, opts, chunks, run, progress)
