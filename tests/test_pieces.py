@@ -95,24 +95,24 @@ def test_an_energy_fit_in_memory_holds_no_copy_of_the_records_size(clean_records
     memory its records, energy rows and per-sample residuals take (which it keeps): the
     copies of before (centred rows, their QR, the influence matrix, the scores, Hermite
     tables of every sample) made it 2.8 times as much."""
-    frame = with_noise(clean_records["peng-quadratic"], 0.01, seed=2)
-    copies = 150
-    frame = frame.loc[np.tile(frame.index, copies)].reset_index(drop=True)
-    frame["trajectory"] = (frame["trajectory"].to_numpy()
-                           + 2 * np.repeat(np.arange(copies), len(frame) // copies))
-    columns = {name: np.ascontiguousarray(frame[name].to_numpy()) for name in frame.columns}
-    n = len(frame)
+    columns = _tiled(with_noise(clean_records["peng-quadratic"], 0.01, seed=2), 150)
+    n = len(columns["t"])
     # records: X and the trajectory numbers (t is the column given); energy rows: A, b and
     # the weights; samples: trajectory, energy, residual and weight
     kept = 8 * n * ((4 + 1) + (6 + 1 + 1) + 4)
-    tracemalloc.start()
-    try:
-        result = hamid.fit(columns, model="peng-quadratic", method="energy")
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    result, peak = _traced(columns, "energy")
     assert n > 3 * solve.PIECE_ROWS and result.samples is not None
     assert peak < 1.5 * kept, peak / kept   # 1.34 here; 2.84 before
+
+
+def _traced(columns, method):
+    """The peng-quadratic fit of `columns` in memory by `method`, and its traced peak."""
+    tracemalloc.start()
+    try:
+        result = hamid.fit(columns, model="peng-quadratic", method=method)
+        return result, tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
 
 
 def _tiled(frame, copies):
@@ -123,8 +123,8 @@ def _tiled(frame, copies):
     return {name: np.ascontiguousarray(frame[name].to_numpy()) for name in frame.columns}
 
 
-def test_a_joint_fit_in_memory_peaks_under_five_times_its_decoded_data(clean_records,
-                                                                       monkeypatch):
+def test_a_joint_fit_in_memory_peaks_under_4_5_times_its_decoded_data(clean_records,
+                                                                      monkeypatch):
     """Peak traced memory of `--method joint` in memory, the noise check's adjusted fit
     included (issue 22: at most 4 times the decoded data in resident memory, which also
     holds the interpreter and its libraries). It keeps the records and every sample's
@@ -142,12 +142,7 @@ def test_a_joint_fit_in_memory_peaks_under_five_times_its_decoded_data(clean_rec
     monkeypatch.setattr(adjust, "adjusted_moments",
                         lambda block, *args: adjusted.append(block.kind) or making(block, *args))
     decoded = 8 * n * len(columns)
-    tracemalloc.start()
-    try:
-        result = hamid.fit(columns, model="peng-quadratic", method="joint")
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    result, peak = _traced(columns, "joint")
     assert n > 8 * solve.PIECE_ROWS and result.samples is not None
     assert adjusted == ["energy", "weak"]
     assert peak < 4.5 * decoded, peak / decoded

@@ -27,34 +27,34 @@ def test_clean_records_are_recovered_exactly(clean_records, name):
     assert result.estimates == pytest.approx(CLEAN[name]["parameters"], rel=1e-8)
 
 
-def test_clean_data_tighten_at_the_first_step_that_shows_them_clean(clean_records,
-                                                                    monkeypatch):
-    """On clean data one integration at the loose tolerance, not a settling at it first;
-    the estimates reach the truth to the strict tolerance's accuracy."""
-    tolerances = []
+@pytest.fixture
+def tolerances(monkeypatch):
+    """The tolerance of every integration of the refinement, in order."""
+    seen = []
     solve = dop853.integrate
 
     def counted(fun, y0, times, rtol, *args, **kwargs):
-        tolerances.append(rtol)
+        seen.append(rtol)
         return solve(fun, y0, times, rtol, *args, **kwargs)
     monkeypatch.setattr(dop853, "integrate", counted)
+    return seen
+
+
+def test_clean_data_tighten_at_the_first_step_that_shows_them_clean(clean_records,
+                                                                    tolerances):
+    """On clean data one integration at the loose tolerance, not a settling at it first;
+    the estimates reach the truth to the strict tolerance's accuracy."""
     result = hamid.fit(clean_records["peng-quadratic"])
     assert tolerances[0] == trajectory.LOOSE_RTOL
     assert set(tolerances[1:]) == {trajectory.STRICT_RTOL}
     assert result.estimates == pytest.approx(PENG["parameters"], rel=1e-9)
 
 
-def test_a_fine_spread_tightens_the_tolerance_only_as_far_as_it_needs(monkeypatch):
+def test_a_fine_spread_tightens_the_tolerance_only_as_far_as_it_needs(monkeypatch,
+                                                                      tolerances):
     """A long record at low noise: its parameters' spread (some 1e-6 relative) asks for a
     tolerance between the loose and the strict one, and the estimates equal those of a
     fit made at the strict tolerance throughout within 1e-3 standard errors."""
-    tolerances = []
-    solve = dop853.integrate
-
-    def counted(fun, y0, times, rtol, *args, **kwargs):
-        tolerances.append(rtol)
-        return solve(fun, y0, times, rtol, *args, **kwargs)
-    monkeypatch.setattr(dop853, "integrate", counted)
     frame = with_noise(hamid.simulate({**PENG, "simulate": {**PENG["simulate"],
                                                             "t_end": 1000.0}}), 0.003, 5)
     adaptive = hamid.fit(frame, jobs=1).to_frame()
