@@ -6,7 +6,8 @@ instead, as ratios measured in the same process.
 Records: Duffing (1 DOF), peng-quadratic (2 DOF) and a 3-DOF spring chain with a quartic
 spring (a model given as a TOML [model] table), simulated at `--noise` relative
 noise; peng-quadratic also at 10x and 100x the record length (the per-sample cost must not
-grow with it), and clean (the strict-tolerance pass).
+grow with it), and clean (the strict-tolerance pass); the 100x record again without the
+ties of the lengthening (what they cost).
 
 For each record the default fit runs `--repeats` times with ``jobs=1`` and with one
 process per core; the time spent in the trajectory fits (`hamid.trajectory.refine`,
@@ -200,6 +201,12 @@ def main() -> None:
           f"{ten[1] / two[1]:.2f}x of the short record; at 100x {hundred[0] / ten[0]:.2f}x / "
           f"{hundred[1] / ten[1]:.2f}x of the 10x record; clean / noisy: "
           f"{per_sample['peng-quadratic (2 DOF), clean'][0] / two[0]:.2f}x")
+    from hamid import refine
+
+    refine.LONGEST_PERIODS = 0.0   # no segments tied: what the lengthening costs
+    untied_us, _ = timed(frame, None, 1)
+    print(f"{label} without the ties of the lengthening: {untied_us:.2f} µs/sample, 1 job "
+          f"(with them {hundred[0] / untied_us:.2f}x that)")
 
 
 if __name__ == "__main__":
