@@ -243,7 +243,7 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
                              damping_forces, opts, sigma))
     result = summary.fit_result(
         m, unknowns, fitted, residuals, fit_plan, opts, provenance, refinement,
-        dissipation=summary.dissipation_summary(m, source.records, damping_forces,
+        dissipation=summary.dissipation_summary(m, source, damping_forces,
                                                 unknowns.estimates(fitted.theta),
                                                 rows.all_energy, fitted.h),
         samples=summary.samples(rows, fitted, m, unknowns, fit_plan, labels), run=run)

@@ -22,7 +22,7 @@ from hamid.expr import Func
 from hamid.model import Model
 from hamid.records import Records
 
-__all__ = ["Block", "dominant_period", "energy_block", "median_period",
+__all__ = ["Block", "energy_block", "median_period",
            "trajectory_scales", "weak_block", "window_means", "windows"]
 
 
@@ -111,12 +111,6 @@ WINDOW_STEP = 0.25
 
 
 _PAD = 8
-
-
-def dominant_period(records: Records, n_coordinates: int) -> float | None:
-    """Period of the strongest oscillation of the coordinates: the median of the
-    trajectories' peak periods (`trajectory_scales`), None when none can tell."""
-    return median_period(trajectory_scales(records, n_coordinates))
 
 
 def median_period(scales: list[tuple[float | None, float]]) -> float | None:

@@ -19,7 +19,6 @@ from hamid.estimate import LinearFit, NoiseCheck, ResidualSums, Rows
 from hamid.model import Model
 from hamid.options import FitOptions, percent
 from hamid.plan import FitPlan
-from hamid.records import Records
 from hamid.result import (
     EnergyLevel,
     FitResult,
@@ -194,7 +193,7 @@ def _finite_or_none(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def dissipation_summary(model: Model, records: Records, damping: Dissipation,
+def dissipation_summary(model: Model, source: loading.Loaded, damping: Dissipation,
                         estimates: dict[str, float], energy_rows: Block,
                         h: Any) -> dict[str, Any] | None:
     """Energy lost per trajectory and, for one viscous coordinate, the damping ratio.
@@ -204,6 +203,7 @@ def dissipation_summary(model: Model, records: Records, damping: Dissipation,
     """
     if not damping:
         return None
+    records = source.records
     n_energy = len(model.parameters)
     coefficients = np.array([estimates[name] for name in damping.names])
     work = energy_rows.A[:, n_energy:] @ coefficients if energy_rows.A.shape[1] > n_energy \
@@ -218,7 +218,8 @@ def dissipation_summary(model: Model, records: Records, damping: Dissipation,
         trajectories.append({"trajectory": records.labels[j],
                              "energy_lost_fraction": float(work[stop - 1] / available)
                              if available > 0 else None})
-    period = design.dominant_period(records, len(model.coordinates))
+    scales = source.scales()   # found on loading
+    period = design.median_period(scales) if scales else None
     ratio = None
     viscous = f"c_{model.coordinates[0]}"
     if len(model.coordinates) == 1 and viscous in damping.names and period and \

@@ -228,7 +228,7 @@ def check(frame: pd.DataFrame) -> list[str]:
     records = Records(frame[["x1", "x2", "v1", "v2"]].to_numpy(), frame["t"].to_numpy(),
                       groups, ("1", "2"))
     return velocity_check(records, ("x1", "x2"), ("v1", "v2"), {},
-                          design.dominant_period(records, 2))
+                          design.median_period(design.trajectory_scales(records, 2)))
 
 
 def test_a_lag_of_the_velocities_is_measured_and_said():
