@@ -389,18 +389,12 @@ def join(fit: SegmentFit, count: int, longest: float,
     try:
         return _fit_segments(problem, fit.theta, fit.free, fit.states, fit.rtol, progress,
                              "joined, ")
-    except _Unstable as exc:
-        raise TooUnstable(f"{exc}") from exc
     except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
         raise RefinementFailed(f"{exc}, over joined segments") from exc
 
 
 class _SegmentFitFailed(Exception):
     """One segment length did not give a fit; the reason is the text."""
-
-
-class _Unstable(_SegmentFitFailed):
-    """Tied segments whose chain grows a state step beyond MAX_GROWTH."""
 
 
 def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple[int, ...],
@@ -607,7 +601,7 @@ def _condensed(problem: _Problem, normal: _Normal, X0: npt.NDArray[np.float64],
         c[now] = np.einsum("sab,sb->sa", E_x[before], c[before]) + end[before] - X0[now]
     scale = problem.x_step
     if not np.all(np.abs(P) * scale <= MAX_GROWTH * scale[:, None]):
-        raise _Unstable("the motion is too unstable to tie its segments")
+        raise TooUnstable("the motion is too unstable to tie its segments")
     H_xx, H_xt = normal.H_xx, normal.H_xt
     Pt, Qt = P.transpose(0, 2, 1), Q.transpose(0, 2, 1)
     H_xx_Q = H_xx @ Q
