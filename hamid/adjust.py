@@ -254,11 +254,7 @@ def _corrections(phi: list[Polynomial], minus_E0: Polynomial, Y: np.ndarray,
     p = len(phi)
     upper = list(zip(*np.triu_indices(p), strict=True))
     pairs = [(phi[k], phi[m]) for k, m in upper] + [(f, minus_E0) for f in phi]
-    sums = np.zeros(len(pairs))
-    for start in range(0, len(Y), solve.PIECE_ROWS):
-        rows = slice(start, start + solve.PIECE_ROWS)
-        H = _Hermite(Y[rows], sigma)
-        sums += _weighted_pairs(self_weight[rows], H, pairs)
+    sums = _block_pairs(_Hermite(Y, sigma), [self_weight], [pairs])[0]
     AA = np.zeros((p, p))
     for (k, m), value in zip(upper, sums, strict=False):
         AA[k, m] = AA[m, k] = value
@@ -337,7 +333,6 @@ def _energy_moments(block: Block, phi: list[Polynomial], minus_E0: Polynomial,
     centring *= W[sample_group]
     self_weight -= centring
     AA, Ab = _corrections(phi, minus_E0, Y, sigma, self_weight)
-    del self_weight
 
     def row_shares(theta: Any) -> Any:
         """Each row's own self-pairs, less its weight's share of the centring term."""

@@ -158,7 +158,7 @@ class Motion:
     What keeps the calls cheap (each runs once per integrator stage):
     - everything the equations need comes from one compiled call (`Func.stack`), the
       parts weighed state by state inside it when the weights are per state
-      (`Func.stack_combined`: a polynomial's coefficients are weighed once, not its
+      (`Stack.combined`: a polynomial's coefficients are weighed once, not its
       values at every call);
     - a constant mass matrix is inverted once and folded into the forces, so that the
       call returns the accelerations themselves (unless velocity-dependent forces must be
