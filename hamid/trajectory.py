@@ -76,6 +76,11 @@ MAX_GROWTH = 1e3
 # is 1e-5 integrates at 5e-9, 1.1 times the loose tolerance's steps, not at 1e-11, 2.4.
 LOOSE_RTOL, STRICT_RTOL = 1e-8, 1e-11
 TOLERANCE_SHARE = 1e-3
+# Gauss-Newton stops when the point it steps to is within this many standard errors of
+# the minimum: the step itself, times the ratio by which the last two undamped steps
+# shrank (Gauss-Newton converges at least linearly near a minimum, quadratically when
+# the residuals are small, where the ratio overstates the next step's size)
+SETTLED = 1e-3
 TIME_ROUNDING = 16     # in units of the rounding of the largest time: times that close are one
 
 
@@ -408,7 +413,7 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
     if X0 is None:
         X0 = np.array([x[0] for x in problem.measured])
     damping_factor, best, converged = 0.0, None, False
-    iterations = 0
+    iterations, last_step = 0, None   # the last undamped step, in standard errors
     length = problem.span
     dof = max(problem.n_used - len(free) - problem.groups * X0.shape[1], 1)
 
@@ -447,8 +452,16 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
                     break
             # the parameters' spread, scaled by the misfit (the noise may be misjudged)
             spread = np.sqrt(np.abs(np.diag(np.linalg.inv(schur))) * normal.total / dof)
-            # and, tied, the misfit evaluated with the gaps closed (a step after the first)
-            settled = (np.all(np.abs(d_theta) <= 1e-9 * np.abs(theta[free_list]) + 1e-3 * spread)
+            step = np.abs(d_theta) / np.maximum(spread, 1e-300)
+            # Gauss-Newton's steps shrink at least as fast as the last two did: the point
+            # stepped to is within that ratio of this step from the minimum
+            ratio = 1.0 if last_step is None else min(
+                float(np.linalg.norm(step) / max(np.linalg.norm(last_step), 1e-300)), 1.0)
+            last_step = step if damping_factor == 0.0 else None
+            # settled within SETTLED standard errors; tied, with the misfit evaluated with
+            # the gaps closed (a step after the first)
+            settled = (np.all(np.abs(d_theta) * ratio
+                              <= 1e-9 * np.abs(theta[free_list]) + SETTLED * spread)
                        and (chain is None or iterations > 1))
             if damping_factor == 0.0:
                 # a fine spread shows at the first undamped step: tighten there rather than

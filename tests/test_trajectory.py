@@ -326,3 +326,18 @@ def test_tying_fails_where_the_state_steps_grow_too_much(monkeypatch):
     monkeypatch.setattr(trajectory, "MAX_GROWTH", 1e-3)
     with pytest.raises(trajectory.TooUnstable, match="too unstable to tie"):
         trajectory.join(short, 100, np.inf)
+
+
+def test_gauss_newton_stops_within_a_thousandth_of_a_standard_error():
+    """A fit stops once the point it steps to is within trajectory.SETTLED standard errors
+    of the minimum, judged by how fast its steps shrink: fitted on from where it stopped,
+    the estimates move by less than that. Started from the short segments' fit, some
+    errors off, the tied fit stops at its second step, not at a third that confirms it."""
+    short = _peng_fit(10.0)
+    tied = trajectory.join(short, 100, np.inf)
+    assert tied.iterations == 2
+    for fit in (short, tied):
+        free = list(fit.free)
+        errors = np.sqrt(np.diag(fit.covariance("scaled")))
+        on = trajectory.refit(fit, fit.problem.weight)
+        assert np.all(np.abs(on.theta[free] - fit.theta[free]) < trajectory.SETTLED * errors)
