@@ -27,7 +27,9 @@ gap to the next initial state, the next state's step is E_x dx + E_theta dtheta 
 every state's step is P dx_first + Q dtheta + c along the chain (`_condensed`); each
 segment's normal equations in (dx, dtheta) become its group's in (dx_first, dtheta), and
 after the step the chain closes the gaps to first order. Converged, the gaps vanish and
-the fit is that of one segment per group.
+the fit is that of one segment per group. Every fit integrates its segments on to where
+a tie would compare them (`_Problem.end_times`), so that a join's first step is taken from
+the last point of the fit it ties, without integrating it again.
 """
 
 from __future__ import annotations
@@ -150,26 +152,20 @@ class _Problem:
     def groups(self) -> int:
         return len(self.starts)
 
-    @property
-    def tied_to_next(self) -> npt.NDArray[np.bool_]:
-        """Whether each segment is tied to the next (S,)."""
-        tied = np.ones(len(self.pieces), bool)
-        tied[self.starts[1:] - 1] = False
-        tied[-1] = False
-        return tied
-
     @cached_property
-    def end_times(self) -> npt.NDArray[np.float64] | None:
-        """Each segment's time, from its start, of the state its tie compares with the next
-        one's first sample (its own last sample when untied); None without ties."""
-        if self.groups == len(self.pieces):
-            return None
-        t = self.records.t
+    def end_times(self) -> npt.NDArray[np.float64]:
+        """Each segment's time, from its start, of the state a tie to the next segment
+        compares with that one's first sample: the time of that sample where the next
+        segment goes on from this one (the same trajectory, no rows left out between),
+        else its own last sample. Every fit integrates to them, tied or not, so that a
+        fit of the same segments tied otherwise starts from its last point unintegrated."""
+        t, group = self.records.t, self.records.group
         assert t is not None
         first = np.array([a for a, _ in self.pieces])
+        stop = np.array([b for _, b in self.pieces])
         ends = np.array([tau[-1] for tau in self.tau])
-        tied = self.tied_to_next
-        ends[tied] = t[first[1:][tied[:-1]]] - t[first[:-1][tied[:-1]]]
+        goes_on = (first[1:] == stop[:-1]) & (group[first[1:]] == group[first[:-1]])
+        ends[:-1][goes_on] = t[first[1:][goes_on]] - t[first[:-1][goes_on]]
         return ends
 
     @property
@@ -201,7 +197,7 @@ class SegmentFit:
     `theta` holds every parameter (fixed ones at their values), `states` each segment's
     fitted initial state; `normal` are the Gauss-Newton normal equations of the groups of
     tied segments (one group per segment when none are tied) at the last point evaluated,
-    from which the final step `shift` of the free parameters was taken.
+    `point`, from which the final step `shift` of the free parameters was taken.
     """
 
     problem: _Problem
@@ -212,6 +208,7 @@ class SegmentFit:
     shift: npt.NDArray[np.float64]
     iterations: int
     rtol: float
+    point: _Point
 
     @property
     def segments(self) -> int:
@@ -299,8 +296,8 @@ class SegmentFit:
                          f"{self.segments:,} segments")
 
         with np.errstate(all="ignore"):
-            normal, _ = _normal_equations(self.problem, thetas, self.states, (), None,
-                                          self.rtol, batch_done)
+            normal, _, _ = _normal_equations(self.problem, thetas, self.states, (), None,
+                                             self.rtol, batch_done)
             misfit = normal.cost.sum(axis=1)
             try:
                 step = np.linalg.solve(normal.H_xx, normal.g_x[..., None])[..., 0]
@@ -392,8 +389,8 @@ def join(fit: SegmentFit, count: int, longest: float,
     if problem.groups == fit.groups:
         return None
     try:
-        return _fit_segments(problem, fit.theta, fit.free, fit.states, fit.rtol, progress,
-                             "joined, ")
+        return _fit_segments(problem, fit.point.theta, fit.free, fit.point.X0, fit.rtol,
+                             progress, "joined, ", evaluated=fit.point)
     except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
         raise RefinementFailed(f"{exc}, over joined segments") from exc
 
@@ -405,10 +402,13 @@ class _SegmentFitFailed(Exception):
 def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple[int, ...],
                   X0: npt.NDArray[np.float64] | None, rtol: float,
                   progress: Callable[[str], None] | None, stage: str = "",
-                  beyond: float | None = None) -> SegmentFit:
+                  beyond: float | None = None, evaluated: _Point | None = None
+                  ) -> SegmentFit:
     """Gauss-Newton over the free parameters and every group's initial state (the states
     of the segments tied to it following); stopped early when the misfit per degree of
-    freedom an undamped step heads for is over `beyond`."""
+    freedom an undamped step heads for is over `beyond`. `evaluated` is the segments'
+    last point in a fit of them tied otherwise, at `theta`, `X0` and `rtol`: the first
+    step is taken from it without integrating them again."""
     free_list = list(free)
     if X0 is None:
         X0 = np.array([x[0] for x in problem.measured])
@@ -427,18 +427,21 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
             free_theta = theta[free_list]
             theta_step = STEP * np.maximum(np.abs(free_theta), 1e-3 * np.abs(free_theta).max())
             theta_step[theta_step == 0] = STEP   # every start at zero: no scale to go by
-            normal, ends = _normal_equations(problem, theta, X0, free, theta_step, rtol,
-                                              batch_done)
-            chain = None
-            if ends is not None:
-                normal, chain = _condensed(problem, normal, X0, *ends)
+            if evaluated is None:
+                evaluated = _Point(theta, X0, *_normal_equations(
+                    problem, theta, X0, free, theta_step, rtol, batch_done))
+            point, evaluated = evaluated, None
+            normal, chain = point.normal, None
+            if problem.groups < len(problem.pieces):
+                normal, chain = _condensed(problem, point)
             if best is not None and normal.total > best[0].total * (1 + 1e-12):
                 # the step made it worse: return to the best point and damp the step
-                normal, theta, X0, chain = best
+                normal, chain, point = best
+                theta, X0 = point.theta, point.X0
                 damping_factor = max(10 * damping_factor, 1e-3)
             else:
                 damping_factor = damping_factor / 10 if damping_factor > 1e-6 else 0.0
-                best = normal, theta, X0, chain
+                best = normal, chain, point
             d_theta, d_x, schur = normal.step(damping_factor)
             theta = theta.copy()
             theta[free_list] += d_theta
@@ -448,7 +451,7 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
                 heading = normal.total - float(normal.g_t.sum(axis=0) @ d_theta
                                                + np.einsum("sa,sa->", normal.g_x, d_x))
                 if heading > beyond * dof:   # stay at the point evaluated
-                    theta, X0, d_theta = best[1], best[2], np.zeros_like(d_theta)
+                    theta, X0, d_theta = best[2].theta, best[2].X0, np.zeros_like(d_theta)
                     break
             # the parameters' spread, scaled by the misfit (the noise may be misjudged)
             spread = np.sqrt(np.abs(np.diag(np.linalg.inv(schur))) * normal.total / dof)
@@ -476,7 +479,7 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
                     break
     if best is None or (not converged and damping_factor != 0.0):
         raise _SegmentFitFailed(f"Gauss-Newton did not settle in {MAX_ITERATIONS} iterations")
-    fit = SegmentFit(problem, theta, free, X0, best[0], d_theta, iterations, rtol)
+    fit = SegmentFit(problem, theta, free, X0, best[0], d_theta, iterations, rtol, best[2])
     if not np.isfinite(fit.chi2_per_dof) or not np.all(np.isfinite(theta)):
         raise _SegmentFitFailed("the fit diverged")
     return fit
@@ -520,13 +523,26 @@ class _Normal:
         return d_theta, d_x, schur
 
 
+@dataclass(frozen=True)
+class _Point:
+    """A point evaluated: every parameter and segment state, the segments' own normal
+    equations there (not condensed onto groups), and each segment's state at its end time
+    (`_Problem.end_times`) with its derivatives, which ties to the next segment need."""
+
+    theta: npt.NDArray[np.float64]  # (P,)
+    X0: npt.NDArray[np.float64]     # (S, 2N)
+    normal: _Normal
+    end: npt.NDArray[np.float64]    # (S, 2N)
+    E: npt.NDArray[np.float64]      # (S, 2N, 2N + p)
+
+
 def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, ...],
                       theta_step: Any, rtol: float, batch_done: Callable[[int], None],
                       derivatives: bool = True
-                      ) -> tuple[_Normal, tuple[npt.NDArray[np.float64], ...] | None]:
-    """Residuals and forward-difference Jacobians of every segment, into _Normal; and,
-    when segments are tied, each one's state at its next one's start time (S, 2N) and that
-    state's derivatives (S, 2N, 2N + p), else None.
+                      ) -> tuple[_Normal, npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Residuals and forward-difference Jacobians of every segment, into _Normal; each
+    one's state at its end time (`_Problem.end_times`, S, 2N) and that state's derivatives
+    (S, 2N, 2N + p).
 
     `theta` holds every parameter, shared (P,) or one row per segment (S, P). The segments
     are cut into batches of about equal size, as many as keep each within MAX_BATCH
@@ -558,7 +574,7 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
             W[1 + index, 1 + n_x + k] += theta_step[k]
         batches.append(integration.Batch(problem.dynamics, tau[lo:hi], measured[lo:hi],
                                          problem.weight, starts, W, steps, tolerance,
-                                         None if ends is None else ends[lo:hi]))
+                                         ends[lo:hi]))
     cost = np.zeros((S, n_states))
     H = np.zeros((S, copies - 1, copies - 1))
     g = np.zeros((S, copies - 1))
@@ -567,16 +583,14 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
         for lo, hi, blocks in zip(edges[:-1], edges[1:], integration.run(batches),
                                   strict=True):
             cost[lo:hi], H[lo:hi], g[lo:hi] = blocks.cost, blocks.H, blocks.g
-            if ends is not None:
-                end[lo:hi], E[lo:hi] = blocks.end, blocks.E
+            end[lo:hi], E[lo:hi] = blocks.end, blocks.E
             batch_done(int(hi))
     except integration.IntegrationFailed as exc:
         raise _SegmentFitFailed(str(exc)) from exc
     # each block its own array: numpy's sums over strided views round otherwise
     return _Normal(cost, *map(np.ascontiguousarray, (H[:, n_x:, n_x:], g[:, n_x:],
                                                      H[:, :n_x, :n_x], H[:, :n_x, n_x:],
-                                                     g[:, :n_x]))), (
-        None if ends is None else (end, E))
+                                                     g[:, :n_x]))), end, E
 
 
 @dataclass(frozen=True)
@@ -595,11 +609,10 @@ class _Chain:
                 + self.Q @ d_theta + self.c)
 
 
-def _condensed(problem: _Problem, normal: _Normal, X0: npt.NDArray[np.float64],
-               end: npt.NDArray[np.float64], E: npt.NDArray[np.float64]
-               ) -> tuple[_Normal, _Chain]:
-    """The segments' normal equations condensed onto each group's first state (module
-    docstring), and the chain that gives every segment's state step."""
+def _condensed(problem: _Problem, point: _Point) -> tuple[_Normal, _Chain]:
+    """The segments' normal equations at `point` condensed onto each group's first state
+    (module docstring), and the chain that gives every segment's state step."""
+    normal, X0, end, E = point.normal, point.X0, point.end, point.E
     S, n = X0.shape
     E_x, E_t = E[:, :, :n], E[:, :, n:]
     group = np.cumsum(np.isin(np.arange(S), problem.starts)) - 1

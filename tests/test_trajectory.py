@@ -341,3 +341,36 @@ def test_gauss_newton_stops_within_a_thousandth_of_a_standard_error():
         errors = np.sqrt(np.diag(fit.covariance("scaled")))
         on = trajectory.refit(fit, fit.problem.weight)
         assert np.all(np.abs(on.theta[free] - fit.theta[free]) < trajectory.SETTLED * errors)
+
+
+def test_a_join_starts_from_the_last_point_of_the_fit_it_ties(monkeypatch):
+    """Every fit integrates each segment to where its tie to the next would compare it:
+    a join's first step needs no integration, and its result equals a join whose first
+    point is integrated afresh."""
+    short = _peng_fit(10.0)
+    problem = short.problem
+    t = problem.records.t
+    (a0, b0), (a1, _) = problem.pieces[0], problem.pieces[1]
+    assert b0 == a1     # the first segment goes on into the second: its end is there
+    assert problem.end_times[0] == pytest.approx(t[a1] - t[a0], abs=1e-12)
+    last = [s for s in range(len(problem.pieces) - 1)
+            if problem.records.group[problem.pieces[s + 1][0]]
+            != problem.records.group[problem.pieces[s][0]]]
+    assert len(last) == 1   # the last segment of the first trajectory ends at its own sample
+    assert problem.end_times[last[0]] == pytest.approx(problem.tau[last[0]][-1], abs=1e-12)
+
+    calls = []
+    evaluate = trajectory._normal_equations
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return evaluate(*args, **kwargs)
+    monkeypatch.setattr(trajectory, "_normal_equations", counted)
+    tied = trajectory.join(short, 100, np.inf)
+    assert len(calls) == tied.iterations - 1
+    afresh = trajectory._fit_segments(short.problem.tied(100, np.inf), short.point.theta,
+                                      short.free, short.point.X0, short.rtol, None)
+    assert len(calls) == tied.iterations - 1 + afresh.iterations
+    errors = np.sqrt(np.diag(tied.covariance("scaled")))
+    free = list(tied.free)
+    assert np.all(np.abs(tied.theta[free] - afresh.theta[free]) < 1e-3 * errors)
