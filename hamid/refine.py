@@ -47,6 +47,9 @@ HELD_OUT_LEVEL = 0.95    # refused when the refinement predicts worse beyond thi
 LENGTHEN_LEVEL = 0.99    # segments joined while the misfit a join adds is below this F point
 LONGEST_PERIODS = 32     # dominant periods: longer segments would integrate one after another
 CLEAN_CHI2 = 1e-6        # misfit per dof below which it is the integrator's error, not noise
+# Standard errors from its minimum within which the first fit stops: the joined fit goes on
+# from its last point (to trajectory.SETTLED), and one not joined is settled at the end
+FIRST_WITHIN = 0.1
 NOISE_FLOOR = 1e-9       # of a variable's spread: the smallest noise level weighted by
 
 
@@ -158,7 +161,8 @@ def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipat
     theta_linear, free = unknowns.full(linear.theta), list(unknowns.free)
     try:
         fit = trajectory.refine(model, records, damping, theta_linear, free, period,
-                                noise.weights, progress, beyond=HOPELESS * CHI2_LIMIT)
+                                noise.weights, progress,
+                                trajectory.Stop(FIRST_WITHIN, HOPELESS * CHI2_LIMIT))
         within = fit.chi2_per_dof < CHI2_LIMIT
         if not within:
             # fewer segments than the held-out check needs: shorter ones, down to a period
@@ -177,8 +181,7 @@ def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipat
                       f"recording: {exc}"}
     info: dict[str, Any] = {
         "segments": fit.segments, "segment_seconds": fit.problem.length,
-        "iterations": fit.iterations, "chi2_per_dof": fit.chi2_per_dof,
-        "noise_chi2_per_dof": noise.misfit(fit), "noise": noise.report(model.variables),
+        **_fitted(fit, noise), "noise": noise.report(model.variables),
         "covariance": "misfit-scaled" if within else "sandwich"}
     beyond = (f"the integrated model misses the recording by {noise.misfit(fit):.3g} times the "
               "noise variance, and ")
@@ -204,14 +207,27 @@ def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipat
         return None, {"applied": False, "reason": reason, **info}
     info["lengthening"] = None
     if within:
-        fit, info["lengthening"] = _lengthened(fit, period, progress)
+        try:
+            fit, info["lengthening"] = _lengthened(fit, period, progress)
+        except trajectory.RefinementFailed as exc:
+            return None, {"applied": False, "reason": f"the integrated model does not fit "
+                          f"the recording: {exc}", **info}
+        if fit.groups == fit.segments:   # the first fit, settled
+            info.update(_fitted(fit, noise))
     return _refined(linear, fit, within), {"applied": True, **info}
+
+
+def _fitted(fit: SegmentFit, noise: _Noise) -> dict[str, Any]:
+    """What the report says of the fit over the segments as cut."""
+    return {"iterations": fit.iterations, "chi2_per_dof": fit.chi2_per_dof,
+            "noise_chi2_per_dof": noise.misfit(fit)}
 
 
 def _lengthened(fit: SegmentFit, period: float, progress: Callable[[str], None] | None
                 ) -> tuple[SegmentFit, dict[str, Any]]:
     """The fit over longer segments, neighbours joined, while what the joining adds to the
-    misfit is what the noise explains; and what the report says of it.
+    misfit is what the noise explains, or the fit settled (`trajectory.settle`) when none
+    are; and what the report says of it.
 
     Every segment boundary sets the state free again, and the information carried across
     it is lost: over four-period segments of a 100 s record the stiffnesses spread up to
@@ -230,6 +246,7 @@ def _lengthened(fit: SegmentFit, period: float, progress: Callable[[str], None] 
     if fit.chi2_per_dof < CLEAN_CHI2:
         # noise-free data: no noise to judge a tie by, and errors at the integrator's
         # tolerance already (a tie at the strict tolerance cost clean fits 2.5x noisy ones)
+        fit = trajectory.settle(fit, progress)
         return fit, _lengthening(fit, 0, "clean")
     longest, count, rounds = LONGEST_PERIODS * period, fit.groups, 0
     while True:
@@ -254,6 +271,8 @@ def _lengthened(fit: SegmentFit, period: float, progress: Callable[[str], None] 
         if count == 2:
             break
         count = 2   # refused at once: join in pairs, from the last good length
+    if rounds == 0:
+        fit = trajectory.settle(fit, progress)
     return fit, _lengthening(fit, rounds, stopped)
 
 

@@ -49,8 +49,8 @@ from hamid.dynamics import Dynamics
 from hamid.model import Model
 from hamid.records import Records
 
-__all__ = ["RefinementFailed", "SegmentFit", "TooUnstable", "fit", "join", "refine", "refit",
-           "segment_count"]
+__all__ = ["RefinementFailed", "SegmentFit", "Stop", "TooUnstable", "fit", "join", "refine",
+           "refit", "segment_count", "settle"]
 
 SEGMENT_PERIODS = 4.0  # dominant periods per segment, halved down to one when it fails
 MIN_SEGMENT_PERIODS = 1.0
@@ -84,6 +84,18 @@ TOLERANCE_SHARE = 1e-3
 # the residuals are small, where the ratio overstates the next step's size)
 SETTLED = 1e-3
 TIME_ROUNDING = 16     # in units of the rounding of the largest time: times that close are one
+
+
+@dataclass(frozen=True)
+class Stop:
+    """When Gauss-Newton stops: once the point it steps to is within `within` standard
+    errors of the minimum (SETTLED, or looser for a fit that a joined fit goes on from,
+    `settle` finishing it when none does), or, with `beyond`, where the misfit per
+    degree of freedom an undamped step heads for exceeds that (the weights are wrong, and
+    the point reached starts a fit under others)."""
+
+    within: float = SETTLED
+    beyond: float | None = None
 
 
 class RefinementFailed(Exception):
@@ -209,6 +221,7 @@ class SegmentFit:
     iterations: int
     rtol: float
     point: _Point
+    settled: bool   # within SETTLED standard errors of the minimum
 
     @property
     def segments(self) -> int:
@@ -330,8 +343,7 @@ def segment_count(records: Records, length: float) -> int:
 
 def refine(model: Model, records: Records, damping: Dissipation, theta_all: npt.ArrayLike,
            free: list[int], period: float, weight: npt.NDArray[np.float64],
-           progress: Callable[[str], None] | None = None,
-           beyond: float | None = None) -> SegmentFit:
+           progress: Callable[[str], None] | None = None, stop: Stop = Stop()) -> SegmentFit:
     """Parameters whose integrated segments fit the recording best (module docstring).
 
     `theta_all` holds every parameter (fixed ones at their values) and starts the search;
@@ -339,15 +351,13 @@ def refine(model: Model, records: Records, damping: Dissipation, theta_all: npt.
     for a variable that carries no independent information, e.g. derived velocities).
     Segments of four periods are tried first and halved while the fit fails, down to
     one period; raises RefinementFailed when even that fails. `progress`, if given, hears
-    of every batch of segments integrated. With `beyond`, Gauss-Newton stops where the
-    misfit per degree of freedom it heads for exceeds that: the weights are wrong, and
-    the point reached starts a fit under others.
+    of every batch of segments integrated; `stop` says when Gauss-Newton stops.
     """
     periods = SEGMENT_PERIODS
     while True:
         try:
             return fit(model, records, damping, theta_all, free, periods * period, weight,
-                       progress, beyond=beyond)
+                       progress, stop=stop)
         except RefinementFailed as exc:
             if periods / 2 < MIN_SEGMENT_PERIODS:
                 raise RefinementFailed(f"{exc}, even over segments of {periods:g} period"
@@ -358,13 +368,13 @@ def refine(model: Model, records: Records, damping: Dissipation, theta_all: npt.
 def fit(model: Model, records: Records, damping: Dissipation, theta_all: npt.ArrayLike,
         free: list[int], length: float, weight: npt.NDArray[np.float64],
         progress: Callable[[str], None] | None = None, stage: str = "",
-        beyond: float | None = None) -> SegmentFit:
+        stop: Stop = Stop()) -> SegmentFit:
     """The fit over segments of about `length` seconds (`refine`); `stage` names it in
     the progress messages. Raises RefinementFailed when it fails."""
     try:
         problem = _Problem.cut(model, records, damping, length, weight)
         return _fit_segments(problem, np.array(theta_all, float), tuple(free), None,
-                             LOOSE_RTOL, progress, stage, beyond)
+                             LOOSE_RTOL, progress, stage, stop)
     except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
         raise RefinementFailed(f"{exc}") from exc
 
@@ -395,6 +405,18 @@ def join(fit: SegmentFit, count: int, longest: float,
         raise RefinementFailed(f"{exc}, over joined segments") from exc
 
 
+def settle(fit: SegmentFit, progress: Callable[[str], None] | None = None) -> SegmentFit:
+    """The fit, fitted on from its last point until within SETTLED standard errors of the
+    minimum when it stopped further off (`Stop`); its iterations counted on."""
+    if fit.settled:
+        return fit
+    try:   # its first step, from the last point, is the one the fit had taken last
+        return _fit_segments(fit.problem, fit.point.theta, fit.free, fit.point.X0, fit.rtol,
+                             progress, evaluated=fit.point, iterations=fit.iterations - 1)
+    except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
+        raise RefinementFailed(f"{exc}, fitted on") from exc
+
+
 class _SegmentFitFailed(Exception):
     """One segment length did not give a fit; the reason is the text."""
 
@@ -402,18 +424,18 @@ class _SegmentFitFailed(Exception):
 def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple[int, ...],
                   X0: npt.NDArray[np.float64] | None, rtol: float,
                   progress: Callable[[str], None] | None, stage: str = "",
-                  beyond: float | None = None, evaluated: _Point | None = None
-                  ) -> SegmentFit:
+                  stop: Stop = Stop(), evaluated: _Point | None = None,
+                  iterations: int = 0) -> SegmentFit:
     """Gauss-Newton over the free parameters and every group's initial state (the states
-    of the segments tied to it following); stopped early when the misfit per degree of
-    freedom an undamped step heads for is over `beyond`. `evaluated` is the segments'
-    last point in a fit of them tied otherwise, at `theta`, `X0` and `rtol`: the first
-    step is taken from it without integrating them again."""
+    of the segments tied to it following), stopped as `stop` says. `evaluated` is the
+    segments' last point in a fit of them (tied otherwise, or stopped sooner), at `theta`,
+    `X0` and `rtol`: the first step is taken from it without integrating them again;
+    `iterations` are the steps the fit gone on with took to reach that point."""
     free_list = list(free)
     if X0 is None:
         X0 = np.array([x[0] for x in problem.measured])
-    damping_factor, best, converged = 0.0, None, False
-    iterations, last_step = 0, None   # the last undamped step, in standard errors
+    damping_factor, best, converged, off = 0.0, None, False, np.inf
+    last_step = None   # the last undamped step, in standard errors
     length = problem.span
     dof = max(problem.n_used - len(free) - problem.groups * X0.shape[1], 1)
 
@@ -447,10 +469,10 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
             theta[free_list] += d_theta
             X0 = X0 + (d_x if chain is None else chain.steps(d_x, d_theta))
             iterations += 1
-            if beyond is not None and damping_factor == 0.0:
+            if stop.beyond is not None and damping_factor == 0.0:
                 heading = normal.total - float(normal.g_t.sum(axis=0) @ d_theta
                                                + np.einsum("sa,sa->", normal.g_x, d_x))
-                if heading > beyond * dof:   # stay at the point evaluated
+                if heading > stop.beyond * dof:   # stay at the point evaluated
                     theta, X0, d_theta = best[2].theta, best[2].X0, np.zeros_like(d_theta)
                     break
             # the parameters' spread, scaled by the misfit (the noise may be misjudged)
@@ -461,11 +483,11 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
             ratio = 1.0 if last_step is None else min(
                 float(np.linalg.norm(step) / max(np.linalg.norm(last_step), 1e-300)), 1.0)
             last_step = step if damping_factor == 0.0 else None
-            # settled within SETTLED standard errors; tied, with the misfit evaluated with
-            # the gaps closed (a step after the first)
-            settled = (np.all(np.abs(d_theta) * ratio
-                              <= 1e-9 * np.abs(theta[free_list]) + SETTLED * spread)
-                       and (chain is None or iterations > 1))
+            # standard errors from the minimum (beyond round-off); tied, only once the
+            # misfit was evaluated with the gaps closed (a step after the first)
+            off = np.inf if chain is not None and iterations == 1 else float(np.max(
+                (np.abs(d_theta) * ratio - 1e-9 * np.abs(theta[free_list]))
+                / np.maximum(spread, 1e-300)))
             if damping_factor == 0.0:
                 # a fine spread shows at the first undamped step: tighten there rather than
                 # settle at the loose tolerance first (an evaluation less)
@@ -474,12 +496,13 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
                 if rtol > STRICT_RTOL and wanted < rtol:
                     rtol, best = max(STRICT_RTOL, wanted / 2), None
                     continue
-                if settled:
+                if off <= stop.within:
                     converged = True
                     break
     if best is None or (not converged and damping_factor != 0.0):
         raise _SegmentFitFailed(f"Gauss-Newton did not settle in {MAX_ITERATIONS} iterations")
-    fit = SegmentFit(problem, theta, free, X0, best[0], d_theta, iterations, rtol, best[2])
+    fit = SegmentFit(problem, theta, free, X0, best[0], d_theta, iterations, rtol, best[2],
+                     converged and off <= SETTLED)
     if not np.isfinite(fit.chi2_per_dof) or not np.all(np.isfinite(theta)):
         raise _SegmentFitFailed("the fit diverged")
     return fit

@@ -474,3 +474,30 @@ def test_noise_free_data_are_not_lengthened(clean_records):
     assert refinement["chi2_per_dof"] < refine.CLEAN_CHI2
     assert refinement["lengthening"] == _not_lengthened(refinement, "clean")
     assert result.estimates == pytest.approx(DUFFING["parameters"], rel=1e-8)
+
+
+def test_the_refined_fit_is_settled_whether_joined_or_not(monkeypatch):
+    """The first fit stops within refine.FIRST_WITHIN standard errors, for a joined fit to
+    go on from; when none is joined, it is settled before it is reported, and the
+    estimates equal those of a first fit settled at once."""
+    reported = []
+    made = refine._refined
+
+    def seen(linear, fit, within):
+        reported.append(fit)
+        return made(linear, fit, within)
+    monkeypatch.setattr(refine, "_refined", seen)
+    frame = with_noise(hamid.simulate(PENG), 0.01, seed=1)
+    joined = hamid.fit(frame)
+    monkeypatch.setattr(refine, "LONGEST_PERIODS", 0.0)   # no segment joined
+    alone = hamid.fit(frame)
+    monkeypatch.setattr(refine, "FIRST_WITHIN", trajectory.SETTLED)
+    at_once = hamid.fit(frame)
+    assert joined.method["refinement"]["lengthening"]["rounds"] >= 1
+    assert alone.method["refinement"]["lengthening"]["rounds"] == 0
+    assert all(fit.settled for fit in reported)
+    assert alone.method["refinement"]["iterations"] == at_once.method["refinement"][
+        "iterations"]
+    errors = np.array([p.stderr for p in at_once.parameters])
+    assert np.all(np.abs(np.array(list(alone.estimates.values()))
+                         - np.array(list(at_once.estimates.values()))) < 1e-6 * errors)

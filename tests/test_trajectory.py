@@ -282,9 +282,10 @@ def test_refined_bounds_cover_the_truth(clean_records, name):
         assert 0.88 <= fraction <= 0.99, (parameter, fraction)
 
 
-def _peng_fit(length: float, noise: float = 0.01) -> trajectory.SegmentFit:
+def _peng_fit(length: float, noise: float = 0.01, start: float = 1.0,
+              stop: trajectory.Stop = trajectory.Stop()) -> trajectory.SegmentFit:
     """peng-quadratic, two trajectories of 40 s at `noise`, fitted over segments of
-    `length` seconds from the truth."""
+    `length` seconds from the truth times `start`."""
     from hamid.records import Records
 
     frame = with_noise(hamid.simulate(PENG), noise, seed=1)
@@ -294,8 +295,8 @@ def _peng_fit(length: float, noise: float = 0.01) -> trajectory.SegmentFit:
     model = hamid.load_model("peng-quadratic")
     weight = 1 / (noise * frame[columns].std().to_numpy())
     truth = [PENG["parameters"][name] for name in model.parameters]
-    return trajectory.fit(model, records, model.dissipative(), truth,
-                          list(range(len(truth))), length, weight)
+    return trajectory.fit(model, records, model.dissipative(), np.multiply(truth, start),
+                          list(range(len(truth))), length, weight, stop=stop)
 
 
 def test_tied_segments_fit_as_one_segment_per_trajectory():
@@ -374,3 +375,19 @@ def test_a_join_starts_from_the_last_point_of_the_fit_it_ties(monkeypatch):
     errors = np.sqrt(np.diag(tied.covariance("scaled")))
     free = list(tied.free)
     assert np.all(np.abs(tied.theta[free] - afresh.theta[free]) < 1e-3 * errors)
+
+
+def test_a_fit_stopped_sooner_is_settled_from_where_it_stopped():
+    """A fit stopped within a tenth of a standard error (the refinement's first fit, which
+    a joined fit goes on from) is not settled; settled, it goes on from its last point to
+    the fit made at once (the same steps), and a settled fit is left as it is."""
+    rough = _peng_fit(10.0, start=1.01, stop=trajectory.Stop(within=0.1))
+    settled = _peng_fit(10.0, start=1.01)
+    assert not rough.settled and settled.settled
+    assert rough.iterations < settled.iterations
+    on = trajectory.settle(rough)
+    errors = np.sqrt(np.diag(settled.covariance("scaled")))
+    free = list(settled.free)
+    assert on.iterations == settled.iterations
+    assert np.all(np.abs(on.theta[free] - settled.theta[free]) < 1e-6 * errors)
+    assert trajectory.settle(settled) is settled

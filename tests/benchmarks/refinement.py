@@ -10,11 +10,11 @@ grow with it), and clean (the strict-tolerance pass); the 100x record again with
 ties of the lengthening (what they cost).
 
 For each record the default fit runs `--repeats` times with ``jobs=1`` and with one
-process per core; the time spent in the trajectory fits (`hamid.trajectory.refine`,
-`fit`, `refit`, `join`: the lengthening counted, starting the worker processes included)
-is taken from wrappers around them and printed in µs per sample, with the largest
-relative difference between the two fits' estimates (none: the batches do not depend on
-the workers). Records short enough to stay in one process
+process per core; the time spent in the whole refinement (`hamid.refine.refine`: the
+trajectory fits, the held-out check with its linear refits, the lengthening, starting the
+worker processes) is taken from a wrapper around it and printed in µs per sample, with
+the largest relative difference between the two fits' estimates (none: the batches do not
+depend on the workers). Records short enough to stay in one process
 (`hamid.integration.PARALLEL_VALUES`) cost the same both ways.
 
 The peer is `scipy.optimize.least_squares` over `solve_ivp` (DOP853) with the same
@@ -116,7 +116,7 @@ def main() -> None:
     from conftest import DUFFING, PENG, with_noise
 
     import hamid
-    from hamid import trajectory
+    from hamid import refine, trajectory
     from hamid.executor import available_cores
     from hamid.model import model_from_spec
 
@@ -133,23 +133,23 @@ def main() -> None:
     spent: dict[str, float] = defaultdict(float)
     fits: list = []
     starts: list = []
-    depth = [0]
-    for name in ("refine", "fit", "refit", "join"):
+    whole = refine.refine
+
+    def timed_refinement(*a, **k):
+        begin = time.perf_counter()
+        try:
+            return whole(*a, **k)
+        finally:
+            spent["refinement"] += time.perf_counter() - begin
+    refine.refine = timed_refinement
+    for name in ("refine", "refit"):   # the fits of the segments as cut
         original = getattr(trajectory, name)
 
         def wrapper(*a, _original=original, _name=name, **k):
-            depth[0] += 1   # refine calls fit: its time counted once
-            begin = time.perf_counter()
-            try:
-                result = _original(*a, **k)
-            finally:
-                depth[0] -= 1
-            if depth[0] == 0:
-                spent["trajectory"] += time.perf_counter() - begin
+            result = _original(*a, **k)
             if _name == "refine":
                 starts.append(np.array(a[3], float)[list(a[4])])
-            if _name != "join":   # the peer fits the segments as cut
-                fits.append(result)
+            fits.append(result)
             return result
         setattr(trajectory, name, wrapper)
 
@@ -161,7 +161,7 @@ def main() -> None:
             fits.clear()
             starts.clear()
             result = hamid.fit(frame, model, jobs=jobs)
-        return 1e6 * spent["trajectory"] / args.repeats / len(frame), result.estimates
+        return 1e6 * spent["refinement"] / args.repeats / len(frame), result.estimates
 
     cores = available_cores()
     print(f"{'record':28} {'samples':>8} {'µs/sample, 1 job':>17} "
@@ -182,7 +182,7 @@ def main() -> None:
             jobs_diff = max(abs(all_estimates[k] - v) / abs(v) for k, v in estimates.items())
             line = f"{name:28} {samples:8d} {hamid_us:17.2f} {all_us:8.2f} {jobs_diff:9.1e}"
             if peer and noisy:
-                fit = fits[-1]
+                fit = trajectory.settle(fits[-1])   # the first fit stops sooner when joined
                 t, X = frame["t"].to_numpy(), frame.iloc[:, 2:].to_numpy()
                 begin = time.perf_counter()
                 theta = _peer(rhs, fit, t, X, starts[0], rtol=1e-10)
@@ -201,8 +201,6 @@ def main() -> None:
           f"{ten[1] / two[1]:.2f}x of the short record; at 100x {hundred[0] / ten[0]:.2f}x / "
           f"{hundred[1] / ten[1]:.2f}x of the 10x record; clean / noisy: "
           f"{per_sample['peng-quadratic (2 DOF), clean'][0] / two[0]:.2f}x")
-    from hamid import refine
-
     refine.LONGEST_PERIODS = 0.0   # no segments tied: what the lengthening costs
     untied_us, _ = timed(frame, None, 1)
     print(f"{label} without the ties of the lengthening: {untied_us:.2f} µs/sample, 1 job "
