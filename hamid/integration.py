@@ -43,7 +43,7 @@ Array = npt.NDArray[np.float64]
 # 7M values takes about 0.15 s on one core, so that 160,000 samples of peng-quadratic
 # (7M values a round) were refined in 1.04 s in one process and 1.19 s in two, while 400,000
 # took 2.87-3.24 s and 2.62-2.74 s, and 10^6 8.3-8.6 s and 5.7-6.7 s (a quiet 2-core
-# machine; a refinement makes five rounds or more; docs/scaling.md).
+# machine, when a refinement made seven rounds; it now makes four; docs/scaling.md).
 PARALLEL_VALUES = 1 << 23
 # Segments whose Gauss-Newton blocks are formed together (`blocks`): enough that numpy's
 # calls are few, few enough that their arrays stay in cache.
