@@ -145,16 +145,14 @@ class _Problem:
     def tied(self, count: int, longest: float) -> _Problem:
         """Up to `count` neighbouring groups of one trajectory tied into one, as long as it
         spans at most `longest` seconds."""
-        t, group = self.records.t, self.records.group
+        t = self.records.t
         assert t is not None
         bounds = [*self.starts.tolist(), len(self.pieces)]
         starts, g = [], 0
         while g < len(self.starts):
             first, a = bounds[g], self.pieces[bounds[g]][0]
             g, merged = g + 1, 1
-            while (merged < count and g < len(self.starts)
-                   and self.pieces[bounds[g]][0] == self.pieces[bounds[g] - 1][1]
-                   and group[self.pieces[bounds[g]][0]] == group[a]
+            while (merged < count and g < len(self.starts) and self.goes_on[bounds[g] - 1]
                    and t[self.pieces[bounds[g + 1] - 1][1] - 1] - t[a] <= longest):
                 g, merged = g + 1, merged + 1
             starts.append(first)
@@ -165,18 +163,26 @@ class _Problem:
         return len(self.starts)
 
     @cached_property
+    def goes_on(self) -> npt.NDArray[np.bool_]:
+        """Whether each segment but the last goes on into the next (S - 1,): the same
+        trajectory, no rows left out between; only such neighbours can be tied."""
+        first = np.array([a for a, _ in self.pieces])
+        stop = np.array([b for _, b in self.pieces])
+        group = self.records.group
+        return (first[1:] == stop[:-1]) & (group[first[1:]] == group[first[:-1]])
+
+    @cached_property
     def end_times(self) -> npt.NDArray[np.float64]:
         """Each segment's time, from its start, of the state a tie to the next segment
         compares with that one's first sample: the time of that sample where the next
         segment goes on from this one (the same trajectory, no rows left out between),
         else its own last sample. Every fit integrates to them, tied or not, so that a
         fit of the same segments tied otherwise starts from its last point unintegrated."""
-        t, group = self.records.t, self.records.group
+        t = self.records.t
         assert t is not None
         first = np.array([a for a, _ in self.pieces])
-        stop = np.array([b for _, b in self.pieces])
         ends = np.array([tau[-1] for tau in self.tau])
-        goes_on = (first[1:] == stop[:-1]) & (group[first[1:]] == group[first[:-1]])
+        goes_on = self.goes_on
         ends[:-1][goes_on] = t[first[1:][goes_on]] - t[first[:-1][goes_on]]
         return ends
 
