@@ -283,9 +283,9 @@ def test_refined_bounds_cover_the_truth(clean_records, name):
 
 
 def _peng_fit(length: float, noise: float = 0.01, start: float = 1.0,
-              stop: trajectory.Stop = trajectory.Stop()) -> trajectory.SegmentFit:
+              within: float = trajectory.SETTLED) -> trajectory.SegmentFit:
     """peng-quadratic, two trajectories of 40 s at `noise`, fitted over segments of
-    `length` seconds from the truth times `start`."""
+    `length` seconds from the truth times `start`, stopped `within` standard errors."""
     from hamid.records import Records
 
     frame = with_noise(hamid.simulate(PENG), noise, seed=1)
@@ -296,7 +296,8 @@ def _peng_fit(length: float, noise: float = 0.01, start: float = 1.0,
     weight = 1 / (noise * frame[columns].std().to_numpy())
     truth = [PENG["parameters"][name] for name in model.parameters]
     return trajectory.fit(model, records, model.dissipative(), np.multiply(truth, start),
-                          list(range(len(truth))), length, weight, stop=stop)
+                          list(range(len(truth))), length, weight,
+                          stop=trajectory.Stop(within))
 
 
 def test_tied_segments_fit_as_one_segment_per_trajectory():
@@ -381,7 +382,7 @@ def test_a_fit_stopped_sooner_is_settled_from_where_it_stopped():
     """A fit stopped within a tenth of a standard error (the refinement's first fit, which
     a joined fit goes on from) is not settled; settled, it goes on from its last point to
     the fit made at once (the same steps), and a settled fit is left as it is."""
-    rough = _peng_fit(10.0, start=1.01, stop=trajectory.Stop(within=0.1))
+    rough = _peng_fit(10.0, start=1.01, within=0.1)
     settled = _peng_fit(10.0, start=1.01)
     assert not rough.settled and settled.settled
     assert rough.iterations < settled.iterations
