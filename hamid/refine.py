@@ -48,8 +48,11 @@ LENGTHEN_LEVEL = 0.99    # segments joined while the misfit a join adds is below
 LONGEST_PERIODS = 32     # dominant periods: longer segments would integrate one after another
 CLEAN_CHI2 = 1e-6        # misfit per dof below which it is the integrator's error, not noise
 # Standard errors from its minimum within which the first fit stops: the joined fit goes on
-# from its last point (to trajectory.SETTLED), and one not joined is settled at the end
-FIRST_WITHIN = 0.1
+# from its last point (to trajectory.SETTLED), and one not joined is settled at the end.
+# What it is judged by before then cannot tell: its misfit gains d^2 at d standard errors
+# off (against a spread of sqrt(2 dof)), and the held-out refits step from where it
+# stopped (within 0.02 standard errors of refits run to the end; 0.04 from 1.0)
+FIRST_WITHIN = 0.3
 NOISE_FLOOR = 1e-9       # of a variable's spread: the smallest noise level weighted by
 
 

@@ -290,15 +290,17 @@ class SegmentFit:
         each group's misfit at its row, its initial state refitted (G,); the groups are
         the segments when none are tied, as in `hamid.refine`'s check.
 
-        Both to second order from the converged fit (one Gauss-Newton step over the other
-        folds' segments): the refits move the parameters by about a standard error."""
+        Both to second order from the fit (one Gauss-Newton step over the other folds'
+        segments from where it stopped, near its minimum: the scores sum to about zero):
+        the refits move the parameters by about a standard error."""
         misfit, score, schur = self._reduced
-        total = schur.sum(axis=0)
+        total, total_score = schur.sum(axis=0), score.sum(axis=0)
         thetas = np.repeat(self.theta[None], self.groups, axis=0)
         held_misfit = np.empty(self.groups)
         for k in np.unique(folds):
             held = folds == k
-            d = -np.linalg.solve(total - schur[held].sum(axis=0), score[held].sum(axis=0))
+            d = np.linalg.solve(total - schur[held].sum(axis=0),
+                                total_score - score[held].sum(axis=0))
             thetas[np.ix_(held, self.free)] += d
             held_misfit[held] = (misfit[held] - 2 * score[held] @ d
                                  + np.einsum("k,skl,l->s", d, schur[held], d))

@@ -175,16 +175,19 @@ def test_a_failed_trajectory_fit_keeps_the_linear_fit(clean_records, monkeypatch
     assert any(w.startswith("the trajectory refinement was not kept") for w in result.warnings)
 
 
-def test_held_out_folds_match_refits_without_them(clean_records):
+@pytest.mark.parametrize("within", [trajectory.SETTLED, refine.FIRST_WITHIN])
+def test_held_out_folds_match_refits_without_them(clean_records, within):
     """The second-order refits of the held-out check against Gauss-Newton run to the end
-    on the other folds' segments, and the misfits of the held-out segments then."""
+    on the other folds' segments, and the misfits of the held-out segments then; from a
+    fit settled, and from one stopped as the refinement's first fit is."""
     frame = with_noise(clean_records["duffing"], 0.02, seed=3)
     records = Records(frame[["x", "v"]].to_numpy(), frame["t"].to_numpy(),
                       frame["trajectory"].to_numpy() - 1, (1, 2))
     model = hamid.load_model("duffing")
     damping = model.dissipative()
     weight = 1 / measurement.estimate_noise(records.X, records.bounds())
-    fit = trajectory.fit(model, records, damping, [1.0, 0.5], [0, 1], 5.7, weight)
+    fit = trajectory.fit(model, records, damping, [1.0, 0.5], [0, 1], 5.7, weight,
+                         stop=trajectory.Stop(within))
     assert fit.segments == 10
     folds = np.arange(fit.segments) * 3 // fit.segments
     thetas, misfits = fit.held_out_folds(folds)
