@@ -650,7 +650,7 @@ def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unk
             sigma = measurement.estimate_noise(records.X, records.bounds())
         except DataError:   # trajectories too short to tell the noise: nothing to check
             return None
-    spread = [records.X[:, k].std() for k in range(records.X.shape[1])]   # no copy of X
+    spread = records.spread
     ratio = {name: float(s / d) if d > 0 else 0.0
              for name, s, d in zip(m.variables, sigma, spread, strict=True)}
     if (fit is None or options.bias_correct or not m.is_polynomial

@@ -169,14 +169,14 @@ def segment_motion(report: Mapping[str, Any], recording: Recording,
     damping = _values(report, "damping")
     motion = Dynamics(model, dissipation).at([1.0, *_theta(report, model),
                                               *(damping[name] for name in dissipation.names)])
-    weight = 1.0 / np.maximum(noise_levels(report, recording), 1e-9 * records.X.std(axis=0))
+    weight = 1.0 / np.maximum(noise_levels(report, recording), 1e-9 * records.spread)
     if report["data"]["velocity_source"] == "savgol":
         weight[len(model.coordinates):] = 0.0   # derived: no information of their own
 
     # Gauss-Newton over the initial state; each step integrates the state and its 2N
     # perturbed copies together, as the refinement does (they share the adaptive steps)
     n_states = recorded.shape[1]
-    step = 1e-7 * np.maximum(np.abs(records.X).max(axis=0), records.X.std(axis=0))
+    step = 1e-7 * np.maximum(records.extent, records.spread)
     x0 = recorded[0].copy()
     for _ in range(_ITERATIONS):
         starts = np.vstack([x0, x0 + np.diag(step)])                 # (1 + 2N, 2N)

@@ -705,7 +705,7 @@ def noise_levels(loaded: Loaded,
             if not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
                 raise UsageError(f"--noise: {key}={value!r} is not a non-negative number")
             k = model.variables.index(name)
-            spread = float(records.X[:, k].std())
+            spread = float(records.spread[k])
             if value > 2 * spread:   # the column's spread holds its noise and its motion
                 raise UsageError(f"--noise: {key}={value:g} is more than twice the spread of "
                                  f"the column itself (standard deviation {spread:.3g}); give "

@@ -80,7 +80,7 @@ class _Noise:
         used = np.ones(len(base), bool)
         if derived_velocities:
             used[n_coordinates:] = False  # derived from the positions: nothing of their own
-        return cls(base, base, given, used, NOISE_FLOOR * records.X.std(axis=0))
+        return cls(base, base, given, used, NOISE_FLOOR * records.spread)
 
     @property
     def weights(self) -> npt.NDArray[np.float64]:

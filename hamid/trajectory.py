@@ -135,7 +135,7 @@ class _Problem:
         resolution = TIME_ROUNDING * np.finfo(float).eps * float(np.max(np.abs(t)))
         return cls(Dynamics(model, damping), records, pieces,
                    [t[a:b] - t[a] for a, b in pieces], [X[a:b] for a, b in pieces],
-                   STEP * np.maximum(np.abs(X).max(axis=0), X.std(axis=0)), resolution,
+                   STEP * np.maximum(records.extent, records.spread), resolution,
                    weight, length, np.arange(len(pieces)))
 
     def reweighted(self, weight: npt.NDArray[np.float64]) -> _Problem:

@@ -13,6 +13,7 @@ from conftest import with_noise
 import hamid
 from hamid import adjust, design, estimate, loading, measurement, plan, solve, writing
 from hamid.options import FitOptions
+from hamid.records import Records
 from hamid.unknowns import Unknowns
 
 
@@ -165,3 +166,15 @@ def test_energy_rows_let_go_are_made_again_the_same(noisy):
         assert made is not before
         assert np.array_equal(made.A, before.A) and np.array_equal(made.b, before.b)
         assert np.array_equal(made.group, before.group)
+
+
+def test_the_records_spread_and_extent_are_numpys_over_all_columns():
+    """`Records.spread` and `extent`, made a column at a time, against numpy over the
+    whole array: columns offset far from zero, negative only, constant."""
+    rng = np.random.default_rng(4)
+    X = np.column_stack([1e6 + rng.normal(size=1000), -5 - rng.random(1000),
+                         np.full(1000, 2.5), 1e-8 * rng.normal(size=1000)])
+    records = Records(X, np.arange(1000.0), np.zeros(1000, np.int64), (1,))
+    assert records.spread == pytest.approx(X.std(axis=0), rel=1e-9, abs=1e-300)
+    assert records.spread[2] == 0.0
+    assert np.array_equal(records.extent, np.abs(X).max(axis=0))
