@@ -131,6 +131,14 @@ class Pool:
             for future in pending:
                 future.cancel()
 
+    def warm(self) -> None:
+        """Start the workers now and return: they start at the first items otherwise, and
+        their start (a process each, importing the functions' module) then holds up the
+        first map, when it could have gone on beside the work that prepares it."""
+        if self._submit is not None:
+            for _ in range(self.capacity):
+                self._submit(_nothing, None)
+
 
 @contextlib.contextmanager
 def started(workers: Workers, preload: str) -> Iterator[Pool]:
@@ -172,6 +180,10 @@ def _local_pool(workers: Workers, preload: str) -> Iterator[tuple[Submit, int]]:
             process.terminate()
         raise
     pool.shutdown()
+
+
+def _nothing(_: Any) -> None:
+    """Helper: an item that only starts its worker (`Pool.warm`)."""
 
 
 def _worker_started() -> None:

@@ -233,6 +233,12 @@ class _Workers:
         self.workers, self._stack = workers, stack
         self._pool: Pool | None = None
 
+    def start(self) -> None:
+        """Start the workers now, in the background, unless there is only this process."""
+        if self.workers != Workers() and self._pool is None:
+            self._pool = self._stack.enter_context(started(self.workers, __name__))
+            self._pool.warm()
+
     def pool(self, batches: Sequence[Batch]) -> Pool | None:
         """The pool for a round of `batches`, or None to run it here: one batch, or too
         little work to pay for starting the processes (once started, they take any round
@@ -241,8 +247,7 @@ class _Workers:
             return None
         if self._pool is None and sum(batch.values for batch in batches) < PARALLEL_VALUES:
             return None
-        if self._pool is None:
-            self._pool = self._stack.enter_context(started(self.workers, __name__))
+        self.start()
         return self._pool
 
 
@@ -251,11 +256,16 @@ _current: contextvars.ContextVar[_Workers | None] = contextvars.ContextVar(
 
 
 @contextlib.contextmanager
-def parallel(workers: Workers) -> Iterator[None]:
+def parallel(workers: Workers, expected: int = 0) -> Iterator[None]:
     """Rounds of batches `run` within the block go to `workers` when they are worth it;
-    the processes start at the first such round and stop when the block ends."""
+    the processes start at the first such round, or at once when a round is `expected`
+    to integrate PARALLEL_VALUES values or more (their start then goes on beside the
+    work before the first round), and stop when the block ends."""
     with contextlib.ExitStack() as stack:
-        token = _current.set(_Workers(workers, stack))
+        workers_now = _Workers(workers, stack)
+        if expected >= PARALLEL_VALUES:
+            workers_now.start()
+        token = _current.set(workers_now)
         try:
             yield
         finally:

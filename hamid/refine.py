@@ -133,7 +133,8 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipati
     fit's levels are the mean energies at its parameters; their standard errors need a
     pass over the energy residuals there (`level_errors`) and are NaN here. The
     integrations run in `jobs` processes (default one per core) when the record is long
-    enough to gain by it (`hamid.integration`); the processes last the whole refinement.
+    enough to gain by it (`hamid.integration`); the processes then start at once and last
+    the whole refinement.
     """
     for what, kinks in (("energy", model.kinks),
                         ("dissipation", [k for part in damping.kinks for k in part])):
@@ -145,7 +146,10 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipati
                 "steps without end")}
     from hamid import integration
 
-    with integration.parallel(Workers(jobs or available_cores())):
+    n_samples, n_states = records.X.shape
+    # a round integrates each sample's state in 1 + 2N + p copies (`hamid.trajectory`)
+    expected = (1 + n_states + len(unknowns.free)) * n_states * n_samples
+    with integration.parallel(Workers(jobs or available_cores()), expected):
         return _refine(linear, model, records, damping, unknowns, plan, sigma,
                        derived_velocities, rows, progress)
 

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import multiprocessing
 import pickle
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from hamid import dop853, estimate, integration, trajectory
 from hamid.cli import cli
 from hamid.dynamics import Dynamics
 from hamid.errors import UsageError
+from hamid.executor import Workers
 from hamid.model import load_model
 
 SAMPLES = Path(__file__).resolve().parent.parent / "sample_data"
@@ -171,6 +173,20 @@ def test_a_short_record_stays_in_this_process(noisy_peng, spied_pools):
     result = hamid.fit(noisy_peng, jobs=2)
     assert result.method["refinement"]["applied"] is True
     assert spied_pools == []
+
+
+def test_workers_start_at_once_when_a_round_is_expected_to_be_worth_them(spied_pools):
+    """From PARALLEL_VALUES expected values, the block starts its processes on entry
+    (both running before any round), not at the first round; below, or with one job,
+    none."""
+    with integration.parallel(Workers(2), integration.PARALLEL_VALUES - 1):
+        assert spied_pools == [] and multiprocessing.active_children() == []
+    with integration.parallel(Workers(1), integration.PARALLEL_VALUES):
+        assert spied_pools == []
+    with integration.parallel(Workers(2), integration.PARALLEL_VALUES):
+        assert spied_pools == [2]
+        assert len(multiprocessing.active_children()) == 2
+    assert multiprocessing.active_children() == []
 
 
 def test_a_failed_integration_in_a_worker_keeps_the_linear_fit(noisy_peng, monkeypatch):
