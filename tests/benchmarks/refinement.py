@@ -24,8 +24,12 @@ finite differences grouped by its block sparsity (`jac_sparsity`), as a careful 
 would. It is timed at rtol 1e-10. Its estimates are compared to hamid's: the largest
 relative difference, and in hamid's standard errors (hamid stops within 1e-3 standard
 errors of its minimum). At rtol 1e-10 the peer's own integration error moves its minimum
-by some 1e-4 standard errors, so the comparison is made twice: with the timed peer, and
-(untimed) with the peer at rtol 1e-12, the nearer to the exact least-squares minimum.
+by some 1e-4 standard errors, so the comparison is made three times (the last two
+untimed): with the timed peer, with the peer at rtol 1e-12, and with the peer at rtol
+1e-12 started from hamid's estimates and states. From its own start the peer stops where
+its sum of squares no longer changes by 1e-12 of itself (`ftol`), which at 1e-4 standard
+errors from the minimum it does not (the excess is some 1e-8 of a sum of about 10^4);
+from hamid's point it would go on to the minimum if that point were not there.
 """
 
 from __future__ import annotations
@@ -76,8 +80,9 @@ def _chain(theta, y):
                      -k2 * (x2 - x1) + k3 * (x3 - x2), -k3 * (x3 - x2)])
 
 
-def _peer(rhs, fit, t, X, theta0, rtol: float):
-    """least_squares over solve_ivp on the fit's segments, weights and start."""
+def _peer(rhs, fit, t, X, theta0, rtol: float, states=None):
+    """least_squares over solve_ivp on the fit's segments and weights, from `theta0` and
+    each segment's first sample (or `states`, one row per segment)."""
     from scipy.integrate import solve_ivp
     from scipy.optimize import least_squares
     from scipy.sparse import lil_matrix
@@ -102,7 +107,9 @@ def _peer(rhs, fit, t, X, theta0, rtol: float):
             out.append(((X[a:b] - y.T) * weight).ravel())
         return np.concatenate(out)
 
-    start = np.concatenate([theta0, np.concatenate([X[a] for a, _ in pieces])])
+    if states is None:
+        states = [X[a] for a, _ in pieces]
+    start = np.concatenate([theta0, np.concatenate(states)])
     return least_squares(residuals, start, jac_sparsity=sparsity, x_scale="jac",
                          xtol=1e-12, ftol=1e-12, gtol=1e-12).x[:p]
 
@@ -167,7 +174,7 @@ def main() -> None:
     print(f"{'record':28} {'samples':>8} {'µs/sample, 1 job':>17} "
           f"{f'{cores} jobs':>8} {'jobs diff':>9} {'peer µs/sample':>15} "
           f"{'peer / hamid':>13} {'max rel diff':>13} {'in stderrs':>12} "
-          f"{'1e-12 peer':>13} {'in stderrs':>12}")
+          f"{'1e-12 peer':>13} {'in stderrs':>12} {'from hamid':>13} {'in stderrs':>12}")
     per_sample = {}
     for label, (system, model, rhs, peer) in cases.items():
         for noisy in (True, False) if label.startswith("peng-quadratic (") else (True,):
@@ -190,7 +197,8 @@ def main() -> None:
                 mine = fit.theta[list(fit.free)]
                 stderr = np.sqrt(np.diag(fit.covariance("scaled")))
                 line += f" {peer_us:15.2f} {peer_us / hamid_us:13.1f}"
-                for peer_theta in (theta, _peer(rhs, fit, t, X, starts[0], rtol=1e-12)):
+                for peer_theta in (theta, _peer(rhs, fit, t, X, starts[0], rtol=1e-12),
+                                   _peer(rhs, fit, t, X, mine, 1e-12, fit.states)):
                     diff = np.abs(peer_theta - mine)
                     line += (f" {np.max(diff / np.abs(mine)):13.1e}"
                              f" {np.max(diff / stderr):12.1e}")
