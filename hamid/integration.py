@@ -38,13 +38,13 @@ __all__ = ["Batch", "Blocks", "IntegrationFailed", "Tolerance", "blocks", "commo
 Array = npt.NDArray[np.float64]
 
 # Values integrated in one round (copies x states x samples, summed over its batches) from
-# which the batches go to worker processes: about 190,000 samples of two degrees of
-# freedom. Starting two costs about 0.2 s and each round moves its batches; a round of
-# 7M values takes about 0.15 s on one core, so that 160,000 samples of peng-quadratic
-# (7M values a round) were refined in 1.04 s in one process and 1.19 s in two, while 400,000
-# took 2.87-3.24 s and 2.62-2.74 s, and 10^6 8.3-8.6 s and 5.7-6.7 s (a quiet 2-core
-# machine, when a refinement made seven rounds; it now makes four; docs/scaling.md).
-PARALLEL_VALUES = 1 << 23
+# which the batches go to worker processes: about 450,000 samples of two degrees of
+# freedom. Starting two costs 0.2-0.4 s and each round moves its batches, while a
+# refinement makes four rounds: on a quiet 2-core machine (`PARALLEL_VALUES` 0 for two)
+# peng-quadratic's refinement took 0.58 s in one process and 0.92 s in two on 160,000
+# samples, 1.69 and 1.80 s on 400,000, 2.85 and 2.39 s on 640,000, 4.45 and 3.26 s on
+# 10^6 (docs/scaling.md).
+PARALLEL_VALUES = 20_000_000
 # Segments whose Gauss-Newton blocks are formed together (`blocks`): enough that numpy's
 # calls are few, few enough that their arrays stay in cache.
 GATHERED = 32
