@@ -38,13 +38,13 @@ __all__ = ["Batch", "Blocks", "IntegrationFailed", "Tolerance", "blocks", "commo
 Array = npt.NDArray[np.float64]
 
 # Values integrated in one round (copies x states x samples, summed over its batches) from
-# which the batches go to worker processes: about 450,000 samples of two degrees of
+# which the batches go to worker processes: about 270,000 samples of two degrees of
 # freedom. Starting two costs 0.2-0.4 s and each round moves its batches, while a
-# refinement makes four rounds: on a quiet 2-core machine (`PARALLEL_VALUES` 0 for two)
-# peng-quadratic's refinement took 0.58 s in one process and 0.92 s in two on 160,000
-# samples, 1.69 and 1.80 s on 400,000, 2.85 and 2.39 s on 640,000, 4.45 and 3.26 s on
-# 10^6 (docs/scaling.md).
-PARALLEL_VALUES = 20_000_000
+# refinement makes four rounds: on a 2-core machine at load 0.3-1, two processes made
+# peng-quadratic's refinement 0.89-0.98x as fast as one on 160,000 samples, 0.92x on
+# 200,000, 0.97x on 240,000, 1.18x on 280,000, 1.15-1.23x on 400,000, 1.42-1.44x on
+# 640,000 (`tests/benchmarks/crossover.py`; docs/scaling.md).
+PARALLEL_VALUES = 12_000_000
 # Segments whose Gauss-Newton blocks are formed together (`blocks`): enough that numpy's
 # calls are few, few enough that their arrays stay in cache.
 GATHERED = 32
