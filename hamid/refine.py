@@ -144,11 +144,9 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipati
                 f"the {what} is not smooth where {kink} = 0 (abs, sign or a fractional "
                 "power), and the motion reaches it; integrating its force there takes tiny "
                 "steps without end")}
-    from hamid import integration
+    from hamid import integration, trajectory
 
-    n_samples, n_states = records.X.shape
-    # a round integrates each sample's state in 1 + 2N + p copies (`hamid.trajectory`)
-    expected = (1 + n_states + len(unknowns.free)) * n_states * n_samples
+    expected = trajectory.round_values(records, len(unknowns.free))
     with integration.parallel(Workers(jobs or available_cores()), expected):
         return _refine(linear, model, records, damping, unknowns, plan, sigma,
                        derived_velocities, rows, progress)

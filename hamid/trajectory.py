@@ -50,7 +50,7 @@ from hamid.model import Model
 from hamid.records import Records
 
 __all__ = ["RefinementFailed", "SegmentFit", "Stop", "TooUnstable", "fit", "join", "refine",
-           "refit", "segment_count", "settle"]
+           "refit", "round_values", "segment_count", "settle"]
 
 SEGMENT_PERIODS = 4.0  # dominant periods per segment, halved down to one when it fails
 MIN_SEGMENT_PERIODS = 1.0
@@ -565,6 +565,14 @@ class _Point:
     normal: _Normal
     end: npt.NDArray[np.float64]    # (S, 2N)
     E: npt.NDArray[np.float64]      # (S, 2N, 2N + p)
+
+
+def round_values(records: Records, n_free: int) -> int:
+    """Values a Gauss-Newton round over `records` integrates (`_normal_equations`): each
+    sample's state in 1 + 2N + p copies, as is and each state and free parameter
+    perturbed."""
+    n_samples, n_states = records.X.shape
+    return (1 + n_states + n_free) * n_states * n_samples
 
 
 def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, ...],

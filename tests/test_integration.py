@@ -21,6 +21,7 @@ from hamid.dynamics import Dynamics
 from hamid.errors import UsageError
 from hamid.executor import Workers
 from hamid.model import load_model
+from hamid.records import Records
 
 SAMPLES = Path(__file__).resolve().parent.parent / "sample_data"
 OMEGA = np.linspace(0.5, 3.0, 40)   # one pendulum per column, each its own frequency
@@ -187,6 +188,25 @@ def test_workers_start_at_once_when_a_round_is_expected_to_be_worth_them(spied_p
         assert spied_pools == [2]
         assert len(multiprocessing.active_children()) == 2
     assert multiprocessing.active_children() == []
+
+
+def test_round_values_counts_what_the_first_round_integrates(noisy_peng, monkeypatch):
+    """The values the refinement expects of a round, from which its workers start at
+    once, against the batches of its first round: every sample in 1 + 2N + p copies,
+    less the samples no segment holds."""
+    rounds = []
+    real = integration.run
+
+    def spy(batches):
+        rounds.append(sum(batch.values for batch in batches))
+        return real(batches)
+    monkeypatch.setattr(integration, "run", spy)
+    hamid.fit(noisy_peng, jobs=1)
+    records = Records(noisy_peng[["u1", "u2", "v1", "v2"]].to_numpy(), None,
+                      noisy_peng["trajectory"].to_numpy(), ())
+    expected = trajectory.round_values(records, len(PENG["parameters"]))
+    assert expected == (1 + 4 + 6) * 4 * len(noisy_peng)
+    assert 0.95 * expected <= rounds[0] <= expected
 
 
 def test_a_failed_integration_in_a_worker_keeps_the_linear_fit(noisy_peng, monkeypatch):

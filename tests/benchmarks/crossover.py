@@ -32,8 +32,9 @@ def main() -> None:
     from conftest import PENG, with_noise
 
     import hamid
-    from hamid import integration, refine
+    from hamid import integration, refine, trajectory
     from hamid.executor import available_cores
+    from hamid.records import Records
 
     whole, spent = refine.refine, []
 
@@ -57,8 +58,9 @@ def main() -> None:
                 hamid.fit(frame, jobs=jobs)
                 best[jobs] = min(best.get(jobs, float("inf")), spent[-1])
         integration.PARALLEL_VALUES = threshold
-        n_states, n_free = 4, len(PENG["parameters"])
-        values = (1 + n_states + n_free) * n_states * len(frame)   # as refine.refine counts
+        records = Records(frame[["u1", "u2", "v1", "v2"]].to_numpy(), None,
+                          frame["trajectory"].to_numpy(), ())
+        values = trajectory.round_values(records, len(PENG["parameters"]))
         print(f"{len(frame):10,d} {values / threshold:25.2f} {best[1]:13.2f} "
               f"{best[cores]:14.2f} {best[1] / best[cores]:9.2f}", flush=True)
 
