@@ -157,6 +157,8 @@ def segment_motion(report: Mapping[str, Any], recording: Recording,
     from scipy.integrate import solve_ivp
 
     from hamid.dynamics import Dynamics
+    from hamid.refine import NOISE_FLOOR
+    from hamid.trajectory import STEP
 
     model, records = recording.model, recording.records
     assert records.t is not None
@@ -169,14 +171,14 @@ def segment_motion(report: Mapping[str, Any], recording: Recording,
     damping = _values(report, "damping")
     motion = Dynamics(model, dissipation).at([1.0, *_theta(report, model),
                                               *(damping[name] for name in dissipation.names)])
-    weight = 1.0 / np.maximum(noise_levels(report, recording), 1e-9 * records.spread)
+    weight = 1.0 / np.maximum(noise_levels(report, recording), NOISE_FLOOR * records.spread)
     if report["data"]["velocity_source"] == "savgol":
         weight[len(model.coordinates):] = 0.0   # derived: no information of their own
 
     # Gauss-Newton over the initial state; each step integrates the state and its 2N
     # perturbed copies together, as the refinement does (they share the adaptive steps)
     n_states = recorded.shape[1]
-    step = 1e-7 * np.maximum(records.extent, records.spread)
+    step = STEP * np.maximum(records.extent, records.spread)
     x0 = recorded[0].copy()
     for _ in range(_ITERATIONS):
         starts = np.vstack([x0, x0 + np.diag(step)])                 # (1 + 2N, 2N)
