@@ -488,7 +488,12 @@ def _settle_model(model: str | os.PathLike[str] | Model | None,
                         "--velocity savgol")
     if options.columns:
         raise UsageError("--columns needs --model (the assumed model takes the file's names)")
-    m = poly_model_over([q for q, _ in pairs], [v for _, v in pairs])
+    # The model's names are the columns' without their units (`x [mm]` is `x`), which
+    # `naming.resolve_columns` matches back to the columns and scales to SI.
+    def name(column: str) -> str:
+        return naming.split_unit(column, naming.COLUMN_UNITS)[0]
+
+    m = poly_model_over([name(q) for q, _ in pairs], [name(v) for _, v in pairs])
     return m, [f"no model given: assumed {m.name} over the coordinates "
                f"{', '.join(m.coordinates)} (pick one with --model {_model_beside(source)})"]
 

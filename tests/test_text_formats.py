@@ -301,3 +301,42 @@ def test_fit_takes_the_text_layout_as_keywords(tmp_path):
     assert found == pytest.approx(expected, rel=1e-12)
     with pytest.raises(UsageError, match="--decimal: 'x' is not"):
         hamid.fit(path, "duffing", decimal="x")
+
+
+def _oscillation(tmp_path, header: str, scale: float):
+    """x = 0.01 cos(2t) m (so V = 2 x**2: c_2 = 2, c_3 = 0), written in `scale` units."""
+    t = np.arange(0.0, 20.0, 0.01)
+    x, v = 0.01 * np.cos(2 * t), -0.02 * np.sin(2 * t)
+    path = tmp_path / f"oscillation-{scale:g}.csv"
+    rows = [f"{a!r},{b * scale!r},{c * scale!r}"
+            for a, b, c in zip(t.tolist(), x.tolist(), v.tolist(), strict=True)]
+    path.write_text("\n".join([header, *rows]) + "\n")
+    return path
+
+
+def test_unit_headers_fit_without_a_model(tmp_path):
+    """`x [mm]` and `x_dot [mm/s]` with no --model: the assumed polynomial takes the names
+    without their units (x, x_dot) and the values in SI, as the same motion in metres."""
+    in_mm = _oscillation(tmp_path, "t,x [mm],x_dot [mm/s]", 1e3)
+    in_m = _oscillation(tmp_path, "t,x,x_dot", 1.0)
+    found, expected = hamid.fit(in_mm), hamid.fit(in_m)
+    assert (found.model["coordinates"], found.model["velocities"]) == (["x"], ["x_dot"])
+    assert found.estimates["c_2"] == pytest.approx(2.0, rel=1e-4)
+    # c_3 x**3 against c_2 x**2 at |x| <= 0.01 m: zero on the scale c_2 / 0.01 = 200.
+    assert abs(found.estimates["c_3"]) < 1e-4 * 200
+    for name, value in expected.estimates.items():
+        assert found.estimates[name] == pytest.approx(value, rel=1e-9, abs=1e-9)
+
+
+def test_unit_headers_fit_without_a_model_on_the_command_line(tmp_path):
+    import subprocess
+
+    from helpers import hamid_command
+
+    path = _oscillation(tmp_path, "t,x [mm],x_dot [mm/s]", 1e3)
+    done = subprocess.run([*hamid_command(), "fit", str(path), "--format", "json"],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    assert report["data"]["scale"] == {"x [mm]": 1e-3, "x_dot [mm/s]": 1e-3}
+    assert report["parameters"]["c_2"]["estimate"] == pytest.approx(2.0, rel=1e-4)
