@@ -192,7 +192,7 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
         sigma, noise_info = None, None
     m = source.model
     damping_forces = m.dissipative(opts.damping)
-    unknowns = Unknowns.of(m.parameters, damping_forces.names, opts.fix)
+    unknowns = Unknowns.of(m, damping_forces.names, opts.fix)
     # plan, then the linear estimate
     fit_plan = plan.decide(opts, m, source.scales() if opts.method != "energy" else None)
     if chunks is None:

@@ -643,9 +643,6 @@ def split_linear(tree: ast.expr, variables: Sequence[str], parameters: Sequence[
         E0, phi = _split_symbolic(tree, variables, parameters, where, what)
     else:
         E0, phi = _split_polynomial(terms, variables, parameters, where, what)
-    if what == "energy" and E0.is_zero():
-        raise ModelError(f"{where}: the energy has no parameter-free part (such as the "
-                         "kinetic energy), so its scale is undetermined")
     if what != "energy" and not E0.is_zero():
         raise ModelError(f"{where}: every term of the {what} needs one of its parameters "
                          "as a factor (it has a parameter-free part)")

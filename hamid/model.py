@@ -192,7 +192,7 @@ class Model:
             T, V = degrees.get(2), degrees.get(0)
             present = [(g, w) for g, w in ((T, 1.0), (V, -1.0)) if g is not None]
             lagrangians.append(expr.Func.combine([g for g, _ in present],
-                                                 [w for _, w in present]))
+                                                 [w for _, w in present]) if present else f)
         return Lagrangian(lagrangians[0], tuple(lagrangians[1:]), self.coordinates,
                           self.velocities)
 

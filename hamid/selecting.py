@@ -212,7 +212,7 @@ def _collinear(source: loading.Loaded, library: Library, kept: Sequence[int],
     """
     m, n_terms = source.model, len(library.terms)
     fit_plan = plan.decide(options, m, source.scales())
-    raw, fit_plan = estimate.rows_of(source, Unknowns.of(m.parameters, forces.names, {}),
+    raw, fit_plan = estimate.rows_of(source, Unknowns.of(m, forces.names, {}),
                                      forces, fit_plan, options)
     stacked, _ = solve.Centred.of([dataclasses.replace(b, weight=b.weight / max(
         float(np.mean(b.b**2)), estimate.TINY)) for b in raw.blocks],
@@ -247,7 +247,7 @@ def choose(data: Any, options: SelectOptions, *, columns: Mapping[str, str] | No
     collinear, fit_plan = _collinear(source, library, kept, forces, fit_options)
     n_terms = len(library.terms)
     dropped = {j for j, _ in collinear}
-    unknowns = Unknowns.of(m.parameters, forces.names,
+    unknowns = Unknowns.of(m, forces.names,
                            {library.terms[j].parameter: 0.0 for j in dropped})
     _, fit_plan, rows = estimate.fit_rows(source, unknowns, forces, fit_plan, fit_options, None)
     solved = estimate.least_squares(rows.blocks, unknowns.free_names, records.n_trajectories)

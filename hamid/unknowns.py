@@ -8,12 +8,16 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
 from hamid.design import Block
-from hamid.errors import UsageError
+from hamid.errors import ModelError, UsageError
+
+if TYPE_CHECKING:
+    from hamid.model import Model
 
 __all__ = ["Unknowns"]
 
@@ -31,10 +35,14 @@ class Unknowns:
     fixed: Mapping[str, float]
 
     @classmethod
-    def of(cls, energy: Sequence[str], damping: Sequence[str],
-           fix: Mapping[str, float]) -> Unknowns:
+    def of(cls, model: Model, damping: Sequence[str], fix: Mapping[str, float]) -> Unknowns:
         """The unknowns of a model's energy parameters and damping coefficients, with `fix`
-        (name -> value, from --fix) checked against them."""
+        (name -> value, from --fix) checked against them.
+
+        An energy without a parameter-free part (``m*v**2/2 + k*x**2/2``) takes its scale
+        from a parameter fixed at a value other than zero; with none, every multiple of the
+        parameters fits the motion alike."""
+        energy = model.parameters
         names = (*energy, *damping)
         for name, value in fix.items():
             if name not in names:
@@ -44,6 +52,11 @@ class Unknowns:
                 raise UsageError(f"--fix: {name}={value!r} is not a finite number")
         if all(name in fix for name in names):
             raise UsageError("every parameter is fixed; nothing is left to fit")
+        if model.E0.is_zero() and not any(fix.get(name) for name in energy):
+            raise ModelError(f"model {model.name!r}: the energy has no parameter-free part "
+                             "(such as the kinetic energy), so its scale is undetermined; "
+                             "fix one of its parameters (--fix NAME=VALUE, e.g. a known "
+                             "mass)")
         return cls(names, len(energy), {name: float(value) for name, value in fix.items()})
 
     @cached_property

@@ -109,6 +109,26 @@ def test_fixing_at_a_wrong_value_moves_the_others(clean_records):
     assert abs(result.estimates["k"] - 1.0) > 1e-3
 
 
+MASS_DUFFING = hamid.model.model_from_expression(
+    "mass-duffing", "m*v**2/2 + k*x**2/2 + k3*x**4/4", ["x"], ["v"])
+
+
+@pytest.mark.parametrize("method", ["auto", "energy", "weak"])
+def test_a_fixed_mass_sets_the_scale_of_an_energy_of_parameters(clean_records, method):
+    """m*v**2/2 + k*x**2/2 + k3*x**4/4 with m fixed at 2.5: the unit-mass truth (k = 1,
+    k3 = 0.5) times 2.5, as every term of the energy scales with the mass."""
+    result = hamid.fit(clean_records["duffing"], MASS_DUFFING, fix={"m": 2.5}, method=method)
+    assert result.estimates["m"] == 2.5
+    assert result.estimates["k"] == pytest.approx(2.5, rel=1e-6)
+    assert result.estimates["k3"] == pytest.approx(1.25, rel=1e-6)
+
+
+@pytest.mark.parametrize("fix", [{}, {"m": 0.0}])
+def test_an_energy_of_parameters_needs_a_fixed_scale(clean_records, fix):
+    with pytest.raises(hamid.ModelError, match=r"no parameter-free part .* \(--fix NAME=VALUE"):
+        hamid.fit(clean_records["duffing"], MASS_DUFFING, fix=fix)
+
+
 @pytest.mark.parametrize("fix, message", [
     ({"nope": 1.0}, "'nope' is not a parameter"),
     ({"k": float("nan")}, "not a finite number"),

@@ -266,7 +266,7 @@ MODEL_ERRORS = {
     "parameter inside a function": ("v**2/2 + k*x**2/2 + cos(k*x)",
                                     ["model.toml", "not linear", "k"]),
     "no parameter-free part": ("m*v**2/2 + k*x**2/2",
-                               ["model.toml", "no parameter-free part"]),
+                               ["no parameter-free part", "--fix NAME=VALUE"]),
     "unknown function": ("v**2/2 + k*foo(x)", ["model.toml", "unknown function 'foo'"]),
     "unknown symbol": ("v**2/2 + k*x**2 + w", ["model.toml", "unknown symbol 'w'"]),
     "division by zero": ("v**2/2 + k*x/(x - x)", ["model.toml", "not finite"]),

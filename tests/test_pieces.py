@@ -73,7 +73,7 @@ def test_the_noise_checks_adjusted_fit_in_pieces_is_the_adjusted_fit(noisy, monk
     least squares on them held whole (`adjusted_moments`)."""
     loaded = loading.load(noisy, "peng-quadratic", FitOptions(damping="none"))
     m, records = loaded.model, loaded.records
-    unknowns = Unknowns.of(m.parameters, (), fix)
+    unknowns = Unknowns.of(m, (), fix)
     block = unknowns.hold_fixed(design.energy_block(m, records))
     sigma = measurement.estimate_noise(records.X, records.bounds())
     names = unknowns.free_names
@@ -155,7 +155,7 @@ def test_energy_rows_let_go_are_made_again_the_same(noisy):
     options = FitOptions(method="joint", damping="none")
     loaded = loading.load(noisy, "peng-quadratic", options)
     m = loaded.model
-    unknowns = Unknowns.of(m.parameters, (), {"a2": -0.4})
+    unknowns = Unknowns.of(m, (), {"a2": -0.4})
     _, _, rows = estimate.fit_rows(loaded, unknowns, m.dissipative(options.damping),
                                    plan.decide(options, m, loaded.scales()), options, None)
     first, every = rows.energy, rows.all_energy

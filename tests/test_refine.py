@@ -258,7 +258,7 @@ def test_linear_refits_without_a_block_move_by_about_its_errors():
         patch.setattr(estimate, "fit_rows", keep_rows)
         hamid.fit(frame, method="joint")
     linear, _, rows = captured["fit"]
-    unknowns = Unknowns.of(["k", "k3"], [], {})
+    unknowns = Unknowns.of(hamid.load_model("duffing"), [], {})
     errors = np.sqrt(np.diag(linear.covariance))
     assert refine._linear_without(rows, unknowns, 2, []) == pytest.approx(linear.theta,
                                                                           rel=1e-12)
