@@ -22,13 +22,12 @@ from typing import Any, NoReturn
 import click
 
 from hamid import __version__, console
+from hamid.cli_reading import reading_keywords, reading_options
 from hamid.cli_select import select
 from hamid.errors import DataError, HamidError, UsageError
 from hamid.options import (
     COVARIANCE_KINDS,
-    GAP_POLICIES,
     METHODS,
-    TIME_UNITS,
     VELOCITY_SOURCES,
 )
 
@@ -266,9 +265,6 @@ def _check_room(config: str, output: str, table_format: str, max_samples: int | 
 
 
 # Spellings of a tab on the command line, where a literal tab is awkward to type.
-_DELIMITER_NAMES = {"tab": "\t", "\\t": "\t"}
-
-
 def _to_stdout(output: str) -> bool:
     """Whether an output goes to this process's standard output: '-', or a name that leads
     to the same open file (/dev/stdout, /dev/fd/1, a symlink to either)."""
@@ -300,34 +296,9 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
 @cli.command()
 @click.argument("data", nargs=-1, required=True)
 @click.option("--model", metavar="NAME|MODEL.toml", help="Built-in model or model file.")
-@click.option("--columns", metavar="NAME=COL,...", help="Map model names to file columns.")
-@click.option("--time", "time_column", metavar="COL",
-              help="Time column (default t or time in any case, with a unit: time_ms, "
-                   "Time [s]).")
-@click.option("--time-unit", type=click.Choice(TIME_UNITS),
-              help="Unit of the time column (default: its name's suffix, else s).")
-@click.option("--scale", metavar="COL=FACTOR,...",
-              help="Multiply file columns by these factors to bring them to SI units "
-                   "(default: from unit suffixes such as x1_mm, v1_mm_s).")
+@reading_options
 @click.option("--strict", is_flag=True,
               help="Exit with status 3 when the fit has any warning (the report is written).")
-@click.option("--gaps", default="split", show_default=True,
-              type=click.Choice(GAP_POLICIES),
-              help="At a missing value or a time gap, cut the trajectory in two, or refuse.")
-@click.option("--trajectory", metavar="COL", help="Trajectory column (default trajectory).")
-@click.option("--format-in", type=click.Choice(["csv", "tsv", "parquet"]),
-              help="Input format, when the file name does not tell it.")
-@click.option("--delimiter", metavar="CHAR",
-              help="Delimiter of text input ('tab' or \\t for a tab; default: tab for .tsv, "
-                   "else ';' when the header has more ';' than ',', else ',').")
-@click.option("--decimal", type=click.Choice([".", ","]),
-              help="Decimal mark of text input (default: ',' when the delimiter is not ',' "
-                   "and the numbers are written so, else '.').")
-@click.option("--skip-rows", default=0, show_default=True, type=click.IntRange(min=0),
-              metavar="N", help="Lines of preamble to skip before the header of text input.")
-@click.option("--units-row/--no-units-row", default=None,
-              help="Whether the row under the header of text input holds units (default: "
-                   "when it has no number and the next row has).")
 @click.option("--velocity", default="measured", show_default=True,
               type=click.Choice(VELOCITY_SOURCES),
               help="Velocities from the file, or derived from the positions (Savitzky-Golay).")
@@ -383,20 +354,15 @@ def _parse_noise(text: str | None) -> str | dict[str, float] | None:
               help="With --each: fit on this Dask cluster (default $DASK_SCHEDULER_ADDRESS).")
 @click.option("--ship-data", is_flag=True,
               help="With --scheduler: send the files' bytes rather than their names.")
-def fit(data: tuple[str, ...], model: str | None, columns: str | None,
-        time_column: str | None, time_unit: str | None, scale: str | None, strict: bool,
-        gaps: str,
-        trajectory: str | None, format_in: str | None, delimiter: str | None,
-        decimal: str | None, skip_rows: int, units_row: bool | None,
-        velocity: str, window: int | None, order: int, noise: str | None,
-        bias_correct: bool, method: str,
+def fit(data: tuple[str, ...], model: str | None, strict: bool, velocity: str,
+        window: int | None, order: int, noise: str | None, bias_correct: bool, method: str,
         weak_window: float | None, damping: str, fix: str | None, cov: str, level: float,
         n_boot: int,
         seed: int | None, fmt: str | None, output: str, residuals: str | None,
         chunk_rows: int | None, figure: str | None, each: bool, jobs: int | None,
-        scheduler: str | None, ship_data: bool) -> None:
+        scheduler: str | None, ship_data: bool, **reading: Any) -> None:
     """Fit the energy of the recorded motion in DATA (CSV, TSV, Parquet; '-' for stdin)."""
-    from hamid import options, writing
+    from hamid import writing
     from hamid.api import fit as run_fit
 
     if seed is not None and cov != "bootstrap":
@@ -405,17 +371,12 @@ def fit(data: tuple[str, ...], model: str | None, columns: str | None,
         raise click.UsageError("--residuals needs the data in memory; leave out --chunk-rows")
     global _sources
     _sources = data
-    fit_options = dict(columns=None if columns is None else options.parse_mapping(
-                       columns, option="--columns"),
-                   time=time_column, trajectory=trajectory, velocity=velocity,
-                   window=window, order=order, noise=_parse_noise(noise),
-                   bias_correct=bias_correct, fix=_parse_floats(fix, "--fix"),
-                   method=method, weak_window=weak_window, damping=damping, cov=cov,
-                   level=level, bootstrap=n_boot, seed=seed, format=format_in,
-                   chunk_rows=chunk_rows, time_unit=time_unit,
-                   scale=_parse_floats(scale, "--scale"), gaps=gaps,
-                   delimiter=_DELIMITER_NAMES.get(delimiter or "", delimiter),
-                   decimal=decimal, skip_rows=skip_rows, units_row=units_row)
+    fit_options = dict(velocity=velocity, window=window, order=order,
+                       noise=_parse_noise(noise), bias_correct=bias_correct,
+                       fix=_parse_floats(fix, "--fix"), method=method,
+                       weak_window=weak_window, damping=damping, cov=cov, level=level,
+                       bootstrap=n_boot, seed=seed, chunk_rows=chunk_rows,
+                       **reading_keywords(reading))
     if each or scheduler or ship_data:
         if figure is not None:
             raise UsageError("--plot draws one fit: it does not combine with --each")
@@ -535,15 +496,18 @@ def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
 @click.option("--panels", metavar="LIST",
               help="Panels by number or name: 1 energy, 2 residuals, 3 phase, 4 motion, "
                    "5 parameters, 6 correlation (default: all that apply).")
-def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | None) -> None:
-    """Draw a saved fit result (JSON); panels 1-4 need the DATA it was fitted to."""
+@reading_options
+def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | None,
+         **reading: Any) -> None:
+    """Draw a saved fit result (JSON); panels 1-4 need the DATA it was fitted to, read as
+    the fit read them (the report's reading options) unless reading options are given."""
     from hamid import documents, figures, fitted, io, writing
     from hamid.result import FitResult
 
     _check_figure("-o", output, [result_file, *data])
     source = io.STDIN if io.is_stdio(result_file) else result_file
     report = FitResult.from_dict(documents.read_json(result_file), source=source).to_dict()
-    recording = fitted.read_recording(report, data) if data else None
+    recording = fitted.read_recording(report, data, reading_keywords(reading)) if data else None
     with writing.all_or_nothing():
         notes = figures.save(report, recording, output, panels)
     for note in notes:

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import click
 
 from hamid import console
+from hamid.cli_reading import reading_keywords, reading_options
 from hamid.errors import UsageError
 from hamid.options import SELECTION_CRITERIA
 
@@ -25,7 +27,6 @@ __all__ = ["select"]
               help="Inclusion probabilities from N moving-block bootstrap replicates.")
 @click.option("--seed", type=click.IntRange(min=0),
               help="Seed of the --stability replicates (default 0).")
-@click.option("--columns", metavar="NAME=COL,...", help="Map model names to file columns.")
 @click.option("--damping", default="none", show_default=True,
               metavar="none|viscous|coulomb|quadratic[,...]",
               help="Dissipative forces, always in the model.")
@@ -33,11 +34,12 @@ __all__ = ["select"]
 @click.option("--format", "fmt", type=click.Choice(["table", "json"]),
               help="Report format (default: json for -o *.json, else table).")
 @click.option("-o", "--output", default="-", metavar="FILE", help="Write the report here.")
+@reading_options
 def select(data: tuple[str, ...], library: str | None, keep: str | None, criterion: str,
-           stability: int, seed: int | None, columns: str | None, damping: str,
-           write_model: str | None, fmt: str | None, output: str) -> None:
+           stability: int, seed: int | None, damping: str, write_model: str | None,
+           fmt: str | None, output: str, **reading: Any) -> None:
     """Choose the terms of the energy of DATA from a library, and refit the chosen model."""
-    from hamid import options, select_report, writing
+    from hamid import select_report, writing
     from hamid.selecting import select as run_select
 
     if seed is not None and not stability:
@@ -54,8 +56,7 @@ def select(data: tuple[str, ...], library: str | None, keep: str | None, criteri
     with console.Status("selecting") as status:
         chosen = run_select(list(data), library, keep=(keep or "").split(",") if keep else (),
                             criterion=criterion, stability=stability, seed=seed or 0,
-                            columns=columns and options.parse_mapping(columns, option="--columns"),
-                            damping=damping, progress=status)
+                            damping=damping, progress=status, **reading_keywords(reading))
     document = chosen.to_dict()
     fmt = fmt or ("json" if output.lower().endswith(".json") else "table")
     text = select_report.render(document, fmt, color=writing.is_terminal(output)

@@ -38,18 +38,22 @@ class Recording:
     records: Records
 
 
-def read_recording(report: Mapping[str, Any], data: Sequence[str]) -> Recording:
-    """The records of `data` read as the fit of `report` read them (its columns, time
-    column and unit, scale factors and velocities), checked to be as many samples and
-    trajectories as the fit had."""
+def read_recording(report: Mapping[str, Any], data: Sequence[str],
+                   reading: Mapping[str, Any] | None = None) -> Recording:
+    """The records of `data` read as the fit of `report` read them (the reading options it
+    records, its columns, time column and unit, scale factors and velocities), checked to
+    be as many samples and trajectories as the fit had. `reading` (`hamid.fit`'s reading
+    keywords) overrides what the report records, for data that moved or were converted."""
     info = report["model"]
     model = model_from_info(info, where="the report's model")
     read = report["data"]
     unit = read.get("time_unit")
     savgol = read["velocity_source"] == "savgol"
-    options = FitOptions(columns=read["columns"], time=read.get("time"),
-                         time_unit=unit if unit in TIME_UNITS else None,
-                         scale=read.get("scale") or None, velocity=read["velocity_source"],
+    resolved = {"columns": read["columns"], "time": read.get("time"),
+                "time_unit": unit if unit in TIME_UNITS else None,
+                "scale": read.get("scale") or None}
+    options = FitOptions(**{**read.get("reading", {}), **resolved, **(reading or {})},
+                         velocity=read["velocity_source"],
                          window=read.get("velocity_window") if savgol else None,
                          order=read.get("velocity_order", 5) if savgol else 5,
                          damping="none")

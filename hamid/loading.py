@@ -412,7 +412,8 @@ def _data_info(sources: list[str], n_samples: int, n_trajectories: int,
             "n_trajectories": n_trajectories, "columns": dict(mapping),
             "velocity_source": options.velocity, "time": units["time"],
             "time_unit": units["time_unit"],
-            "scale": {c: f for c, f in units["scale"].items() if f != 1.0}}
+            "scale": {c: f for c, f in units["scale"].items() if f != 1.0},
+            **({"reading": options.reading} if options.reading else {})}
 
 
 def _units(names: list[str], mapping: Mapping[str, str], time: str | None,

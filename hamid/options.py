@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from decimal import Decimal
 from typing import TYPE_CHECKING, Any
 
@@ -134,6 +134,12 @@ CHUNK_ROWS = 1 << 18
 REFINEMENT_BYTES = 1 << 30
 
 
+# How a data file is read: every command that reads data takes these (`hamid.cli_reading`),
+# and a report records those given (`data.reading`) for `plot` to read the data again.
+READING_OPTIONS = ("columns", "time", "time_unit", "trajectory", "scale", "gaps", "format",
+                   "delimiter", "decimal", "skip_rows", "units_row")
+
+
 @dataclass(frozen=True)
 class FitOptions:
     """Everything `hamid.fit` is asked to do besides the data and the model, checked once.
@@ -212,6 +218,15 @@ class FitOptions:
         from hamid.textlayout import TextOptions
 
         return TextOptions(self.delimiter, self.decimal, self.skip_rows, self.units_row)
+
+    @property
+    def reading(self) -> dict[str, Any]:
+        """The reading options given (`READING_OPTIONS` not at their defaults), as plain
+        data: what the report records in `data.reading`."""
+        defaults = {f.name: f.default for f in fields(self)}
+        return {name: dict(value) if isinstance(value, Mapping) else value
+                for name in READING_OPTIONS
+                if (value := getattr(self, name)) != defaults[name]}
 
     @property
     def weighted(self) -> bool:

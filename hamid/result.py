@@ -69,6 +69,7 @@ class DataInfo(TypedDict):
     velocity_source: Literal["measured", "savgol"]
     velocity_window: NotRequired[int]   # with savgol: the filter's window, in samples
     velocity_order: NotRequired[int]    # and its polynomial order
+    reading: NotRequired[dict[str, Any]]  # the reading options given (docs/output.md)
 
 
 class NoiseLevel(TypedDict):

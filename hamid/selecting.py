@@ -22,7 +22,7 @@ from hamid.dissipation import Dissipation
 from hamid.errors import DataError, FitError, UsageError
 from hamid.library import Library
 from hamid.model import Model, parse_poly_name, poly_model_over
-from hamid.options import FitOptions
+from hamid.options import READING_OPTIONS, FitOptions
 from hamid.result import FitResult, plain_data
 from hamid.unknowns import Unknowns
 
@@ -230,15 +230,16 @@ def _collinear(source: loading.Loaded, library: Library, kept: Sequence[int],
     return collinear, fit_plan
 
 
-def choose(data: Any, options: SelectOptions, *, columns: Mapping[str, str] | None = None,
+def choose(data: Any, options: SelectOptions, *, reading: Mapping[str, Any] | None = None,
            damping: str | Sequence[str] = "none",
            progress: Callable[[str], None] | None = None) -> Choice:
-    """Search the library's subsets on the records in `data` (no refit; see `select`)."""
+    """Search the library's subsets on the records in `data`, read with `reading` (the
+    reading keywords of `hamid.fit`), with no refit (see `select`)."""
     if any(os.fspath(d) == "-" for d in (data if isinstance(data, list | tuple) else [data])
            if isinstance(d, str | os.PathLike)):
         raise UsageError("select reads the data twice (to choose, then to refit): give a "
                          "file, not standard input")
-    fit_options = FitOptions(columns=columns, damping=damping)
+    fit_options = FitOptions(**(reading or {}), damping=damping)
     source = _library_source(data, options.library, fit_options)
     m, records = source.model, source.records
     library = Library.of(m)
@@ -277,9 +278,8 @@ def _name(library: Library, k: int) -> str:
 
 def select(data: Any, library: str | os.PathLike[str] | Model | None = None, *,
            keep: Sequence[str] = (), criterion: str = "bic", stability: int = 0,
-           seed: int | None = 0, columns: Mapping[str, str] | None = None,
-           damping: str | Sequence[str] = "none",
-           progress: Callable[[str], None] | None = None) -> Selection:
+           seed: int | None = 0, damping: str | Sequence[str] = "none",
+           progress: Callable[[str], None] | None = None, **reading: Any) -> Selection:
     """Choose the terms of the energy from a library, and refit the chosen model.
 
     Parameters
@@ -300,8 +300,12 @@ def select(data: Any, library: str | os.PathLike[str] | Model | None = None, *,
         Moving-block bootstrap replicates for each term's inclusion probability (0: none).
     seed : int or None
         Seed of the replicates (the same seed, the same probabilities).
-    columns, damping
+    damping
         As for `hamid.fit`; damping coefficients are always in.
+    **reading
+        How the data are read, as for `hamid.fit`: ``columns``, ``time``, ``time_unit``,
+        ``trajectory``, ``scale``, ``gaps``, ``format``, ``delimiter``, ``decimal``,
+        ``skip_rows``, ``units_row``.
 
     Returns
     -------
@@ -317,11 +321,14 @@ def select(data: Any, library: str | os.PathLike[str] | Model | None = None, *,
     """
     from hamid.api import fit
 
+    unknown = sorted(set(reading) - set(READING_OPTIONS))
+    if unknown:
+        raise TypeError(f"select() got an unexpected keyword argument {unknown[0]!r}")
     options = SelectOptions(library, tuple(keep), criterion, stability, seed)
-    choice = choose(data, options, columns=columns, damping=damping, progress=progress)
+    choice = choose(data, options, reading=reading, damping=damping, progress=progress)
     if not choice.chosen:
         raise FitError(f"no term of the library {choice.library.name} is chosen: the "
                        "energy would have no parameter to fit")
     model = choice.library.submodel(choice.chosen, f"{choice.library.name} selected")
-    result = fit(data, model, columns=columns, damping=damping, progress=progress)
+    result = fit(data, model, damping=damping, progress=progress, **reading)
     return Selection(choice, model, result)

@@ -397,5 +397,5 @@ def test_data_without_velocity_columns_take_the_library_and_columns(records, tmp
     assert refused.exit_code == 1 and refused.stdout == ""
     assert "give --library MODEL.toml, or --library poly:N:D with --columns" in refused.stderr
     choice = selecting.choose(str(path), selecting.SelectOptions("poly:1:4"),
-                              columns={"q1": "pos", "v1": "vel"})
+                              reading={"columns": {"q1": "pos", "v1": "vel"}})
     assert choice.library.texts(choice.chosen) == ["q1**2", "q1**4"]
