@@ -87,10 +87,32 @@ def test_order_sets_the_savitzky_golay_order_and_a_higher_one_differentiates_bet
     assert errors[7] < 1e-5
 
 
+def test_a_high_order_takes_a_default_window_it_can_be_computed_over(tmp_path):
+    # 1,130 samples a period: the default window, a tenth of it (113 samples), is beyond
+    # where scipy's coefficients of order 9 hold (they are 100% wrong over 101 samples)
+    system = copy.deepcopy(DUFFING)
+    system["simulate"].update({"t_end": 12.0, "dt": 0.005})
+    path = _write(hamid.simulate(system), tmp_path / "fine.csv")
+    report = run_json("fit", path, "--model", "duffing", "--method", "energy",
+                      "--velocity", "savgol", "--order", 9)
+    assert report["data"]["velocity_order"] == 9
+    assert report["data"]["velocity_window"] < 101
+    estimates = {p["name"]: p["estimate"] for p in report["parameters"]}
+    assert estimates == pytest.approx({"k": K, "k3": K3}, rel=1e-6)
+
+
 @pytest.mark.parametrize(("args", "message"), [
     (["--order", "3"], "Error: --window and --order apply only to --velocity savgol"),
     (["--velocity", "savgol", "--order", "21", "--window", "21"],
      "Error: --window must be odd and larger than --order (21), found 21"),
+    (["--velocity", "savgol", "--order", "9", "--window", "101"],
+     "Error: --velocity savgol: a filter of order 9 over 101 samples cannot be computed "
+     "accurately (scipy's coefficients lose their precision); give a shorter --window or a "
+     "lower --order"),
+    (["--velocity", "savgol", "--order", "25"],
+     "Error: --velocity savgol: a filter of order 25 over 27 samples cannot be computed "
+     "accurately (scipy's coefficients lose their precision); give a shorter --window or a "
+     "lower --order"),
 ])
 def test_order_errors_are_one_line(duffing_csv, tmp_path, args, message):
     out = tmp_path / "r.json"
