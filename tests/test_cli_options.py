@@ -88,7 +88,7 @@ def test_order_sets_the_savitzky_golay_order_and_a_higher_one_differentiates_bet
 
 
 def test_a_high_order_takes_a_default_window_it_can_be_computed_over(tmp_path):
-    # 1,130 samples a period: the default window, a tenth of it (113 samples), is beyond
+    # about 1,130 samples a period: the default window, a tenth of it (113 samples), is beyond
     # where scipy's coefficients of order 9 hold (they are 100% wrong over 101 samples)
     system = copy.deepcopy(DUFFING)
     system["simulate"].update({"t_end": 12.0, "dt": 0.005})
@@ -118,8 +118,7 @@ def test_order_errors_are_one_line(duffing_csv, tmp_path, args, message):
     out = tmp_path / "r.json"
     done = run("fit", duffing_csv, "--model", "duffing", *args, "-o", out)
     assert done.returncode == 2
-    assert done.stderr.strip().splitlines()[-1] == message
-    assert "Traceback" not in done.stderr and done.stdout == ""
+    assert done.stderr.strip() == message and done.stdout == ""
     assert not out.exists()
 
 
@@ -175,7 +174,7 @@ def test_a_weak_window_of_too_few_samples_says_how_many_it_holds(duffing_csv):
     done = run("fit", duffing_csv, "--model", "duffing", "--method", "weak",
                "--weak-window", 0.99)
     assert done.returncode == 2 and done.stdout == ""
-    assert done.stderr.strip().splitlines()[-1] == (
+    assert done.stderr.strip() == (
         "Error: --method weak is not possible: a weak-form window of 0.99 s holds only "
         "19.8 samples (at least 20 are needed)")
 
