@@ -17,6 +17,12 @@ __all__ = ["DIFFERENCE_ORDER", "estimate_noise", "savgol_velocities", "velocity_
 # keep white noise, scaled by sqrt(C(2k, k)).
 DIFFERENCE_ORDER = 4
 _MAD_TO_SIGMA = 1.4826  # median absolute deviation of a Gaussian, in standard deviations
+# A Savitzky-Golay filter must differentiate the polynomials of its order to this accuracy
+# (in units of the window): an error e of its coefficients puts about 4e into the velocities
+# at the default window. scipy's coefficients go from 1e-9 to 100% wrong within a few samples
+# of window, not smoothly (order 5: first above at 1,195 samples, 1,913 3e-5, 2,001 wrong;
+# order 9: first above at 59, 101 wrong).
+SAVGOL_EXACTNESS = 1e-6
 
 
 def estimate_noise(X: npt.NDArray[np.float64],
@@ -76,6 +82,7 @@ def savgol_velocities(Q: npt.NDArray[np.float64], t: npt.NDArray[np.float64],
     if window % 2 == 0 or window <= order:
         raise UsageError(f"--window must be odd and larger than --order ({order}), "
                          f"found {window}")
+    _check_savgol(window, order)
     V = np.empty_like(Q)
     gain = 0.0
     for a, b in bounds:
@@ -96,11 +103,45 @@ def savgol_velocities(Q: npt.NDArray[np.float64], t: npt.NDArray[np.float64],
     return V, gain
 
 
+def _savgol_error(window: int, order: int) -> float:
+    """How far scipy's Savitzky-Golay derivative misses on the polynomials of its order, in
+    units of the window. Its coefficients come from the powers of the sample offsets,
+    x**order, which over a long window span more than a double holds: the filter then
+    misses even the derivative of a straight line."""
+    from scipy.signal import savgol_coeffs
+
+    half = window // 2
+    x = np.arange(-half, half + 1) / half
+    # d/dx (x/half)**k at 0 is 1/half for k = 1 and 0 for every other k up to the order
+    found = np.vander(x, order + 1, increasing=True).T @ savgol_coeffs(window, order, deriv=1,
+                                                                       use="dot") * half
+    return float(np.max(np.abs(found - np.eye(order + 1)[1])))
+
+
+def _check_savgol(window: int, order: int) -> None:
+    """Refuse a filter that cannot be computed accurately (`_savgol_error`)."""
+    if _savgol_error(window, order) > SAVGOL_EXACTNESS:
+        raise UsageError(f"--velocity savgol: a filter of order {order} over {window} samples "
+                         "cannot be computed accurately (scipy's coefficients lose their "
+                         "precision); give a shorter --window or a lower --order")
+
+
 def default_savgol_window(period_samples: float | None, order: int) -> int:
-    """An odd window of about a tenth of the dominant period, and at least order + 2."""
+    """An odd window of about a tenth of the dominant period, and at least order + 2, but
+    no longer than a filter of that order can be computed accurately over."""
     target = 11 if period_samples is None else int(round(period_samples / 10))
     window = max(target, order + 2)
-    return window if window % 2 else window + 1
+    window = window if window % 2 else window + 1
+    if _savgol_error(window, order) <= SAVGOL_EXACTNESS:
+        return window
+    # the error grows with the window, if not smoothly: bisect for an accurate one below
+    # (for too high an order there is none, and savgol_velocities refuses the shortest)
+    good, bad = (order + 2) | 1, window
+    while bad - good > 2:
+        middle = (good + bad) // 4 * 2 + 1
+        good, bad = (middle, bad) if _savgol_error(middle, order) <= SAVGOL_EXACTNESS \
+            else (good, middle)
+    return good
 
 
 VELOCITY_RATIO = 1.25   # measured velocities this far from the positions' rate are said

@@ -92,8 +92,9 @@ def decide(options: FitOptions, model: Model,
     if obstacle is None:
         dt = float(np.median([step for _, step in scales]))
         per_window = window / dt
-        if per_window < design.MIN_SAMPLES_PER_WINDOW:
-            obstacle = (f"a weak-form window of {window:.3g} s holds only {per_window:.0f} "
+        # within rounding: a window of 1 s at dt = 0.05 s is 19.999999999999996 steps
+        if per_window < design.MIN_SAMPLES_PER_WINDOW * (1 - 1e-9):
+            obstacle = (f"a weak-form window of {window:.3g} s holds only {per_window:.3g} "
                         f"samples (at least {design.MIN_SAMPLES_PER_WINDOW} are needed)")
     if obstacle is not None:
         if method != "auto":
