@@ -95,7 +95,7 @@ def _glob(pattern: str) -> Iterator[str]:
     parts = pattern.split(os.sep)
     start = next(k for k, part in enumerate(parts) if _GLOB.search(part))
     top = os.sep.join(parts[:start]) or (os.sep if pattern.startswith(os.sep) else "")
-    wanted = [part for part in parts[start:] if part]
+    wanted = parts[start:]   # a last part "" (``runs/*/``) asks for folders: no file
     for folder, subfolders, names in os.walk(top or os.curdir):
         relative = os.path.relpath(folder, top or os.curdir)
         inner = [] if relative == os.curdir else relative.split(os.sep)

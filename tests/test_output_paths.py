@@ -18,6 +18,7 @@ import functools
 import glob
 import json
 import os
+import re
 import shutil
 import stat
 import subprocess
@@ -308,20 +309,34 @@ PATTERNS = ["**/*.csv", "*/*.csv", "a/**/x*.csv", "**", ".hidden/*.csv", "**/.h*
             "a/*/*", "{top}/**/*.csv", "a/**/b/**"]
 
 
-@pytest.mark.parametrize("pattern", PATTERNS)
-def test_patterns_match_what_glob_matches_without_links(tmp_path, monkeypatch, pattern):
-    """The walk that skips linked folders matches as glob.glob does (hidden names,
-    ``**`` at any place, absolute patterns) on a tree without links."""
-    monkeypatch.chdir(tmp_path)
+def _tree():
+    """Files and hidden files in folders and hidden folders, in the current folder."""
     for name in ["x1.csv", ".h1.csv", "a/x2.csv", "a/y.csv", "a/b/x3.csv", "a/b/c/x4.csv",
                  "a/.h2.csv", "a/.hidden/x5.csv", ".hidden/x6.csv", ".hidden/deep/x7.csv",
                  "a/b/notes.txt"]:
         Path(name).parent.mkdir(parents=True, exist_ok=True)
         Path(name).write_text(name)   # distinct contents, distinct files
+
+
+@pytest.mark.parametrize("pattern", PATTERNS)
+def test_patterns_match_what_glob_matches_without_links(tmp_path, monkeypatch, pattern):
+    """The walk that skips linked folders matches as glob.glob does (hidden names,
+    ``**`` at any place, absolute patterns) on a tree without links."""
+    monkeypatch.chdir(tmp_path)
+    _tree()
     pattern = pattern.format(top=tmp_path)
     expected = sorted(p for p in glob.glob(pattern, recursive=True) if os.path.isfile(p))
     assert expected, pattern
     assert sorted(batch.expand_sources([pattern])) == expected
+
+
+@pytest.mark.parametrize("pattern", ["a/*/", "**/"])
+def test_a_pattern_of_folders_matches_no_file(tmp_path, monkeypatch, pattern):
+    monkeypatch.chdir(tmp_path)
+    _tree()
+    assert glob.glob(pattern, recursive=True)   # folders only
+    with pytest.raises(DataError, match=f"^{re.escape(pattern)}: no file matches the pattern$"):
+        batch.expand_sources([pattern])
 
 
 # ---------------------------------------------------------------------------------------------
