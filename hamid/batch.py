@@ -13,7 +13,7 @@ and sent. Either way the report names the source as given.
 from __future__ import annotations
 
 import dataclasses
-import glob
+import fnmatch
 import os
 import re
 import tempfile
@@ -48,8 +48,9 @@ Outcome = FitResult | HamidError
 def expand_sources(patterns: Sequence[str | os.PathLike[str]]) -> list[str]:
     """The files to fit one by one: each file as given, a folder's data files (CSV, TSV,
     Parquet, compressed text, lab formats; not its hidden files nor its subfolders) and a
-    glob pattern's files (``**`` spans folders), each in natural order (run2 before
-    run10); URLs as given.
+    glob pattern's files (``**`` spans folders, but not linked ones), each in natural
+    order (run2 before run10); URLs as given. A file named twice (or through a link) is
+    fitted once, where it first comes.
 
     Raises
     ------
@@ -75,14 +76,59 @@ def expand_sources(patterns: Sequence[str | os.PathLike[str]]) -> list[str]:
                                 ".parquet, compressed or lab files)")
             files.extend(found)
         elif _GLOB.search(pattern):
-            found = sorted((p for p in glob.glob(pattern, recursive=True) if os.path.isfile(p)),
-                           key=_natural)
+            found = sorted(_glob(pattern), key=_natural)
             if not found:
                 raise DataError(f"{pattern}: no file matches the pattern")
             files.extend(found)
         else:
             raise DataError(f"{pattern}: no such file or folder")
-    return files
+    once: dict[object, str] = {}
+    for file in files:
+        once.setdefault(_identity(file), file)
+    return list(once.values())
+
+
+def _glob(pattern: str) -> Iterator[str]:
+    """Helper: the files a pattern matches, as glob.glob(pattern, recursive=True) finds
+    them (wildcards skip hidden names), without entering linked folders: a link loop
+    (``a/b/up -> ..``) would give each file under it forty times."""
+    parts = pattern.split(os.sep)
+    start = next(k for k, part in enumerate(parts) if _GLOB.search(part))
+    top = os.sep.join(parts[:start]) or (os.sep if pattern.startswith(os.sep) else "")
+    wanted = parts[start:]   # a last part "" (``runs/*/``) asks for folders: no file
+    for folder, subfolders, names in os.walk(top or os.curdir):
+        relative = os.path.relpath(folder, top or os.curdir)
+        inner = [] if relative == os.curdir else relative.split(os.sep)
+        if "**" not in wanted and len(inner) >= len(wanted) - 1:
+            subfolders.clear()   # deep enough for the pattern
+        for name in names:
+            path = os.path.join(top, *inner, name)
+            if _matches([*inner, name], wanted) and os.path.isfile(path):
+                yield path
+
+
+def _matches(parts: Sequence[str], pattern: Sequence[str]) -> bool:
+    """Helper: whether path parts match pattern parts as glob's do (``**``: any number of
+    folders; a wildcard matches a hidden name only when the pattern starts with a dot)."""
+    if not pattern:
+        return not parts
+    head, rest = pattern[0], pattern[1:]
+    if head == "**":
+        return any(_matches(parts[k:], rest) for k in range(len(parts) + 1)
+                   if not any(part.startswith(".") for part in parts[:k]))
+    return (bool(parts) and fnmatch.fnmatchcase(parts[0], head)
+            and (head.startswith(".") or not parts[0].startswith("."))
+            and _matches(parts[1:], rest))
+
+
+def _identity(source: str) -> object:
+    """Helper: what tells two sources apart: a local file by device and inode (and the
+    variable of a lab file), a URL by itself."""
+    if _URL.match(source):
+        return source
+    path, inner = labfiles.split(source)
+    status = os.stat(path)
+    return status.st_dev, status.st_ino, inner
 
 
 def _natural(path: str) -> list[str | int]:
@@ -249,8 +295,18 @@ def _fit_task(task: _Task) -> Outcome:
                         raise type(exc)(str(exc).replace(local_source, task.source)) from None
         except HamidError as exc:
             return exc
+        except Exception as exc:   # one file's failure, a bug included, stops only its fit
+            return _failure(task.source, exc)
     # the per-sample residuals are bulk data that no batch output shows
     return dataclasses.replace(result, samples=None)
+
+
+def _failure(source: str, exc: Exception) -> HamidError:
+    """Helper: an error that is not hamid's own, as one line naming the file."""
+    if isinstance(exc, MemoryError):
+        return HamidError(f"{source}: out of memory while fitting it")
+    return HamidError(f"{source}: internal error ({type(exc).__name__}: "
+                      f"{io.first_line(exc)}); this is a bug in hamid")
 
 
 def _renamed(result: FitResult, local: str, source: str) -> FitResult:

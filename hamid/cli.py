@@ -17,7 +17,7 @@ import shlex
 import sys
 import warnings
 from collections.abc import Callable, Sequence
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import click
 
@@ -30,6 +30,9 @@ from hamid.options import (
     METHODS,
     VELOCITY_SOURCES,
 )
+
+if TYPE_CHECKING:
+    from hamid import writing
 
 _debug = False
 # The data files of the running `fit`, named when it runs out of memory.
@@ -215,17 +218,19 @@ def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_met
     from hamid.api import simulate_realizations
 
     table_format = writing.table_format(output, fmt)
-    outputs = [output] if realizations is None else simulation.numbered(output, realizations)
-    for name in outputs:
-        console.check_output("-o", name, [config], binary=table_format == "parquet")
-    _check_room(config, output, table_format, max_samples, len(outputs))
+    files = [output] if realizations is None else simulation.numbered(output, realizations)
+    outputs = _outputs([config])
+    for name in files:
+        outputs.claim("-o" if realizations is None else "-o's realization file", name,
+                     binary=table_format == "parquet")
+    _check_room(config, output, table_format, max_samples, len(files))
     stderr = console.stderr_console()
     with console.Progress(stderr, "simulating") as progress:
-        frames = simulate_realizations(config, len(outputs), seed=seed,
+        frames = simulate_realizations(config, len(files), seed=seed,
                                        max_samples=max_samples, progress=progress)
         first = next(frames)   # the integration; the other realizations only add noise
     with writing.all_or_nothing():
-        for name, frame in zip(outputs, itertools.chain([first], frames), strict=True):
+        for name, frame in zip(files, itertools.chain([first], frames), strict=True):
             meta = frame.attrs["hamid"]
             writing.write_table(frame, name, format=fmt, metadata=None if no_meta else meta)
     drift = max(t["energy_drift"] for t in meta["trajectories"])
@@ -234,7 +239,7 @@ def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_met
                  f"largest relative energy drift {drift:.2g}"
                  + ("" if not meta["damping"] else " (energy plus dissipated work)")
                  + ("" if realizations is None else
-                    f"; {realizations} realizations, {outputs[0]} to {outputs[-1]}"))
+                    f"; {realizations} realizations, {files[0]} to {files[-1]}"))
 
 
 # Bytes a value takes in a written table: CSV text of a double's shortest form and a
@@ -383,20 +388,18 @@ def fit(data: tuple[str, ...], model: str | None, strict: bool, velocity: str,
         _fit_each(each, jobs, scheduler, ship_data, data, model, fit_options, fmt, output,
                   strict, residuals)
         return
-    inputs = [*data, *([model] if model is not None and os.path.isfile(model) else [])]
+    outputs = _outputs([*data, *([model] if model is not None and os.path.isfile(model)
+                                 else [])])
+    outputs.claim("-o", output)
     if residuals is not None:
         residuals_format = writing.table_format(residuals)
-        if output != "-" and writing.overwrites(residuals, output):
-            raise UsageError(f"-o and --residuals name the same file {output!r}")
-        console.check_output("--residuals", residuals, inputs,
-                             binary=residuals_format == "parquet")
+        outputs.claim("--residuals", residuals, binary=residuals_format == "parquet")
         if _to_stdout(residuals) and _to_stdout(output):
             raise UsageError("--residuals and the report would both go to standard output, "
                              "where they would interleave; write one of them to a file "
                              "(-o FILE or --residuals FILE)")
-    console.check_output("-o", output, inputs)
     if figure is not None:
-        _check_figure("--plot", figure, inputs)
+        _claim_figure(outputs, "--plot", figure)
     fmt = fmt or _report_format(output)
     if fmt == "jsonl":
         raise UsageError("--format jsonl writes one line per file: it needs --each")
@@ -429,7 +432,7 @@ def _fit_each(each: bool, jobs: int | None, scheduler: str | None, ship_data: bo
               data: tuple[str, ...], model: str | None, fit_options: dict[str, Any],
               fmt: str | None, output: str, strict: bool, residuals: str | None) -> None:
     """`fit --each`: a fit per file, written in their order as they end (hamid.batch)."""
-    from hamid import batch, streamed, writing
+    from hamid import batch, destinations, streamed
     from hamid.executor import Workers
 
     if not each:
@@ -437,11 +440,15 @@ def _fit_each(each: bool, jobs: int | None, scheduler: str | None, ship_data: bo
     if residuals is not None:
         raise UsageError("--residuals writes the samples of one fit; leave it out with --each")
     sources = batch.expand_sources(data)
-    console.check_output("-o", output,
-                         [*sources, *([model] if model and os.path.isfile(model) else [])])
+    outputs = _outputs([*sources, *([model] if model and os.path.isfile(model) else [])])
+    outputs.claim("-o", output)
     output = "-" if _to_stdout(output) else output   # /dev/stdout: one stream, not two
+    partial = streamed.partial_name(output)
+    if partial is not None:
+        outputs.claim("-o's partial file", partial)
     out = streamed.EachOutput(fmt or _report_format(output), output, fit_options["level"],
-                              shlex.join(["hamid", *sys.argv[1:]]), writing.is_terminal(output))
+                              shlex.join(["hamid", *sys.argv[1:]]),
+                              destinations.is_terminal(output))
     outcomes = batch.iter_fits(sources, model, fit_options,
                                Workers.choose(jobs, scheduler, len(sources)), ship_data=ship_data)
     stderr = console.stderr_console()
@@ -468,15 +475,15 @@ def _fit_each(each: bool, jobs: int | None, scheduler: str | None, ship_data: bo
 def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
     """Render a saved fit result (JSON) as a table, JSON, CSV or markdown; several results
     (or the lines of fit --each) side by side, a column per source."""
-    from hamid import documents, io, writing
+    from hamid import destinations, documents, io, writing
     from hamid.result import FitResult
 
-    console.check_output("-o", output, result_files)
+    _outputs(result_files).claim("-o", output)
     fmt = fmt or _report_format(output)
     if len(result_files) > 1 or fmt == "jsonl" or result_files[0].lower().endswith(".jsonl"):
         from hamid import comparison
 
-        to_terminal = writing.is_terminal(output)
+        to_terminal = destinations.is_terminal(output)
         text = comparison.render(comparison.load(result_files), fmt,
                                  color=to_terminal and "NO_COLOR" not in os.environ)
         writing.write_text(console.printable_lines(text) if fmt == "csv" and to_terminal else text,
@@ -504,7 +511,7 @@ def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | Non
     from hamid import documents, figures, fitted, io, writing
     from hamid.result import FitResult
 
-    _check_figure("-o", output, [result_file, *data])
+    _claim_figure(_outputs([result_file, *data]), "-o", output, panels)
     source = io.STDIN if io.is_stdio(result_file) else result_file
     report = FitResult.from_dict(documents.read_json(result_file), source=source).to_dict()
     recording = fitted.read_recording(report, data, reading_keywords(reading)) if data else None
@@ -514,15 +521,27 @@ def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | Non
         click.echo(console.printable(note), err=True)
 
 
-def _check_figure(option: str, figure: str, inputs: Sequence[str]) -> None:
-    """Before any work: a figure's format (its extension), matplotlib, the destination."""
+def _claim_figure(outputs: writing.Outputs, option: str, figure: str,
+                  panels: str | None = None) -> None:
+    """Before any work: a figure's format (its extension), matplotlib, and every file the
+    figure may take (`figures.panel_files`)."""
     from hamid import figures
 
     try:
         figures.check_output(figure)
     except UsageError as exc:
         raise UsageError(f"{option} {exc}") from None
-    console.check_output(option, figure, inputs, binary=True)
+    outputs.claim(option, figure, binary=True)
+    for name in figures.panel_files(figure, panels):
+        outputs.claim(f"{option}'s panel file", name, binary=True)
+
+
+def _outputs(inputs: Sequence[str]) -> writing.Outputs:
+    """The command's outputs, checked against `inputs` and each other as they are claimed
+    and as they are written, until the command ends."""
+    from hamid import writing
+
+    return click.get_current_context().with_resource(writing.Outputs(inputs))
 
 
 def _report_format(output: str) -> str:
@@ -554,10 +573,10 @@ def _emit(result: dict[str, Any], fmt: str, output: str, *,
     `also` writes further output files; they and the report file appear together or, if
     anything fails, none of them does.
     """
-    from hamid import writing
+    from hamid import destinations, writing
     from hamid.report import render
 
-    to_terminal = writing.is_terminal(output)
+    to_terminal = destinations.is_terminal(output)
     color = to_terminal and "NO_COLOR" not in os.environ
     text = render(result, fmt, color=color)
     if fmt == "csv" and to_terminal:

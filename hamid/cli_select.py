@@ -39,27 +39,26 @@ def select(data: tuple[str, ...], library: str | None, keep: str | None, criteri
            stability: int, seed: int | None, damping: str, write_model: str | None,
            fmt: str | None, output: str, **reading: Any) -> None:
     """Choose the terms of the energy of DATA from a library, and refit the chosen model."""
-    from hamid import select_report, writing
+    from hamid import destinations, select_report, writing
     from hamid.selecting import select as run_select
 
     if seed is not None and not stability:
         raise click.UsageError("--seed applies only to --stability")
-    inputs = [*data, *([library] if library is not None and os.path.isfile(library) else [])]
-    console.check_output("-o", output, inputs)
+    outputs = click.get_current_context().with_resource(writing.Outputs(
+        [*data, *([library] if library is not None and os.path.isfile(library) else [])]))
+    outputs.claim("-o", output)
     if write_model is not None:
         if not write_model.endswith(".toml"):
             raise UsageError(f"--write-model {write_model!r}: give a FILE.toml (hamid fit "
                              "--model reads model files by that extension)")
-        if writing.overwrites(write_model, output):
-            raise UsageError(f"-o and --write-model name the same file {output!r}")
-        console.check_output("--write-model", write_model, inputs)
+        outputs.claim("--write-model", write_model)
     with console.Status("selecting") as status:
         chosen = run_select(list(data), library, keep=(keep or "").split(",") if keep else (),
                             criterion=criterion, stability=stability, seed=seed or 0,
                             damping=damping, progress=status, **reading_keywords(reading))
     document = chosen.to_dict()
     fmt = fmt or ("json" if output.lower().endswith(".json") else "table")
-    text = select_report.render(document, fmt, color=writing.is_terminal(output)
+    text = select_report.render(document, fmt, color=destinations.is_terminal(output)
                                 and "NO_COLOR" not in os.environ)
     with writing.all_or_nothing():
         if write_model is not None:

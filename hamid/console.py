@@ -1,16 +1,12 @@
-"""What the commands share on the terminal: messages shown safely, outputs checked before
-any work, and progress on standard error (only when it is a terminal)."""
+"""What the commands share on the terminal: messages shown safely, and progress on standard
+error (only when it is a terminal)."""
 
 from __future__ import annotations
 
 import sys
-from collections.abc import Sequence
 from typing import Any
 
-from hamid.errors import UsageError
-
-__all__ = ["Progress", "Status", "check_output", "printable", "printable_lines",
-           "stderr_console"]
+__all__ = ["Progress", "Status", "printable", "printable_lines", "stderr_console"]
 
 
 def printable(text: str) -> str:
@@ -25,21 +21,6 @@ def printable_lines(text: str) -> str:
     from hamid import report
 
     return report.printable(text, keep="\n")
-
-
-def check_output(option: str, output: str, inputs: Sequence[str], *,
-                  binary: bool = False) -> None:
-    """Before any work: refuse an output that would replace an input, and one that cannot
-    be written (a missing or read-only folder, a read-only file, a closed standard output,
-    Parquet bound for a terminal)."""
-    from hamid import writing
-
-    for source in inputs:
-        if writing.overwrites(output, source):
-            shown = "standard input" if source == "-" else f"the input file {source!r}"
-            raise UsageError(f"{option} {output!r} is {shown}; writing it would destroy the "
-                             "input: choose another output")
-    writing.check_destination(output, binary=binary)
 
 
 def stderr_console() -> Any:

@@ -34,8 +34,8 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure, SubFigure
 
-__all__ = ["FORMATS", "PANELS", "check_output", "choose", "figure", "pages", "parse_panels",
-           "save"]
+__all__ = ["FORMATS", "PANELS", "check_output", "choose", "figure", "output_paths", "pages",
+           "panel_files", "parse_panels", "save"]
 
 PANELS = ("energy", "residuals", "phase", "motion", "parameters", "correlation")
 FORMATS = (".png", ".svg", ".pdf")
@@ -514,6 +514,14 @@ def output_paths(path: str, names: Sequence[str]) -> list[str]:
     if extension.lower() == ".pdf" or len(names) == 1:
         return [path]
     return [f"{stem}-{PANELS.index(name) + 1}-{name}{extension}" for name in names]
+
+
+def panel_files(path: str, panels: str | int | Sequence[str | int] | None = None) -> list[str]:
+    """The files `save` may write besides `path` itself for these panels (all six by
+    default): STEM-K-NAME.EXT when more than one may be drawn, none for a PDF. A command
+    checks them all before its work, as it checks `path`."""
+    return [name for name in output_paths(path, parse_panels(panels) or PANELS)
+            if name != path]
 
 
 def save(report: Mapping[str, Any], recording: fitted.Recording | None, path: str,

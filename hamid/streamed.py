@@ -21,12 +21,12 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import IO, Any
 
-from hamid import batch
+from hamid import batch, writing
 from hamid.errors import DataError, HamidError, UsageError
 from hamid.options import percent
 from hamid.report import printable
 
-__all__ = ["EACH_FORMATS", "EachOutput", "Tally", "kept", "write_each"]
+__all__ = ["EACH_FORMATS", "EachOutput", "Tally", "kept", "partial_name", "write_each"]
 
 EACH_FORMATS = ("jsonl", "csv", "table")
 PARTIAL_SUFFIX = ".partial"
@@ -183,16 +183,12 @@ _LINES: dict[str, Callable[[Sequence[str], EachOutput], Lines]] = {
 
 class _Sink:
     """Where the records go: standard output or a special file, written in place, else the
-    ``.partial`` file beside the output, created with the first record."""
+    ``.partial`` file beside the output, created fresh with the first record."""
 
     def __init__(self, output: str):
         self.output, self.records = output, 0
         self.stream: IO[bytes] | None = None
-        self.partial: str | None = None
-        if not _in_place(output):
-            # beside the file a symlink leads to, which the rename then replaces
-            self.partial = (os.path.realpath(output) if os.path.islink(output)
-                            else output) + PARTIAL_SUFFIX
+        self.partial = partial_name(output)
 
     def write(self, text: str) -> None:
         try:
@@ -200,7 +196,8 @@ class _Sink:
                 _to_stdout(text)
                 return
             if self.stream is None:
-                self.stream = open(self.partial or self.output, "wb")  # noqa: SIM115
+                self.stream = (writing.create_fresh(self.partial) if self.partial is not None
+                               else open(self.output, "wb"))  # noqa: SIM115 (in place)
             self.stream.write(text.encode("utf-8"))
             self.stream.flush()
         except BrokenPipeError:
@@ -210,7 +207,8 @@ class _Sink:
             raise DataError(f"{name}: cannot write: {exc.strerror or exc}") from exc
 
     def finish(self) -> None:
-        """Close the output; a complete ``.partial`` file becomes the output."""
+        """Close the output; a complete ``.partial`` file becomes the output (replacing
+        a symlink there, not what it leads to)."""
         if self.stream is None:
             return
         try:
@@ -218,10 +216,16 @@ class _Sink:
                 os.fsync(self.stream.fileno())
             self.stream.close()
             if self.partial is not None:
-                os.replace(self.partial, os.path.realpath(self.output))
+                os.replace(self.partial, self.output)
                 self.partial = None
         except OSError as exc:
             raise DataError(f"{self.output}: cannot write: {exc.strerror or exc}") from exc
+
+
+def partial_name(output: str) -> str | None:
+    """The file the records collect in until the batch is done: ``OUT.partial``; None for
+    an output written in place (standard output, a device, a FIFO)."""
+    return None if _in_place(output) else output + PARTIAL_SUFFIX
 
 
 def _to_stdout(text: str) -> None:

@@ -1,11 +1,12 @@
 """Writing outputs: tables (CSV, TSV, Parquet) and text, atomically or all at once.
 
-How an output is written depends on what it names:
+How an output is written depends on what it names (`hamid.destinations`):
 
-- A regular file (or a symlink to one, which is followed so that the link survives) is
-  written to a temporary file in its folder and renamed over it only when complete, so a
-  failure, Ctrl-C or a termination signal never leaves a half-written or damaged file, nor a
-  temporary one. A file the caller may not write is refused, as cp refuses it.
+- A regular file, a new name, or a symlink (to a file, or to nothing) is written to a
+  temporary file in its folder and renamed onto the name only when complete, so a failure,
+  Ctrl-C or a termination signal never leaves a half-written or damaged file, nor a
+  temporary one. A symlink is replaced itself, never written through. A file the caller
+  may not write is refused, as cp refuses it.
 - Anything else is written in place, as a stream, since replacing it would destroy it:
   standard output (``"-"``); ``/dev/stdout``, ``/dev/fd/N`` and ``/proc/self/fd/N``, which
   name a descriptor of this process and are written through it (so ``>>`` keeps appending);
@@ -13,7 +14,8 @@ How an output is written depends on what it names:
 
 `check_destination` finds before long work what can be known then: a missing or unwritable
 folder, a read-only file, a name too long, a closed standard output, Parquet bound for a
-terminal. `overwrites` tells the caller that an output would replace one of its inputs.
+terminal. `Outputs` holds a command's inputs and outputs: no output may be an input or
+another output, checked before the work and again as each file is written.
 """
 
 from __future__ import annotations
@@ -24,17 +26,25 @@ import errno
 import functools
 import json
 import os
-import re
 import signal
 import stat
 import sys
 import tempfile
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any, Literal
+from typing import IO, TYPE_CHECKING, Any
 
 from hamid import io
+from hamid.destinations import (
+    Destination,
+    fd_isatty,
+    isatty,
+    overwrites,
+    resolve,
+    same_file,
+    stdout_open,
+)
 from hamid.errors import DataError, UsageError
 from hamid.io import STDOUT, Format
 
@@ -42,7 +52,7 @@ if TYPE_CHECKING:
     import pandas as pd
     import pyarrow as pa
 
-__all__ = ["all_or_nothing", "check_destination", "is_terminal", "overwrites",
+__all__ = ["Outputs", "all_or_nothing", "check_destination", "create_fresh",
            "remove_temporaries", "table_format", "write_bytes", "write_table", "write_text"]
 
 Write = Callable[[IO[bytes]], object]
@@ -111,7 +121,7 @@ def table_format(dest: str | os.PathLike[str], format: str | None = None) -> For
 def _is_stream(dest: str | os.PathLike[str]) -> bool:
     """Helper function: whether an output is written in place (a descriptor, a device)."""
     try:
-        return _resolve(dest).kind != "file"
+        return resolve(dest).kind != "file"
     except DataError:
         return False
 
@@ -228,108 +238,7 @@ def write_bytes(data: bytes, dest: str | os.PathLike[str]) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
-# What an output name leads to
-
-
-@dataclass(frozen=True, slots=True)
-class _Destination:
-    """Where an output goes: a regular file to replace, an open descriptor, or a special file.
-
-    `path` is the regular file itself (symlinks resolved) for "file", the name to open for
-    "special"; `fd` is the descriptor for "descriptor" (1 is standard output); `folder` is
-    the folder as messages name it.
-    """
-
-    name: str
-    kind: Literal["file", "descriptor", "special"]
-    path: Path = Path()
-    fd: int = -1
-    folder: str = ""
-
-
-# /dev/stdout, /dev/fd/N and /proc/<this process>/fd/N, once the folder's links are resolved.
-_DESCRIPTOR_NAME = re.compile(
-    r"/dev/(?:(?P<std>stdin|stdout|stderr)|fd/(?P<dev>\d+))"
-    r"|/proc/(?P<pid>self|\d+)(?:/task/\d+)?/fd/(?P<proc>\d+)")
-_STANDARD = {"stdin": 0, "stdout": 1, "stderr": 2}
-_MAX_LINKS = 40  # as the kernel's ELOOP limit
-
-
-def _resolve(dest: str | os.PathLike[str]) -> _Destination:
-    """Helper function telling what an output name leads to, following symlinks."""
-    if io.is_stdio(dest):
-        return _Destination(STDOUT, "descriptor", fd=1)
-    name = os.fsdecode(dest)
-    fd = _descriptor_of(name)
-    if fd is not None:
-        return _Destination(name, "descriptor", fd=fd)
-    try:
-        mode = os.stat(name).st_mode
-    except FileNotFoundError:
-        mode = None   # a new file (or a dangling symlink, whose target is created)
-    except NotADirectoryError as exc:  # plain/out.csv, where plain is a file
-        raise DataError(f"{name}: cannot write in folder {str(Path(name).parent)!r}: "
-                        f"{io.os_reason(exc)}") from exc
-    except OSError as exc:  # a name too long, a symlink loop, a folder one may not enter
-        raise DataError(f"{name}: cannot write: {io.os_reason(exc)}") from exc
-    if mode is not None and stat.S_ISDIR(mode):
-        raise DataError(f"{name}: is a folder, not a file")
-    if mode is not None and not stat.S_ISREG(mode):
-        return _Destination(name, "special", path=Path(name))
-    real = Path(os.path.realpath(name))
-    folder = str(real.parent) if os.path.islink(name) else str(Path(name).parent)
-    return _Destination(name, "file", path=real, folder=folder)
-
-
-def _descriptor_of(name: str) -> int | None:
-    """Helper function: the descriptor of this process that `name` leads to, if it does."""
-    path = os.path.abspath(name)
-    for _ in range(_MAX_LINKS):
-        folder, base = os.path.split(path)
-        path = os.path.join(os.path.realpath(folder), base)
-        match = _DESCRIPTOR_NAME.fullmatch(path)
-        if match is not None and match["pid"] in (None, "self", str(os.getpid())):
-            return _STANDARD[match["std"]] if match["std"] else int(match["dev"] or match["proc"])
-        try:
-            target = os.readlink(path)
-        except OSError:  # not a symlink, or not there
-            return None
-        path = os.path.normpath(os.path.join(os.path.dirname(path), target))
-    return None
-
-
-def is_terminal(dest: str | os.PathLike[str]) -> bool:
-    """Whether an output goes to a terminal: standard output or /dev/stdout on a terminal."""
-    try:
-        target = _resolve(dest)
-    except DataError:
-        return False
-    if target.kind != "descriptor":
-        return False
-    if target.fd == 1:
-        return _stdout_open() and _isatty(sys.stdout)
-    return _fd_isatty(target.fd)
-
-
-def _stdout_open() -> bool:
-    """Helper function: whether there is a standard output to write to (not `>&-`)."""
-    return sys.stdout is not None and not getattr(sys.stdout, "closed", False)
-
-
-def _isatty(stream: Any) -> bool:
-    """Helper function: whether a stream is a terminal; a stream that cannot tell is not."""
-    try:
-        return bool(stream.isatty())
-    except (AttributeError, OSError, ValueError):
-        return False
-
-
-def _fd_isatty(fd: int) -> bool:
-    """Helper function: whether a descriptor is a terminal; a closed one is not."""
-    try:
-        return os.isatty(fd)
-    except OSError:
-        return False
+# Before the work
 
 
 def check_destination(dest: str | os.PathLike[str], *, binary: bool = False) -> None:
@@ -351,7 +260,7 @@ def check_destination(dest: str | os.PathLike[str], *, binary: bool = False) -> 
     UsageError
         Binary output would go to a terminal.
     """
-    target = _resolve(dest)
+    target = resolve(dest)
     if target.kind == "file":
         _check_writable(target)
         fd, temporary = _create_temporary(target)
@@ -363,9 +272,10 @@ def check_destination(dest: str | os.PathLike[str], *, binary: bool = False) -> 
         raise DataError(f"{target.name}: cannot write: permission denied")
 
 
-def _check_writable(target: _Destination) -> None:
-    """Helper function refusing to replace an existing file the caller may not write."""
-    if target.path.exists() and not _writable(target.path):
+def _check_writable(target: Destination) -> None:
+    """Helper function refusing to replace an existing file the caller may not write (a
+    symlink is replaced itself, whatever it leads to)."""
+    if _own_mode(target.path) is not None and not _writable(target.path):
         raise DataError(f"{target.name}: cannot write: the file is read-only (permission "
                         "denied); it is left as it is")
 
@@ -376,19 +286,19 @@ def _writable(path: Path) -> bool:
     return os.access(path, os.W_OK, effective_ids=effective)
 
 
-def _check_descriptor(target: _Destination, binary: bool) -> None:
+def _check_descriptor(target: Destination, binary: bool) -> None:
     """Helper function checking an open descriptor (standard output) before long work."""
     if target.fd == 1:
-        if not _stdout_open():
+        if not stdout_open():
             raise DataError(f"{target.name}: cannot write: standard output is closed")
-        terminal = _isatty(sys.stdout)
+        terminal = isatty(sys.stdout)
     else:
         try:
             os.fstat(target.fd)
         except OSError as exc:
             raise DataError(f"{target.name}: cannot write: descriptor {target.fd} is "
                             "closed") from exc
-        terminal = _fd_isatty(target.fd)
+        terminal = fd_isatty(target.fd)
     if binary and terminal:
         raise _binary_to_terminal(target.name)
 
@@ -399,29 +309,75 @@ def _binary_to_terminal(name: str) -> UsageError:
                       "write it to a file or redirect the output")
 
 
-def overwrites(output: str | os.PathLike[str], source: str | os.PathLike[str]) -> bool:
-    """Whether writing `output` would replace the file `source` (an input, another output).
+class Outputs:
+    """The outputs of one command, checked against its inputs and against each other.
 
-    Both exist: the same regular file, by device and inode, which sees through ``..``,
-    symlinks and hard links. Neither exists: the same name once resolved. A device or pipe
-    is never replaced, so it never counts; ``"-"`` as `source` is standard input's file
-    (``< data.csv``), as `output` it is standard output, which replaces nothing.
+    No output may be an input (the same file, through ``..``, symlinks or hard links) nor
+    another output of the same command (the same name, or the same file). `claim` checks
+    an output before any work, with `check_destination`; the command claims every name it
+    may write, those it derives included (a figure's panel files, ``OUT.partial``,
+    numbered realizations). Inside ``with outputs:``, every file this module writes is
+    checked again as it is written, against the inputs and the files written before it:
+    the one place no writer goes around.
+
+    Examples
+    --------
+    >>> with Outputs(["data.csv"]) as outputs:  # doctest: +SKIP
+    ...     outputs.claim("-o", "report.json")
+    ...     write_text(report, "report.json")
     """
-    if io.is_stdio(output):
-        return False
-    written, read = _identity(output), _identity(source)
-    if written is None and read is None and not io.is_stdio(source):
-        return os.path.realpath(output) == os.path.realpath(source)
-    return written is not None and written == read and written != "special"
+
+    def __init__(self, inputs: Sequence[str | os.PathLike[str]]):
+        self.inputs = tuple(map(os.fsdecode, inputs))
+        self.claimed: list[tuple[str, str]] = []   # (what names it, name)
+        self.written: list[tuple[str, str]] = []
+        self._outer: Outputs | None = None
+
+    def claim(self, label: str, output: str | os.PathLike[str], *,
+              binary: bool = False) -> None:
+        """Check an output before any work; `label` names it in messages ("-o",
+        "--plot's panel file"). A UsageError if it is an input or another output, a
+        DataError (or a UsageError) from `check_destination` if it cannot be written."""
+        name = os.fsdecode(output)
+        _refuse_overlap(label, name, self.inputs, self.claimed)
+        check_destination(name, binary=binary)
+        self.claimed.append((label, name))
+
+    def _write(self, name: str) -> None:
+        """Helper method checking a file about to be written, and noting it."""
+        label = next((label for label, claimed in self.claimed
+                      if same_file(claimed, name)), "output")
+        _refuse_overlap(label, name, self.inputs, self.written)
+        self.written.append((label, name))
+
+    def __enter__(self) -> Outputs:
+        global _outputs
+        self._outer, _outputs = _outputs, self
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        global _outputs
+        _outputs = self._outer
 
 
-def _identity(name: str | os.PathLike[str]) -> tuple[int, int] | str | None:
-    """Helper function: (device, inode) of a regular file, "special", or None if absent."""
-    try:
-        status = os.fstat(0) if io.is_stdio(name) else os.stat(name)
-    except (OSError, ValueError):
-        return None
-    return (status.st_dev, status.st_ino) if stat.S_ISREG(status.st_mode) else "special"
+_outputs: Outputs | None = None
+
+
+def _refuse_overlap(label: str, name: str, inputs: Sequence[str],
+                    outputs: Sequence[tuple[str, str]]) -> None:
+    """Helper function: a UsageError if `name` is one of the inputs or of the outputs."""
+    for source in inputs:
+        if overwrites(name, source):
+            shown = "standard input" if source == "-" else f"the input file {source!r}"
+            raise UsageError(f"{label} {name!r} is {shown}; writing it would destroy the "
+                             "input: choose another output")
+    for other_label, other in outputs:
+        if not same_file(name, other):
+            continue
+        if other_label == label:
+            raise UsageError(f"{label} names one file twice: {other!r} and {name!r}")
+        alias = "" if os.path.normpath(name) == os.path.normpath(other) else f" (as {name!r})"
+        raise UsageError(f"{other_label} and {label} name the same file {other!r}{alias}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -431,8 +387,10 @@ def _identity(name: str | os.PathLike[str]) -> tuple[int, int] | str | None:
 def _write_output(dest: str | os.PathLike[str], write: Write, *, binary: bool,
                   escape_on_terminal: bool = False) -> None:
     """Helper function writing a regular file atomically, anything else in place."""
-    target = _resolve(dest)
+    target = resolve(dest)
     if target.kind == "file":
+        if _outputs is not None:
+            _outputs._write(target.name)
         _write_atomic(target, write)
         return
     send = functools.partial(_write_stream, target, write, binary=binary,
@@ -443,7 +401,7 @@ def _write_output(dest: str | os.PathLike[str], write: Write, *, binary: bool,
         send()
 
 
-def _write_stream(target: _Destination, write: Write, *, binary: bool,
+def _write_stream(target: Destination, write: Write, *, binary: bool,
                   escape_on_terminal: bool) -> None:
     """Helper function writing to a descriptor or a special file, in place."""
     if target.kind == "descriptor" and target.fd == 1:
@@ -469,10 +427,10 @@ def _write_stdout(name: str, write: Write, *, binary: bool, escape_on_terminal: 
     """Helper function writing bytes to standard output, after any text already there."""
     import io as pyio
 
-    if not _stdout_open():
+    if not stdout_open():
         raise DataError(f"{name}: cannot write: standard output is closed")
     stdout = sys.stdout
-    terminal = _isatty(stdout)
+    terminal = isatty(stdout)
     if binary and terminal:
         raise _binary_to_terminal(name)
     try:
@@ -629,7 +587,7 @@ def all_or_nothing() -> Iterator[None]:
         _sync_folder(path.parent)
 
 
-def _write_atomic(target: _Destination, write: Write) -> None:
+def _write_atomic(target: Destination, write: Write) -> None:
     """Helper function writing through a temporary file in the destination's folder."""
     _check_writable(target)
     path = target.path
@@ -654,6 +612,33 @@ def _write_atomic(target: _Destination, write: Write) -> None:
     _sync_folder(path.parent)
 
 
+def create_fresh(dest: str | os.PathLike[str]) -> IO[bytes]:
+    """A new, empty file at `dest`, open for writing as records come, whatever was there.
+
+    The file is created under a private name in the destination's folder and renamed to
+    `dest` at once, before anything is written: a symlink there is replaced, not written
+    through, and a hard link loses only this name. What is written stays if the command is
+    cut short (`fit --each`'s ``OUT.partial``), unlike the temporaries of the atomic
+    writers. Inside `Outputs`, `dest` is checked as every written file is.
+    """
+    target = resolve(dest)
+    if target.kind != "file":
+        raise DataError(f"{target.name}: cannot write: not a regular file")
+    if _outputs is not None:
+        _outputs._write(target.name)
+    fd, temporary = _create_temporary(target)
+    try:
+        os.fchmod(fd, _new_file_mode(target.path))
+        _replace(temporary, target.path)
+    except BaseException as exc:
+        os.close(fd)
+        _remove(temporary)
+        if isinstance(exc, OSError):
+            raise DataError(f"{target.name}: cannot write: {io.os_reason(exc)}") from exc
+        raise
+    return os.fdopen(fd, "wb")
+
+
 # Temporary files that exist now; a termination signal's last act removes what is left.
 _live: set[str] = set()
 _TEMPORARY_SUFFIX = ".tmp"
@@ -662,7 +647,7 @@ _HELD_SIGNALS = {getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP
                  if hasattr(signal, name)}
 
 
-def _create_temporary(target: _Destination) -> tuple[int, str]:
+def _create_temporary(target: Destination) -> tuple[int, str]:
     """Helper function creating the temporary file beside the destination, with errors named.
 
     The temporary's name is no longer than the destination's (or than _SHORT_NAME bytes):
@@ -739,14 +724,25 @@ def _new_file_mode(path: Path) -> int:
     """Helper function giving the permissions the written file should have.
 
     mkstemp creates files readable by their owner only; an output file should have the
-    permissions the file it replaces had, or the usual ones for a new file.
+    permissions the file it replaces had, or the usual ones for a new file (which replaces
+    a symlink, not what it leads to).
     """
+    mode = _own_mode(path)
+    if mode is not None:
+        return mode
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+def _own_mode(path: Path) -> int | None:
+    """Helper function: the permissions of the regular file that is `path` itself (not
+    through a symlink), or None."""
     try:
-        return os.stat(path).st_mode & 0o7777
+        status = os.lstat(path)
     except OSError:
-        umask = os.umask(0)
-        os.umask(umask)
-        return 0o666 & ~umask
+        return None
+    return stat.S_IMODE(status.st_mode) if stat.S_ISREG(status.st_mode) else None
 
 
 def _sync_folder(folder: Path) -> None:

@@ -9,7 +9,7 @@ temporary file left behind.
 - An output that is one of the inputs (the same file through ``..``, a symlink or a hard
   link) is refused before anything is read or written.
 - Devices, FIFOs and descriptors (``/dev/stdout``) are written in place; a symlink to a
-  regular file is followed, and the file it names is replaced atomically.
+  regular file (or to nothing) is itself replaced atomically, never written through.
 - A read-only output file is refused, as cp refuses it (as root, the command runs as user
   nobody, whom the permissions bind).
 - SIGTERM, SIGHUP and SIGQUIT are handled as Ctrl-C is: no temporary file, exit 128 + N.
@@ -378,7 +378,7 @@ def shutil_copy(text, path):
     path.chmod(0o644)
 
 
-def test_a_symlink_to_a_file_is_followed_and_survives(tmp_path):
+def test_a_symlink_to_a_file_is_replaced_not_written_through(tmp_path):
     work, elsewhere = tmp_path / "work", tmp_path / "elsewhere"
     work.mkdir()
     elsewhere.mkdir()
@@ -389,19 +389,21 @@ def test_a_symlink_to_a_file_is_followed_and_survives(tmp_path):
     (work / "link.csv").symlink_to(target)
     done = run(["simulate", "--config", "sys.toml", "-o", "link.csv"], cwd=work)
     assert done.returncode == 0, done.stderr
-    assert os.readlink(work / "link.csv") == str(target)
-    assert target.read_bytes().startswith(b"# hamid: ")
+    assert not (work / "link.csv").is_symlink()
+    assert (work / "link.csv").read_bytes().startswith(b"# hamid: ")
+    assert target.read_bytes() == PRECIOUS
     assert stat.S_IMODE(target.stat().st_mode) == 0o640
     assert sorted(os.listdir(work)) == ["link.csv", "sys.toml"]
     assert os.listdir(elsewhere) == ["real.csv"]
 
 
-def test_a_dangling_symlink_gets_its_target_created(work):
+def test_a_dangling_symlink_is_replaced_and_its_target_not_created(work):
     (work / "link.csv").symlink_to("made.csv")
     done = run(["simulate", "--config", "sys.toml", "-o", "link.csv"], cwd=work)
     assert done.returncode == 0, done.stderr
-    assert os.readlink(work / "link.csv") == "made.csv"
-    assert (work / "made.csv").read_bytes().startswith(b"# hamid: ")
+    assert not (work / "link.csv").is_symlink()
+    assert (work / "link.csv").read_bytes().startswith(b"# hamid: ")
+    assert not (work / "made.csv").exists()
 
 
 def test_a_stream_that_fails_leaves_the_files_of_the_same_run_alone(work):
