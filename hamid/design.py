@@ -9,7 +9,7 @@ column; the solver and the covariance estimators only see blocks.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -105,6 +105,9 @@ def _sample_index(records: Records) -> npt.NDArray[np.float64]:
 
 BUMP_ORDER = 5  # psi = (1 - s^2)^p: p >= 5 keeps the trapezoid rule O(dt^6); see README
 MIN_SAMPLES_PER_WINDOW = 20
+# Orders of the weak rows' quadrature: the trapezoid rule on the bump, and Simpson's on
+# unevenly sampled windows (`_quadrature_weights`).
+QUADRATURE_ORDER, UNEVEN_ORDER = 6, 4
 # Windows start every quarter window: measured 1.4-2x lower errors than half overlap on
 # noisy data (README, accuracy), because the extra test functions use more of the signal.
 WINDOW_STEP = 0.25
@@ -214,10 +217,28 @@ class Windows:
     last: npt.NDArray[np.int64]
     order: int
     uneven: npt.NDArray[np.bool_]   # windows sampled unevenly (Simpson's weights)
+    stride: int = 1   # 2: the rules on every other node (`richardson_pair`)
 
     @property
     def n_windows(self) -> int:
         return len(self.centre)
+
+    def richardson_pair(self) -> tuple[Windows, Windows]:
+        """The windows whose rows at the time step and at twice it estimate these rows'
+        quadrature error (`richardson_divisors`): each window, shortened by a sample where
+        it spans an odd number of steps, so that the rule on every other sample still
+        ends on its last one (a rule whose end falls between its nodes errs at a lower
+        order), at stride 1 and 2. A window one step shorter errs about as much."""
+        odd = (self.last - self.first) % 2 == 1
+        fine = replace(self, last=self.last - odd)
+        return fine, replace(fine, stride=2)
+
+    def richardson_divisors(self, rows_per_window: int) -> npt.NDArray[np.float64]:
+        """2^p - 1 for each row of these windows, p the order of its rule: a rule of order
+        p errs about 2^p times as much at twice the step, so the difference of the coarse
+        and the fine rows is about 2^p - 1 times the fine rows' error."""
+        order = np.where(self.uneven, UNEVEN_ORDER, QUADRATURE_ORDER)
+        return np.repeat(2.0 ** order - 1, rows_per_window)
 
     @property
     def Q_psi(self) -> Any:
@@ -266,8 +287,9 @@ class Windows:
         half = ((hi_t - lo_t) / 2)[row]
         s = (t[col] - ((lo_t + hi_t) / 2)[row]) / half
         base = np.clip(1 - s**2, 0.0, None)  # rounding can put s a hair past 1
-        weights = _window_weights(t, np.diff(t), first - a, last - a, row, col,
-                                  self.uneven[lo:hi])
+        weights = (_window_weights(t, np.diff(t), first - a, last - a, row, col,
+                                   self.uneven[lo:hi]) if self.stride == 1 else
+                   _every_other_weights(t, first - a, last - a, row, col, self.uneven[lo:hi]))
         lower = weights.copy()   # base^(order - 1) * weights: serves psi and its derivative
         for _ in range(self.order - 1):   # products: numpy's power is ten times slower
             lower *= base
@@ -401,6 +423,22 @@ def _window_weights(t: np.ndarray, step: np.ndarray, first: np.ndarray, last: np
     weights = (left + right) / 2
     for w in np.flatnonzero(uneven):
         weights[row == w] = _quadrature_weights(t[int(first[w]):int(last[w]) + 1])
+    return weights
+
+
+def _every_other_weights(t: np.ndarray, first: np.ndarray, last: np.ndarray, row: np.ndarray,
+                         col: np.ndarray, uneven: np.ndarray) -> np.ndarray:
+    """`_window_weights` of the rules on every other node of each window, from its first
+    (which ends on its last when it spans an even number of steps); the other nodes weigh
+    nothing."""
+    offset = col - first[row]
+    kept = offset % 2 == 0
+    before = np.where(offset == 0, col, col - 2)
+    after = np.minimum(col + 2, last[row])
+    weights = np.where(kept, (t[after] - t[before]) / 2, 0.0)
+    for w in np.flatnonzero(uneven):
+        mine = np.flatnonzero((row == w) & kept)
+        weights[mine] = _quadrature_weights(t[col[mine]])
     return weights
 
 
