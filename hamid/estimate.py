@@ -213,25 +213,22 @@ class Scores:
 class QuadratureError:
     """What the weak rows' quadrature error moves the estimates by, to first order.
 
-    Row i, integrated at the time step dt, errs by about q_i = (coarse_i - fine_i)(theta)
-    / (2^p - 1): its rule at twice the step errs 2^p times as much (Richardson, on the
-    windows of `design.Windows.richardson_pair`). An error q_i of the rows moves theta by
-    -sum_i G_i q_i, with G_i = w_i a_i M^-1 for rows without a level (`Scores`). Both are
-    linear in theta, so the sums C = sum (w/d) a (coarse A - fine A)' and c = sum (w/d) a
-    (coarse b - fine b) are fed as the rows are made (a file read in chunks keeps no
-    rows) and read once theta is known. The fitted rows' weights are the fit's, up to
-    `scale`.
+    Row i errs by about q_i = e_i theta - f_i, the rows of `design.weak_quadrature_error`
+    (Richardson). An error q_i of the rows moves theta by -sum_i G_i q_i, with
+    G_i = w_i a_i M^-1 for rows without a level (`Scores`). Both are linear in theta, so
+    the sums C = sum w a e' and c = sum w a f are fed as the rows are made (a file read in
+    chunks keeps no rows) and read once theta is known. The fitted rows' weights are the
+    fit's, up to `scale`.
     """
 
     def __init__(self, p: int) -> None:
         self.C, self.c = np.zeros((p, p)), np.zeros(p)
 
-    def add(self, fitted: Block, fine: Block, coarse: Block,
-            divisors: npt.NDArray[np.float64]) -> None:
-        """Weak rows as fitted, and on the windows of `Windows.richardson_pair`."""
-        wa = (fitted.weight / divisors)[:, None] * fitted.A
-        self.C += wa.T @ (coarse.A - fine.A)
-        self.c += wa.T @ (coarse.b - fine.b)
+    def add(self, fitted: Block, error: Block) -> None:
+        """Weak rows as fitted, and their errors (`design.weak_quadrature_error`)."""
+        wa = fitted.weight[:, None] * fitted.A
+        self.C += wa.T @ error.A
+        self.c += wa.T @ error.b
 
     def shift(self, theta: npt.NDArray[np.float64], inverse: npt.NDArray[np.float64],
               scale: float = 1.0) -> npt.NDArray[np.float64]:
@@ -458,10 +455,9 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
         h_var = level_variance(c, fit.centred.level_means_A)
     shift = None
     if spans is not None:
-        fine, coarse = (unknowns.hold_fixed(design.weak_block(m, records, w, damping))
-                        for w in spans.richardson_pair())
         error = QuadratureError(len(names))
-        error.add(weak, fine, coarse, spans.richardson_divisors(len(m.coordinates)))
+        error.add(weak, unknowns.hold_fixed(design.weak_quadrature_error(m, records, spans,
+                                                                         damping)))
         shift = error.shift(fit.theta, fit.solution.inverse)
         theta_cov, text = with_discretization(theta_cov, text, shift)
     means_A, means_b, _ = solve.level_means(energy, J)

@@ -116,9 +116,8 @@ def _windowed(source: Chunked, energy_rows: Callable[[Records, int], Block], pla
             spans = design.windows_at(held.records, first, last,
                                       np.full(len(first), held.j), window)
             weak = unknowns.hold_fixed(design.weak_block(m, held.records, spans))
-            quadrature.add(weak, *(unknowns.hold_fixed(design.weak_block(m, held.records, w))
-                                   for w in spans.richardson_pair()),
-                           spans.richardson_divisors(N))
+            quadrature.add(weak, unknowns.hold_fixed(
+                design.weak_quadrature_error(m, held.records, spans)))
             store.append([design.window_means(held.rows, spans), weak] if kind == "joint"
                          else [weak])
         # Keep the samples from the first sample of the next window on.

@@ -4,7 +4,7 @@ They cover every sample file under each method, chunked fits, and the other path
 (damping, noise, bias correction, derived velocities, bootstrap, fixed parameters). A
 change of the code that does not mean to change outputs must leave every key and every
 text as it was, and every number to rounding (`record.differences`: estimates and their
-errors to 1e-10, other numbers to 1e-8). What varies by run is compared by type:
+bounds to 1e-10, errors to 1e-6, other numbers to 1e-8). What varies by run is compared by type:
 `provenance.utc` and the library versions; the inputs' sizes and SHA-256 exactly.
 """
 
