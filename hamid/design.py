@@ -9,7 +9,7 @@ column; the solver and the covariance estimators only see blocks.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -105,6 +105,9 @@ def _sample_index(records: Records) -> npt.NDArray[np.float64]:
 
 BUMP_ORDER = 5  # psi = (1 - s^2)^p: p >= 5 keeps the trapezoid rule O(dt^6); see README
 MIN_SAMPLES_PER_WINDOW = 20
+# Orders of the weak rows' quadrature: the trapezoid rule on the bump, and Simpson's on
+# unevenly sampled windows (`_quadrature_weights`); `Windows.quadrature_error`.
+QUADRATURE_ORDER, UNEVEN_ORDER = 6, 4
 # Windows start every quarter window: measured 1.4-2x lower errors than half overlap on
 # noisy data (README, accuracy), because the extra test functions use more of the signal.
 WINDOW_STEP = 0.25
@@ -214,10 +217,23 @@ class Windows:
     last: npt.NDArray[np.int64]
     order: int
     uneven: npt.NDArray[np.bool_]   # windows sampled unevenly (Simpson's weights)
+    richardson: bool = False   # the rule of the rows' quadrature errors (`quadrature_error`)
 
     @property
     def n_windows(self) -> int:
         return len(self.centre)
+
+    def quadrature_error(self) -> Windows:
+        """Windows whose rows are about the quadrature errors of these windows' rows.
+
+        A rule of order p errs about 2^p times as much at twice the step, so a row's
+        error is about its value on every other sample less its value on every sample,
+        over 2^p - 1 (Richardson): the weights of this rule. Each window is shortened by a
+        sample where it spans an odd number of steps, so that the rule on every other
+        sample still ends on its last one (a rule whose end falls between its nodes errs
+        at a lower order); a window one step shorter errs about as much."""
+        odd = (self.last - self.first) % 2 == 1
+        return replace(self, last=self.last - odd, richardson=True)
 
     @property
     def Q_psi(self) -> Any:
@@ -268,6 +284,10 @@ class Windows:
         base = np.clip(1 - s**2, 0.0, None)  # rounding can put s a hair past 1
         weights = _window_weights(t, np.diff(t), first - a, last - a, row, col,
                                   self.uneven[lo:hi])
+        if self.richardson:
+            order = np.where(self.uneven[lo:hi], UNEVEN_ORDER, QUADRATURE_ORDER)[row]
+            weights = (_every_other_weights(t, first - a, last - a, row, col,
+                                            self.uneven[lo:hi]) - weights) / (2.0**order - 1)
         lower = weights.copy()   # base^(order - 1) * weights: serves psi and its derivative
         for _ in range(self.order - 1):   # products: numpy's power is ten times slower
             lower *= base
@@ -404,6 +424,22 @@ def _window_weights(t: np.ndarray, step: np.ndarray, first: np.ndarray, last: np
     return weights
 
 
+def _every_other_weights(t: np.ndarray, first: np.ndarray, last: np.ndarray, row: np.ndarray,
+                         col: np.ndarray, uneven: np.ndarray) -> np.ndarray:
+    """`_window_weights` of the rules on every other node of each window, from its first
+    (which ends on its last when it spans an even number of steps); the other nodes weigh
+    nothing."""
+    offset = col - first[row]
+    kept = offset % 2 == 0
+    before = np.where(offset == 0, col, col - 2)
+    after = np.minimum(col + 2, last[row])
+    weights = np.where(kept, (t[after] - t[before]) / 2, 0.0)
+    for w in np.flatnonzero(uneven):
+        mine = np.flatnonzero((row == w) & kept)
+        weights[mine] = _quadrature_weights(t[col[mine]])
+    return weights
+
+
 def _uneven_windows(t: np.ndarray, first: np.ndarray, last: np.ndarray) -> np.ndarray:
     """Whether the time step changes (beyond rounding) anywhere inside each window."""
     changes = []   # steps k (t[k + 1] - t[k]) unlike step k - 1, a piece of samples at a time
@@ -457,6 +493,16 @@ def weak_block(model: Model, records: Records, windows: Windows,
         A = np.hstack([A, forces])
     return Block("weak", A, -integrals[:, 0], np.repeat(windows.group, N),
                  np.repeat(windows.centre, N), np.ones(rows), has_level=False)
+
+
+def weak_quadrature_error(model: Model, records: Records, windows: Windows,
+                          dissipation: Dissipation | None = None) -> Block:
+    """About the quadrature error of each weak row of `windows` (`Windows.quadrature_error`),
+    as rows A, b: at theta, A theta - b. The damping forces' columns are zero: their
+    integrals at Gauss points between the samples are not estimated."""
+    rows = weak_block(model, records, windows.quadrature_error())
+    damping = np.zeros((rows.n_rows, len(dissipation) if dissipation else 0))
+    return replace(rows, A=np.hstack([rows.A, damping]))
 
 
 _GRADIENT_ROWS = 1 << 16   # samples whose gradients are held at once

@@ -318,10 +318,19 @@ def _beyond_noise(fit: SegmentFit, noise: _Noise, length: float,
 
 def _refined(linear: LinearFit, fit: SegmentFit, within: bool) -> LinearFit:
     """The linear fit with the refined parameters and their covariance: misfit-scaled
-    Gauss-Newton when the noise explains the misfit, else the sandwich over segments
-    (with its degrees of freedom, segments less parameters)."""
+    Gauss-Newton when the noise explains the misfit (on noise-free data, scaled by the
+    whole misfit), else the sandwich over segments (with its degrees of freedom,
+    segments less parameters)."""
     theta = fit.theta[list(fit.free)]
-    if within:
+    if within and fit.chi2_per_dof < CLEAN_CHI2:
+        # The misfit is the integrators' error (this fit's and the record's own): smooth,
+        # shared by every value, not noise. An error of its size moves a parameter by at
+        # most sqrt(inverse_kk * misfit) (Cauchy-Schwarz), dof times the scaled variance.
+        covariance, df = fit.covariance("scaled") * fit.dof, fit.dof
+        description = ("Gauss-Newton covariance of the trajectory fit times its whole misfit "
+                       f"({fit.chi2_per_dof * fit.dof:.3g}): noise-free data, whose misfit is "
+                       "the integrators' error, shared by all values")
+    elif within:
         covariance, df = fit.covariance("scaled"), fit.dof
         description = ("Gauss-Newton covariance of the trajectory fit, scaled by its misfit "
                        f"per degree of freedom ({fit.chi2_per_dof:.3g})")
@@ -333,7 +342,8 @@ def _refined(linear: LinearFit, fit: SegmentFit, within: bool) -> LinearFit:
     means_A, means_b = linear.energy_means
     return dataclasses.replace(
         linear, theta=theta, covariance=covariance, description=description, df=df,
-        h=means_A @ theta - means_b, h_stderr=np.full(len(means_b), np.nan), residuals=None)
+        h=means_A @ theta - means_b, h_stderr=np.full(len(means_b), np.nan), residuals=None,
+        discretization=None)
 
 
 def _held_out(fit: SegmentFit, theta_linear: npt.NDArray[np.float64], unknowns: Unknowns,

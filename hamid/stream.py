@@ -106,6 +106,7 @@ def _windowed(source: Chunked, energy_rows: Callable[[Records, int], Block], pla
     layout = ([("energy", 1, True)] if kind == "joint" else []) + [("weak", N, False)]
     store = _WindowRows(layout, len(unknowns.free), source.table.name)
     totals: dict[int, np.ndarray] = {}   # sums of A, b and the count of each trajectory
+    quadrature = estimate.QuadratureError(len(unknowns.free))
     held: _Held | None = None
 
     def emit(held: _Held, ended: bool) -> None:
@@ -115,6 +116,8 @@ def _windowed(source: Chunked, energy_rows: Callable[[Records, int], Block], pla
             spans = design.windows_at(held.records, first, last,
                                       np.full(len(first), held.j), window)
             weak = unknowns.hold_fixed(design.weak_block(m, held.records, spans))
+            quadrature.add(weak, unknowns.hold_fixed(
+                design.weak_quadrature_error(m, held.records, spans)))
             store.append([design.window_means(held.rows, spans), weak] if kind == "joint"
                          else [weak])
         # Keep the samples from the first sample of the next window on.
@@ -151,7 +154,8 @@ def _windowed(source: Chunked, energy_rows: Callable[[Records, int], Block], pla
         sizes = np.array([totals[j][-1] for j in range(J)], dtype=np.int64)
         energy_means = np.array([totals[j][:-1] / totals[j][-1] for j in range(J)])
         return _fit_windows(store, kind, unknowns.free_names, source.labels, options.cov,
-                            sizes, (energy_means[:, :-1], energy_means[:, -1])), plan
+                            sizes, (energy_means[:, :-1], energy_means[:, -1]),
+                            quadrature), plan
 
 
 class _WindowRows:
@@ -231,10 +235,12 @@ class _WindowRows:
 
 def _fit_windows(store: _WindowRows, kind: str, names: list[str],
                  labels: tuple[Any, ...], cov: str, sizes: np.ndarray,
-                 energy_means: tuple[np.ndarray, np.ndarray]) -> LinearFit:
+                 energy_means: tuple[np.ndarray, np.ndarray],
+                 quadrature: estimate.QuadratureError) -> LinearFit:
     """The fit of the stored window rows as `estimate.fit_rows` makes it of the same rows
     in memory: the blocks' triangular factors from one pass give the estimates for any
-    balance of the blocks, and each covariance takes one pass (two for ``hac``)."""
+    balance of the blocks, and each covariance takes one pass (two for ``hac``); the
+    weak rows' quadrature error from the sums fed as they were made."""
     p, J = len(names), len(labels)
     factors = [solve.Factor(p, J) for _ in store.layout]
     squares = np.zeros(len(store.layout))   # sum w b^2 of each block
@@ -294,8 +300,11 @@ def _fit_windows(store: _WindowRows, kind: str, names: list[str],
     each = ({block_kind: solve.factor_conditioning(factor, names, labels).condition_number
              for (block_kind, _, _), factor in zip(store.layout, factors, strict=True)}
             if len(factors) > 1 else None)
-    return LinearFit(solution.theta, c.theta, c.description, c.df, h, h_stderr,
-                     block_variance, block_stats, cond, each, energy_means, sizes)
+    shift = quadrature.shift(solution.theta, solution.inverse, scales[-1])   # weak: last
+    covariance, description = estimate.with_discretization(c.theta, c.description, shift)
+    return LinearFit(solution.theta, covariance, description, c.df, h, h_stderr,
+                     block_variance, block_stats, cond, each, energy_means, sizes,
+                     discretization=shift)
 
 
 @dataclasses.dataclass(frozen=True)

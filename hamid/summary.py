@@ -79,6 +79,8 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
         "covariance_description": fit.description, "level": options.level,
         "fixed": dict(unknowns.fixed), "block_variance": fit.block_variance,
         "refinement": refinement,
+        "discretization": None if fit.discretization is None else dict(
+            zip(unknowns.free_names, fit.discretization.tolist(), strict=True)),
     }
     cond = fit.conditioning
     conditioning = {
