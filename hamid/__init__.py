@@ -28,9 +28,9 @@ __all__ = [
     "simulate_realizations",
 ]
 
-_LAZY = {"fit": "hamid.api", "simulate": "hamid.api", "load_model": "hamid.api",
-         "select": "hamid.selecting", "fit_each": "hamid.batch",
-         "simulate_realizations": "hamid.api"}
+_LAZY = {"fit": "hamid.api", "simulate": "hamid.simulation", "load_model": "hamid.api",
+         "select": "hamid.selection.select_terms", "fit_each": "hamid.batch.many_files",
+         "simulate_realizations": "hamid.simulation"}
 
 
 def __getattr__(name: str) -> Any:

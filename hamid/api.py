@@ -1,63 +1,26 @@
-"""The Python API: `load_model`, `simulate` and `fit`, the one path the CLI also takes."""
+"""The Python API: `fit`, the one path the CLI also takes, as its steps (and `load_model`)."""
 
 from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any
 
-from hamid import estimate, inputs, loading, plan, refine, summary
-from hamid.design import Block
+from hamid.data import input_size, loading
+from hamid.data.records import Recording
 from hamid.errors import UsageError
 from hamid.executor import one_blas_thread
-from hamid.fitted import Recording
-from hamid.model import Model, load_model
+from hamid.linear import estimate, plan
+from hamid.linear.design import Block
+from hamid.linear.unknowns import Unknowns
+from hamid.model.models import Model, load_model
 from hamid.options import SAVGOL_ORDER, FitOptions
-from hamid.result import FitResult, ProvenanceInfo
-from hamid.unknowns import Unknowns
+from hamid.refine import joint_refinement
+from hamid.result import summary
+from hamid.result.fit_result import FitResult, ProvenanceInfo
 
-if TYPE_CHECKING:
-    import pandas as pd
-
-__all__ = ["fit", "load_model", "simulate", "simulate_realizations"]
-
-
-def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | None = None,
-             max_samples: int | None = None,
-             progress: Callable[[float], None] | None = None) -> pd.DataFrame:
-    """Simulate the system of a TOML file (or its dict) and return the sampled record.
-
-    The returned frame has columns ``trajectory``, ``t``, the coordinates and the
-    velocities; ``frame.attrs["hamid"]`` holds its provenance (model, true parameters,
-    initial states, energy drift, noise, seed, integrator, version).
-    """
-    return next(simulate_realizations(system, 1, seed=seed, max_samples=max_samples,
-                                      progress=progress))
-
-
-def simulate_realizations(system: str | os.PathLike[str] | Mapping[str, Any],
-                          realizations: int, *, seed: int | None = None,
-                          max_samples: int | None = None,
-                          progress: Callable[[float], None] | None = None
-                          ) -> Iterator[pd.DataFrame]:
-    """`realizations` noisy records of one system for Monte Carlo studies, one at a time.
-
-    The motion is integrated once; record k (from 0) has the noise of seed S + k, where S
-    is `seed`, else the system's ``[simulate] seed``, else drawn at random: the record that
-    ``simulate(system, seed=S + k)`` returns, which its metadata's ``seed`` says.
-    """
-    from hamid import simulation
-
-    if isinstance(system, Mapping):
-        document, where = system, "system"
-    else:
-        from hamid import documents
-
-        where = os.fspath(system)
-        document = documents.read_toml(where)
-    return simulation.sampled(document, realizations, where=where, seed=seed,
-                              max_samples=max_samples, progress=progress)
+__all__ = ["fit", "load_model"]
 
 
 def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
@@ -118,7 +81,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     method : {"auto", "joint", "weak", "energy"}
         Which rows to fit: energy rows, weak-form equations of motion, or both; ``auto``
         takes ``joint`` when the data allow it, refined by fitting the model's integrated
-        trajectories to the recording (`hamid.trajectory`), and says why.
+        trajectories to the recording (`hamid.refine.trajectory`), and says why.
     weak_window : float, optional
         Length of the weak-form windows in seconds; by default half the dominant period.
     damping : str or list of str
@@ -134,7 +97,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         Input format when it cannot be told from the file name.
     chunk_rows : int, optional
         Read the file in chunks of this many rows, in memory that does not grow with the
-        file's length (`hamid.stream`); ``auto`` then skips its trajectory refinement.
+        file's length (`hamid.linear.chunked`); ``auto`` then skips its trajectory refinement.
         By default a file that takes over 64 MB once decoded (8 bytes a cell, whatever
         its size on disk; standard input too) is read in chunks of 2^18 rows (the same
         answer, faster), and ``auto`` refines holding only the records in memory (up to
@@ -170,7 +133,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
                       skip_rows=skip_rows, units_row=units_row, jobs=jobs)
     if isinstance(data, list | tuple) and len(data) == 1:
         data = data[0]
-    with inputs.spooled(data) as readable, one_blas_thread():   # stdin spooled to a file
+    with input_size.spooled(data) as readable, one_blas_thread():   # stdin spooled to a file
         chunks = opts.chunking(readable, loading.dissipative(model))
         run = summary.run_provenance(data, opts)   # inputs hashed before they are read
         return _fit(readable, model, opts, chunks, run, progress)
@@ -200,10 +163,10 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
                                                    opts, sigma)
         energy_rows: Iterable[Block] = rows.pieces()
     else:
-        from hamid import stream
+        from hamid.linear import chunked
 
-        linear, fit_plan = stream.fit_chunks(source, unknowns, fit_plan, opts)
-        chunk_rows_of = stream.energy_rows(source, unknowns)
+        linear, fit_plan = chunked.fit_chunks(source, unknowns, fit_plan, opts)
+        chunk_rows_of = chunked.energy_rows(source, unknowns)
         energy_rows = (chunk_rows_of(records, row)
                        for records, row in source.rows("residual summary"))
     # refine
@@ -217,8 +180,9 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
             given = sigma if isinstance(opts.noise, Mapping) else None   # not --noise auto
             if chunks is None:   # the energy rows of every sample, made again after it
                 rows.release()
-            refined, refinement = refine.refine(linear, m, records, damping_forces, unknowns,
-                                                fit_plan, given, opts.velocity == "savgol",
+            refined, refinement = joint_refinement.refine(
+                linear, m, records, damping_forces, unknowns, fit_plan, given,
+                opts.velocity == "savgol",
                                                 rows if chunks is None else None, progress,
                                                 opts.jobs)
             fitted = refined or linear
@@ -228,7 +192,8 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
         fit_plan = fit_plan.refined(refinement)
     residuals = fitted.residuals or estimate.residual_sums(energy_rows, fitted.theta, fitted.h)
     if fitted is not linear:
-        fitted = dataclasses.replace(fitted, h_stderr=refine.level_errors(fitted, residuals))
+        errors = joint_refinement.level_errors(fitted, residuals)
+        fitted = dataclasses.replace(fitted, h_stderr=errors)
     # result
     if chunks is not None:
         provenance = summary.Provenance(source.data_info(linear.sizes, opts), source.labels,

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 from hamid.errors import UsageError
 
 if TYPE_CHECKING:
-    from hamid.textlayout import TextOptions
+    from hamid.data.text_layout import TextOptions
 
 
 def parse_mapping(text: str, *, option: str) -> dict[str, str]:
@@ -119,12 +119,12 @@ COVARIANCE_KINDS = ("hac", "classical", "hc", "bootstrap")
 VELOCITY_SOURCES = ("measured", "savgol")
 TIME_UNITS = ("s", "ms", "us", "ns")   # naming.TIME_UNITS, without importing it
 GAP_POLICIES = ("split", "error")
-# hamid.dissipation.SHORTHAND, without importing numpy at the CLI's start
+# hamid.model.dissipation.SHORTHAND, without importing numpy at the CLI's start
 DAMPING_KINDS = ("viscous", "coulomb", "quadratic")
-SELECTION_CRITERIA = ("bic", "aic", "cv")   # of `hamid select` (hamid.selection)
+SELECTION_CRITERIA = ("bic", "aic", "cv")   # of `hamid select` (hamid.selection.best_subsets)
 SAVGOL_ORDER = 5
 
-# Files that take more than this once decoded (8 bytes a cell, `hamid.inputs`) are read in
+# Files that take more than this once decoded (8 bytes a cell, `hamid.data.input_size`) are read in
 # chunks when the options allow it: the chunked fit is the fit in memory, faster and in a
 # third of the memory.
 STREAM_BYTES = 64 << 20
@@ -134,7 +134,7 @@ CHUNK_ROWS = 1 << 18
 REFINEMENT_BYTES = 1 << 30
 
 
-# How a data file is read: every command that reads data takes these (`hamid.cli_reading`),
+# How a data file is read: every command that reads data takes these (`hamid.cli.reading_options`),
 # and a report records those given (`data.reading`) for `plot` to read the data again.
 READING_OPTIONS = ("columns", "time", "time_unit", "trajectory", "scale", "gaps", "format",
                    "delimiter", "decimal", "skip_rows", "units_row")
@@ -215,7 +215,7 @@ class FitOptions:
     @property
     def text(self) -> TextOptions:
         """How delimited text is read (None fields: detected)."""
-        from hamid.textlayout import TextOptions
+        from hamid.data.text_layout import TextOptions
 
         return TextOptions(self.delimiter, self.decimal, self.skip_rows, self.units_row)
 
@@ -236,7 +236,7 @@ class FitOptions:
     def chunking(self, data: Any, dissipative: bool = False) -> int | None:
         """The rows per chunk when `data` is read in chunks, or None to read it whole.
 
-        A file that takes over `STREAM_BYTES` once decoded (`hamid.inputs.decoded_bytes`,
+        A file that takes over `STREAM_BYTES` once decoded (`hamid.data.input_size.decoded_bytes`,
         whatever its size on disk) is read in chunks when the options allow it;
         `chunk_rows` asks for chunks, which is an error when they are not possible. A model
         with its own dissipation function (`dissipative`) needs the data in memory.
@@ -250,7 +250,7 @@ class FitOptions:
             return self.chunk_rows
         if obstacle or self.in_memory:
             return None
-        from hamid.inputs import decoded_bytes
+        from hamid.data.input_size import decoded_bytes
 
         if decoded_bytes(data, format=self.format, text=self.text) > STREAM_BYTES:
             return CHUNK_ROWS

@@ -1,8 +1,9 @@
-"""Simulate a system: Lagrange's equations from the model's energy, integrated and sampled.
+"""Simulate a system: Lagrange's equations from the model's energy, integrated and sampled
+(`hamid.simulate`, `hamid.simulate_realizations`).
 
 The equations of motion are derived from L = T - V of the model (with the true
 parameters substituted) and the dissipative forces of docs/method.md ("Damping: the energy
-balance") by `hamid.dynamics`:
+balance") by `hamid.model.dynamics`:
 
     M(q) a = dL/dq - (d/dq (dL/dv)) v + F,      M = d2L/dv2,
 
@@ -21,17 +22,17 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
-from hamid.config import check_keys, number, table
-from hamid.dynamics import Dynamics, Motion
 from hamid.errors import ModelError, UsageError
-from hamid.expr import Func
-from hamid.model import Model, damping_table, model_from_spec
+from hamid.model.dynamics import Dynamics, Motion
+from hamid.model.expressions import Func
+from hamid.model.models import Model, damping_table, model_from_spec
+from hamid.model.toml_values import check_keys, number, table
 
 if TYPE_CHECKING:
     import pandas as pd
 
 __all__ = ["INTEGRATORS", "System", "numbered", "parse_system", "realizations", "run",
-           "sampled"]
+           "sampled", "simulate", "simulate_realizations"]
 
 INTEGRATORS = {"dop853": "DOP853", "rk45": "RK45", "rk23": "RK23", "radau": "Radau",
                "bdf": "BDF", "lsoda": "LSODA"}
@@ -58,6 +59,41 @@ class System:
     relative_noise: float
     damping: dict[str, float]
     max_samples: int
+
+
+def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | None = None,
+             max_samples: int | None = None,
+             progress: Callable[[float], None] | None = None) -> pd.DataFrame:
+    """Simulate the system of a TOML file (or its dict) and return the sampled record.
+
+    The returned frame has columns ``trajectory``, ``t``, the coordinates and the
+    velocities; ``frame.attrs["hamid"]`` holds its provenance (model, true parameters,
+    initial states, energy drift, noise, seed, integrator, version).
+    """
+    return next(simulate_realizations(system, 1, seed=seed, max_samples=max_samples,
+                                      progress=progress))
+
+
+def simulate_realizations(system: str | os.PathLike[str] | Mapping[str, Any],
+                          realizations: int, *, seed: int | None = None,
+                          max_samples: int | None = None,
+                          progress: Callable[[float], None] | None = None
+                          ) -> Iterator[pd.DataFrame]:
+    """`realizations` noisy records of one system for Monte Carlo studies, one at a time.
+
+    The motion is integrated once; record k (from 0) has the noise of seed S + k, where S
+    is `seed`, else the system's ``[simulate] seed``, else drawn at random: the record that
+    ``simulate(system, seed=S + k)`` returns, which its metadata's ``seed`` says.
+    """
+    if isinstance(system, Mapping):
+        document, where = system, "system"
+    else:
+        from hamid.data import documents
+
+        where = os.fspath(system)
+        document = documents.read_toml(where)
+    return sampled(document, realizations, where=where, seed=seed,
+                   max_samples=max_samples, progress=progress)
 
 
 def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:

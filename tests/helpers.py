@@ -30,7 +30,7 @@ def hamid_command() -> list[str]:
 
     found = shutil.which("hamid")
     return [found] if found is not None else [sys.executable, "-c",
-                                              "from hamid.cli import main; main()"]
+                                              "from hamid.cli.app import main; main()"]
 
 
 def duffing_system(*, k: str = "1.0", k3: str = "0.5", x: str = "1.0", v: str = "0.0",

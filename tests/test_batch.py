@@ -23,9 +23,12 @@ from click.testing import CliRunner
 from helpers import hamid_command
 
 import hamid
-from hamid import batch, executor, writing
-from hamid.cli import cli
+from hamid import executor
+from hamid.batch import many_files
+from hamid.cli.app import cli
+from hamid.data import writing
 from hamid.errors import DataError, HamidError, UsageError
+from hamid.report import comparison
 
 N_FILES = 20
 CORRUPT = 7    # the file of the 20 that holds no data
@@ -179,7 +182,7 @@ def test_one_process_and_two_give_the_same_numbers(sources):
 
 def test_to_frame_has_a_row_per_file_and_parameter(sources, singles):
     frame = hamid.fit_each(sources[5:9], jobs=1).to_frame()
-    assert list(frame.columns) == list(batch.ROW_COLUMNS)
+    assert list(frame.columns) == list(comparison.ROW_COLUMNS)
     errors = frame[frame.status == "error"]
     assert list(errors.source) == [sources[CORRUPT]]
     assert errors.error.iloc[0] == str(singles[CORRUPT])
@@ -216,22 +219,22 @@ def test_the_options_reach_every_fit(sources):
 ])
 def test_sources_that_name_nothing_are_refused(pattern, error, words):
     with pytest.raises(error, match=words.replace("*", r"\*")):
-        batch.expand_sources([pattern])
+        many_files.expand_sources([pattern])
 
 
 def test_a_folder_without_data_files_is_refused(tmp_path):
     (tmp_path / "notes.txt").write_text("hello")
     with pytest.raises(DataError, match="holds no data files"):
-        batch.expand_sources([tmp_path])
+        many_files.expand_sources([tmp_path])
 
 
 def test_globs_and_folders_expand_in_natural_order(runs):
     (runs / ".hidden.csv").write_text("t,x,v\n")
     try:
-        found = batch.expand_sources([f"{runs}/run1*.csv", runs / "run3.csv"])
+        found = many_files.expand_sources([f"{runs}/run1*.csv", runs / "run3.csv"])
         assert [Path(p).name for p in found] == [
             "run1.csv", *(f"run{k}.csv" for k in range(10, 20)), "run3.csv"]
-        assert ".hidden.csv" not in {Path(p).name for p in batch.expand_sources([runs])}
+        assert ".hidden.csv" not in {Path(p).name for p in many_files.expand_sources([runs])}
     finally:
         (runs / ".hidden.csv").unlink()
 
@@ -261,7 +264,7 @@ def test_one_corrupt_file_among_20_is_one_error_line_and_exit_1(runs, sources, s
     for line, single in zip(lines, singles, strict=True):
         if line["status"] == "ok":
             assert line["schema"] == "hamid.fit/1"
-            _same_fit(hamid.result.FitResult.from_dict(line), single)
+            _same_fit(hamid.result.fit_result.FitResult.from_dict(line), single)
             assert line["provenance"]["command"].startswith("hamid")   # the command line
     stderr = result.stderr.strip().splitlines()
     warned = sum(bool(s.warnings) for s in singles if not isinstance(s, HamidError))
@@ -272,7 +275,7 @@ def test_one_corrupt_file_among_20_is_one_error_line_and_exit_1(runs, sources, s
 def test_csv_has_a_row_per_file_and_parameter(sources, singles):
     result = invoke(["fit", "--each", *sources[6:9], "--format", "csv", "--jobs", "1"])
     rows = list(csv.DictReader(io.StringIO(result.stdout)))
-    assert list(rows[0]) == list(batch.ROW_COLUMNS)
+    assert list(rows[0]) == list(comparison.ROW_COLUMNS)
     assert [(r["source"], r["parameter"]) for r in rows] == [
         (sources[6], "k"), (sources[6], "k3"), (sources[7], ""), (sources[8], "k"),
         (sources[8], "k3")]
@@ -475,7 +478,8 @@ def test_realizations_are_the_records_of_consecutive_seeds(tmp_path):
         alone = tmp_path / f"alone{k}.csv"
         invoke(["simulate", "--config", config, "--seed", 39 + k, "-o", alone])
         assert (tmp_path / f"mc-{k:02d}.csv").read_text() == alone.read_text()
-    first, last = (hamid.io.read_table(str(tmp_path / n))[0] for n in ("mc-01.csv", "mc-12.csv"))
+    first, last = (hamid.data.readers.read_table(str(tmp_path / n))[0]
+                   for n in ("mc-01.csv", "mc-12.csv"))
     assert np.array_equal(first.t, last.t) and not np.array_equal(first.x, last.x)
 
 

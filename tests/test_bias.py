@@ -12,9 +12,9 @@ import pytest
 from conftest import DUFFING, PENG, TWO_MASS, with_noise
 
 import hamid
-from hamid import adjust, design, solve
-from hamid.model import load_model, model_from_spec
-from hamid.records import Records
+from hamid.data.records import Records
+from hamid.linear import adjust, design, solve
+from hamid.model.models import load_model, model_from_spec
 
 BIAS_WARNING = "biases these least-squares estimates"
 # A mass that grows with the displacement: its weak rows pair the noise of x with that of v

@@ -16,8 +16,8 @@ import pytest
 from scipy import integrate
 
 import hamid
-from hamid import design
-from hamid.records import Records
+from hamid.data.records import Records
+from hamid.linear import design
 
 ROOT = Path(__file__).parent.parent
 SAMPLES = ("duffing.csv", "elastic_pendulum.csv", "elastic_pendulum.parquet",

@@ -25,7 +25,7 @@ from helpers import hamid_command
 from scipy import stats
 
 from hamid import __version__
-from hamid.cli import cli
+from hamid.cli.app import cli
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = ROOT / "sample_data"
@@ -881,7 +881,7 @@ def test_fit_noise_options_reach_the_report(runner, tmp_path):
 def test_fit_status_line_only_on_a_terminal(runner, simulated_duffing, monkeypatch):
     """Piped or redirected, standard error gets no status line; on a terminal, the fit's
     steps reach rich's status line, and it is stopped at the end."""
-    import hamid.console
+    import hamid.cli.console
 
     done = invoke(runner, ["fit", "-", "--format", "json"], input=simulated_duffing)
     assert_ok(done)
@@ -904,8 +904,8 @@ def test_fit_status_line_only_on_a_terminal(runner, simulated_duffing, monkeypat
             shown.append(label)
             return Status()
 
-    monkeypatch.setattr(hamid.console, "stderr_console", Console)
+    monkeypatch.setattr(hamid.cli.console, "stderr_console", Console)
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
-    with hamid.console.Status("fitting") as status:
+    with hamid.cli.console.Status("fitting") as status:
         status("step 1")
     assert shown == ["fitting", "started", "fitting: step 1", "stopped"]

@@ -29,7 +29,7 @@ from referencing import Registry, Resource
 from scipy.integrate import solve_ivp
 
 import hamid
-from hamid.cli import cli
+from hamid.cli.app import cli
 
 SCHEMAS = Path(__file__).resolve().parents[1] / "hamid" / "schema"
 TIMEOUT = 600   # bounds a hang only

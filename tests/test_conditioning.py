@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hamid import solve
-from hamid.design import Block
+from hamid.linear import solve
+from hamid.linear.design import Block
 
 
 def _dense(blocks: list[Block], J: int) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Rayleigh dissipation functions in model files (`hamid.dissipation`).
+"""Rayleigh dissipation functions in model files (`hamid.model.dissipation`).
 
 The truth here is independent of hamid's own equations: two masses on springs with a
 dashpot to the ground and one between them, whose equations of motion are written by hand
@@ -17,10 +17,10 @@ from helpers import hamid_command
 from scipy.integrate import solve_ivp
 
 import hamid
-from hamid import design
-from hamid.dissipation import Dissipation
+from hamid.data.measurement import velocity_check
 from hamid.errors import HamidError, ModelError, UsageError
-from hamid.measurement import velocity_check
+from hamid.linear import design
+from hamid.model.dissipation import Dissipation
 
 K1, K2, C1, C2 = 1.0, 2.0, 0.05, 0.03
 CHAIN_MODEL = """
@@ -222,7 +222,7 @@ def lagged(frame: pd.DataFrame, lag: float) -> pd.DataFrame:
 
 
 def check(frame: pd.DataFrame) -> list[str]:
-    from hamid.records import Records
+    from hamid.data.records import Records
 
     groups = frame["trajectory"].to_numpy() - 1
     records = Records(frame[["x1", "x2", "v1", "v2"]].to_numpy(), frame["t"].to_numpy(),
@@ -315,7 +315,7 @@ def _covered(seed: int) -> dict[str, bool]:
     import tomllib
 
     system = tomllib.loads(DOUBLE_PENDULUM)
-    from hamid.model import damping_table, model_from_spec
+    from hamid.model.models import damping_table, model_from_spec
 
     frame = hamid.simulate(system, seed=seed)
     model, _ = damping_table(model_from_spec(system["model"]), system["damping"])

@@ -1,4 +1,4 @@
-"""hamid.dynamics: Lagrange's equations of a model's energy, against equations of motion
+"""hamid.model.dynamics: Lagrange's equations of a model's energy, against equations of motion
 written by hand.
 
 Every expected acceleration below is a closed form derived on paper from the energy (or,
@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hamid.dynamics import Dynamics
 from hamid.errors import ModelError
-from hamid.model import builtin_model, model_from_expression
+from hamid.model.dynamics import Dynamics
+from hamid.model.models import builtin_model, model_from_expression
 
 MODES = ("shared", "per-state")
 

@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hamid.errors import ModelError
-from hamid.expr import (
+from hamid.model.expressions import (
     FUNCTIONS,
     MAX_LENGTH,
     Func,
@@ -561,7 +561,7 @@ def test_moderate_expansion_is_exact():
 def test_symbolic_zero_is_decided_at_points(text, zero):
     import sympy
 
-    from hamid.expr import Symbolic, to_sympy
+    from hamid.model.expressions import Symbolic, to_sympy
 
     symbolic = Symbolic(("x", "y"), to_sympy(parse(text, ["x", "y"])))
     assert isinstance(symbolic.expression, sympy.Expr)
@@ -572,7 +572,7 @@ def test_a_slow_to_simplify_energy_fits_at_once(clean_records):
     """sympy.simplify took 50 s on this energy, and its 4th power ran past 300 s (it
     now takes a second: a hang here would show as the suite's own)."""
     import hamid
-    from hamid.model import model_from_expression
+    from hamid.model.models import model_from_expression
 
     model = model_from_expression(
         "m", "v**2/2 + k*x**2/2 + k3*(sin(x)+cos(x)+tanh(x)+exp(x)+x)**4", ["x"], ["v"])

@@ -1,4 +1,4 @@
-"""The fit's pictures (hamid.figures, `hamid plot`, `fit --plot`): each panel is rendered to
+"""The fit's pictures (hamid.plot.figures, `hamid plot`, `fit --plot`): each panel is rendered to
 PNG from the bundled Henon-Heiles sample and checked: not blank, as many lines, points
 and bars as the data have, the values drawn equal to ones computed here from the file,
 axis labels set, a title that names the file and the method."""
@@ -21,10 +21,10 @@ from helpers import hamid_command
 from scipy.integrate import cumulative_trapezoid
 
 import hamid
-from hamid import figures, fitted
-from hamid.cli import cli
+from hamid.cli.app import cli
 from hamid.errors import UsageError
-from hamid.result import FitResult
+from hamid.plot import figures, fitted
+from hamid.result.fit_result import FitResult
 
 pytest.importorskip("matplotlib")
 
@@ -359,7 +359,7 @@ def test_fit_with_a_bad_plot_name_fails_before_the_fit(tmp_path):
 
 def test_without_matplotlib_one_line_names_the_extra(tmp_path, report_file):
     code = ("import sys\nsys.modules['matplotlib'] = None\n"
-            "from hamid.cli import main\nmain()")
+            "from hamid.cli.app import main\nmain()")
     for args in (["plot", str(report_file), "-o", str(tmp_path / "f.png")],
                  ["fit", str(SAMPLE), "--plot", str(tmp_path / "f.png")]):
         out = subprocess.run([sys.executable, "-c", code, *args], capture_output=True,

@@ -11,9 +11,9 @@ import pytest
 from conftest import DUFFING, PENG, SYSTEMS, coverage, with_noise
 
 import hamid
-import hamid.model
+import hamid.model.models
 from hamid.errors import FitError, UsageError
-from hamid.result import FitResult
+from hamid.result.fit_result import FitResult
 
 REPORT_KEYS = ["schema", "hamid_version", "model", "data", "method", "parameters",
              "energy_levels", "residuals", "conditioning", "warnings"]
@@ -109,7 +109,7 @@ def test_fixing_at_a_wrong_value_moves_the_others(clean_records):
     assert abs(result.estimates["k"] - 1.0) > 1e-3
 
 
-MASS_DUFFING = hamid.model.model_from_expression(
+MASS_DUFFING = hamid.model.models.model_from_expression(
     "mass-duffing", "m*v**2/2 + k*x**2/2 + k3*x**4/4", ["x"], ["v"])
 
 
@@ -142,14 +142,14 @@ def test_bad_fix_is_a_usage_error(clean_records, fix, message):
 def test_term_that_never_varies_is_named(clean_records):
     frame = clean_records["duffing"].copy()
     frame["y"], frame["vy"] = 0.7, 0.0
-    model = hamid.model.model_from_expression(
+    model = hamid.model.models.model_from_expression(
         "m", "v**2/2 + vy**2/2 + k*x**2/2 + k3*x**4/4 + c*y**2", ["x", "y"], ["v", "vy"])
     with pytest.raises(FitError, match=r"cannot determine c: its term does not vary"):
         hamid.fit(frame, model, method="energy")
 
 
 def test_collinear_terms_are_named(clean_records):
-    model = hamid.model.model_from_expression(
+    model = hamid.model.models.model_from_expression(
         "m", "v**2/2 + k*x**2/2 + k3*x**4/4 + k2*x**2", ["x"], ["v"])
     with pytest.raises(FitError, match=r"cannot determine k, k2: .*collinear.*rank 2 of 3"):
         hamid.fit(clean_records["duffing"], model)

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hamid.errors import HamidError
-from hamid.result import FitResult
+from hamid.result.fit_result import FitResult
 from hamid.simulation import parse_system
 
 GOLDEN = json.loads((Path(__file__).parent / "golden" / "duffing_csv-auto.json").read_text())

@@ -40,9 +40,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from sympy.parsing.sympy_parser import parse_expr, standard_transformations
 
-from hamid.cli import cli
+from hamid.cli.app import cli
 from hamid.errors import ModelError
-from hamid.expr import FUNCTIONS, MAX_LENGTH, parse, to_sympy
+from hamid.model.expressions import FUNCTIONS, MAX_LENGTH, parse, to_sympy
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = ROOT / "sample_data"
@@ -690,16 +690,16 @@ def _interrupt_while_writing(monkeypatch):
 
 def _fail_while_writing_text(monkeypatch):
     """Writing the report fails part-way (a full disk) after the residuals were written."""
-    import hamid.writing
+    import hamid.data.writing
 
-    real = hamid.writing.write_text
+    real = hamid.data.writing.write_text
 
     def broken(text, dest):
         if dest != "-":
-            raise hamid.writing.DataError(f"{dest}: cannot write: No space left on device")
+            raise hamid.data.writing.DataError(f"{dest}: cannot write: No space left on device")
         real(text, dest)
 
-    monkeypatch.setattr(hamid.writing, "write_text", broken)
+    monkeypatch.setattr(hamid.data.writing, "write_text", broken)
 
 
 @pytest.mark.parametrize(("case", "code", "names"), [
@@ -760,10 +760,11 @@ def test_simulate_interrupted_while_writing_leaves_the_file(runner, tmp_path, mo
 
 
 def test_simulate_into_a_missing_folder_fails_before_the_run(runner, tmp_path, monkeypatch):
-    import hamid.api
+    import hamid.simulation
 
     ran = []
-    monkeypatch.setattr(hamid.api, "simulate", lambda *a, **k: ran.append(a))
+    monkeypatch.setattr(hamid.simulation, "simulate_realizations",
+                        lambda *a, **k: ran.append(a))
     assert_fails(invoke(runner, ["simulate", "--config", DUFFING_TOML, "-o",
                                  tmp_path / "nosuch" / "out.csv"]), 1, "nosuch", "does not exist")
     assert ran == []
@@ -806,11 +807,11 @@ def test_simulate_ctrl_c_part_way_leaves_the_file_byte_for_byte(tmp_path):
 
 
 def test_internal_error_in_a_real_process_is_one_line(tmp_path):
-    code = ("import hamid.api, sys\n"
+    code = ("import hamid.simulation, sys\n"
             "def boom(*a, **k):\n"
             "    raise ZeroDivisionError('the warp core breached')\n"
-            "hamid.api.simulate_realizations = boom\n"
-            "from hamid.cli import main\n"
+            "hamid.simulation.simulate_realizations = boom\n"
+            "from hamid.cli.app import main\n"
             "sys.argv = ['hamid', 'simulate', '--config', sys.argv[1]]\n"
             "main()\n")
     done = subprocess.run([sys.executable, "-c", code, DUFFING_TOML], capture_output=True,

@@ -136,7 +136,7 @@ def test_a_refinement_through_a_kink_stands_aside(tmp_path):
     """abs(x)**0.5 took 463 s in the refinement (a singular force at x = 0); the linear
     fit is reported with the reason."""
     import hamid
-    from hamid.model import model_from_expression
+    from hamid.model.models import model_from_expression
 
     model = model_from_expression("kink", "v**2/2 + k*x**2/2 + k3*abs(x)**0.5", ["x"], ["v"])
     result = hamid.fit(DUFFING, model)
@@ -154,7 +154,7 @@ def test_a_refinement_through_a_kink_stands_aside(tmp_path):
 def test_kinks_of_an_energy(energy, kinks):
     import sympy
 
-    from hamid.model import model_from_expression
+    from hamid.model.models import model_from_expression
 
     model = model_from_expression("m", energy, ["x", "y"], ["v", "w"])
     found = {str(k.expression) for k in model.kinks}
@@ -247,14 +247,15 @@ def test_a_simulation_larger_than_the_free_disk_is_refused_before_it_runs(tmp_pa
 
     from click.testing import CliRunner
 
-    from hamid import cli, simulation
+    from hamid import simulation
+    from hamid.cli import app
 
     usage = namedtuple("usage", "total used free")
     monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**6, 0, 10_000))
     ran = []
     monkeypatch.setattr(simulation, "run", lambda *a, **k: ran.append(1))
     (tmp_path / "sys.toml").write_text(_system())
-    result = CliRunner().invoke(cli.cli, ["simulate", "--config", str(tmp_path / "sys.toml"),
+    result = CliRunner().invoke(app.cli, ["simulate", "--config", str(tmp_path / "sys.toml"),
                                           "-o", str(tmp_path / "out.csv")])
     assert result.exit_code == 1
     assert "the run would write about" in result.output

@@ -19,17 +19,17 @@ def _loaded_after(code: str) -> set[str]:
     return set(out.stdout.split())
 
 
-@pytest.mark.parametrize("code", ["import hamid.cli", "import hamid"])
+@pytest.mark.parametrize("code", ["import hamid.cli.app", "import hamid"])
 def test_importing_the_cli_loads_nothing_heavy(code):
     assert _loaded_after(code) == set()
 
 
 @pytest.mark.parametrize("suffix", [".csv", ".parquet"])
 def test_fitting_a_builtin_model_imports_neither_sympy_nor_pandas(tmp_path, suffix):
-    from hamid import io, writing
+    from hamid.data import readers, writing
 
     path = tmp_path / f"duffing{suffix}"
-    table, metadata = io.read_table(SAMPLE)
+    table, metadata = readers.read_table(SAMPLE)
     writing.write_table(table, str(path), metadata=metadata)
     loaded = _loaded_after(f"import hamid\nhamid.fit({str(path)!r})")
     assert {"numpy", "pyarrow"} <= loaded  # the probe works
@@ -37,7 +37,7 @@ def test_fitting_a_builtin_model_imports_neither_sympy_nor_pandas(tmp_path, suff
 
 
 def test_the_refinement_imports_neither_scipy_integrate_nor_scipy_optimize():
-    """auto's trajectory refinement steps with hamid.dop853: scipy.integrate (and the
+    """auto's trajectory refinement steps with hamid.refine.dop853: scipy.integrate (and the
     scipy.optimize it imports) would cost a small fit some 0.15 s."""
     probe = (f"import sys, hamid\nresult = hamid.fit({str(SAMPLE)!r})\n"
              "print(result.method['refinement']['applied'], "

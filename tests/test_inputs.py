@@ -1,4 +1,4 @@
-"""What decides a chunked read (the decoded size, hamid.inputs) and standard input read in
+"""What decides a chunked read (the decoded size, hamid.data.input_size) and standard input read in
 chunks like a file."""
 
 from __future__ import annotations
@@ -17,9 +17,11 @@ from click.testing import CliRunner
 from conftest import with_noise
 
 import hamid
-from hamid import inputs, loading, options, plan, writing
-from hamid.cli import cli
+from hamid import options
+from hamid.cli.app import cli
+from hamid.data import input_size, loading, writing
 from hamid.errors import DataError
+from hamid.linear import plan
 
 
 @pytest.fixture(autouse=True)
@@ -53,8 +55,8 @@ def repetitive(noisy, tmp_path_factory):
 
 def test_parquet_decoded_size_is_rows_times_columns_times_8(repetitive):
     path, rows, columns = repetitive
-    assert inputs.decoded_bytes(path) == rows * columns * 8
-    assert inputs.decoded_bytes(path) > 3 * os.path.getsize(path)   # compresses well
+    assert input_size.decoded_bytes(path) == rows * columns * 8
+    assert input_size.decoded_bytes(path) > 3 * os.path.getsize(path)   # compresses well
 
 
 def _text_file(frame, path):
@@ -66,28 +68,28 @@ def test_text_decoded_size_is_exact_for_a_short_file_and_close_for_a_long_one(
         noisy, tmp_path):
     short = str(tmp_path / "short.csv")
     truth = _text_file(noisy, short)   # read whole as a sample: counted, not estimated
-    assert inputs.decoded_bytes(short) == truth
+    assert input_size.decoded_bytes(short) == truth
     long_frame = noisy.loc[np.tile(noisy.index, 12)].reset_index(drop=True)
     path = str(tmp_path / "long.csv")
     truth = _text_file(long_frame, path)
-    assert os.path.getsize(path) > inputs.SAMPLE_BYTES   # the estimate is from a sample
-    assert inputs.decoded_bytes(path) == pytest.approx(truth, rel=0.05)
+    assert os.path.getsize(path) > input_size.SAMPLE_BYTES   # the estimate is from a sample
+    assert input_size.decoded_bytes(path) == pytest.approx(truth, rel=0.05)
     with open(path, "rb") as text:
         data = text.read()
     for suffix, module in ((".gz", gzip), (".bz2", bz2)):
         packed = path + suffix
         with open(packed, "wb") as out:
             out.write(module.compress(data))
-        assert inputs.decoded_bytes(packed) == pytest.approx(truth, rel=0.15), suffix
+        assert input_size.decoded_bytes(packed) == pytest.approx(truth, rel=0.15), suffix
 
 
 def test_a_file_that_cannot_be_made_sense_of_gives_its_size_on_disk(tmp_path):
     broken = tmp_path / "broken.parquet"
     broken.write_bytes(b"PAR1 and then nothing of a Parquet file")
-    assert inputs.decoded_bytes(broken) == os.path.getsize(broken)
+    assert input_size.decoded_bytes(broken) == os.path.getsize(broken)
     comments = tmp_path / "comments.csv"
     comments.write_text("# only a comment\n")
-    assert inputs.decoded_bytes(comments) == os.path.getsize(comments)
+    assert input_size.decoded_bytes(comments) == os.path.getsize(comments)
 
 
 def test_chunks_are_decided_by_the_decoded_size_not_the_size_on_disk(repetitive,
@@ -121,7 +123,7 @@ def test_standard_input_is_read_in_chunks_like_the_file(noisy, tmp_path, monkeyp
     opened = []
     real = loading.open_chunks
     monkeypatch.setattr(loading, "open_chunks",
-                        lambda *a, **k: opened.append(inputs.name_of(a[0])) or real(*a, **k))
+                        lambda *a, **k: opened.append(input_size.name_of(a[0])) or real(*a, **k))
     monkeypatch.setattr(options, "STREAM_BYTES", 1000)   # both over it
     runner = CliRunner()
     args = ["fit", "--format", "json", "--method", "joint"]
@@ -181,7 +183,7 @@ def test_standard_input_closed_is_an_error(monkeypatch):
 
 def test_spooled_keeps_other_data_as_they_are():
     frame = {"x": np.zeros(3)}
-    with inputs.spooled(frame) as same:
+    with input_size.spooled(frame) as same:
         assert same is frame
-    with inputs.spooled(["a.csv", "b.csv"]) as paths:
+    with input_size.spooled(["a.csv", "b.csv"]) as paths:
         assert paths == ["a.csv", "b.csv"]

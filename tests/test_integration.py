@@ -1,5 +1,5 @@
-"""The refinement's integrator (hamid.dop853) and its batches in worker processes
-(hamid.integration)."""
+"""The refinement's integrator (hamid.refine.dop853) and its batches in worker processes
+(hamid.refine.integration)."""
 
 from __future__ import annotations
 
@@ -15,13 +15,14 @@ from conftest import PENG, with_noise
 from scipy.integrate import solve_ivp
 
 import hamid
-from hamid import dop853, estimate, integration, trajectory
-from hamid.cli import cli
-from hamid.dynamics import Dynamics
+from hamid.cli.app import cli
+from hamid.data.records import Records
 from hamid.errors import UsageError
 from hamid.executor import Workers
-from hamid.model import load_model
-from hamid.records import Records
+from hamid.linear import estimate
+from hamid.model.dynamics import Dynamics
+from hamid.model.models import load_model
+from hamid.refine import dop853, integration, trajectory
 
 SAMPLES = Path(__file__).resolve().parent.parent / "sample_data"
 OMEGA = np.linspace(0.5, 3.0, 40)   # one pendulum per column, each its own frequency

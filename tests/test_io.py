@@ -1,4 +1,5 @@
-"""Tests for hamid.io: tables, metadata, atomic writes, option values and column resolution."""
+"""Tests for hamid.data.readers: tables, metadata, atomic writes, option values and column
+resolution."""
 
 from __future__ import annotations
 
@@ -18,8 +19,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hamid import documents, naming, options, writing
-from hamid import io as hio
+from hamid import options
+from hamid.data import column_roles, documents, writing
+from hamid.data import readers as hio
 from hamid.errors import DataError, ModelError, UsageError
 
 FORMATS = {"csv": "run.csv", "tsv": "run.tsv", "parquet": "run.parquet"}
@@ -880,7 +882,7 @@ def test_missing_json(in_tmp):
     ],
 )
 def test_find_velocity_pattern_order(columns, expected):
-    assert naming.find_velocity("x", columns) == expected
+    assert column_roles.find_velocity("x", columns) == expected
 
 
 @pytest.mark.parametrize(
@@ -902,12 +904,13 @@ def test_find_velocity_pattern_order(columns, expected):
     ],
 )
 def test_find_coordinates(columns, exclude, expected):
-    assert naming.find_coordinates(columns, exclude=exclude) == expected
+    assert column_roles.find_coordinates(columns, exclude=exclude) == expected
 
 
 def test_find_coordinates_does_not_give_one_velocity_twice():
     # 'vx_dot' is both vx's velocity (by {}_dot) and x_dot's (by v{}).
-    assert naming.find_coordinates(["vx", "x_dot", "vx_dot"], exclude=()) == [("vx", "vx_dot")]
+    found = column_roles.find_coordinates(["vx", "x_dot", "vx_dot"], exclude=())
+    assert found == [("vx", "vx_dot")]
 
 
 PENG = (["u1", "u2"], ["v1", "v2"])
@@ -929,7 +932,7 @@ PENG = (["u1", "u2"], ["v1", "v2"])
     ],
 )
 def test_resolve_columns(columns, mapping, expected):
-    resolved = naming.resolve_columns(columns, *PENG, mapping=mapping, source="data.csv")
+    resolved = column_roles.resolve_columns(columns, *PENG, mapping=mapping, source="data.csv")
     assert resolved == dict(zip(["u1", "u2", "v1", "v2"], expected, strict=True))
     assert list(resolved) == ["u1", "u2", "v1", "v2"]
 
@@ -939,12 +942,13 @@ def test_resolve_unknown_mapping_key():
         UsageError,
         match=r"^--columns: 'z' is not a coordinate or velocity of the model \(u1, u2, v1, v2\)$",
     ):
-        naming.resolve_columns(["u1", "u2", "v1", "v2"], *PENG, mapping={"z": "u1"}, source="d")
+        column_roles.resolve_columns(["u1", "u2", "v1", "v2"], *PENG, mapping={"z": "u1"},
+                                     source="d")
 
 
 def test_resolve_mapped_column_missing():
     with pytest.raises(DataError, match=r"^data.csv: no column 'pos9' \(given for 'u1' by"):
-        naming.resolve_columns(
+        column_roles.resolve_columns(
             ["u1", "u2", "v1", "v2"], *PENG, mapping={"u1": "pos9"}, source="data.csv"
         )
 
@@ -956,7 +960,7 @@ def test_resolve_missing_velocity_lists_what_was_looked_for():
         r"\(looked for v2, vu2, u2_dot, u2dot, du2\); map it with --columns v2=COL, or "
         r"derive velocities with --velocity savgol$",
     ):
-        naming.resolve_columns(["t", "u1", "u2", "v1"], *PENG, source="data.csv")
+        column_roles.resolve_columns(["t", "u1", "u2", "v1"], *PENG, source="data.csv")
 
 
 def test_resolve_missing_velocity_of_mapped_coordinate():
@@ -964,14 +968,15 @@ def test_resolve_missing_velocity_of_mapped_coordinate():
         DataError,
         match=r"\(looked for v1, vu1, u1_dot, u1dot, du1, vp, p_dot, pdot, dp\); map it",
     ):
-        naming.resolve_columns(["p", "u2", "v2"], *PENG, mapping={"u1": "p"}, source="data.csv")
+        column_roles.resolve_columns(["p", "u2", "v2"], *PENG, mapping={"u1": "p"},
+                                     source="data.csv")
 
 
 def test_resolve_missing_coordinate():
     with pytest.raises(
         DataError, match=r"^data.csv: no column for coordinate 'u2' \(columns: t, u1, v1, v2\)$"
     ):
-        naming.resolve_columns(["t", "u1", "v1", "v2"], *PENG, source="data.csv")
+        column_roles.resolve_columns(["t", "u1", "v1", "v2"], *PENG, source="data.csv")
 
 
 @pytest.mark.parametrize(
@@ -984,7 +989,8 @@ def test_resolve_missing_coordinate():
 )
 def test_resolve_two_names_one_column(mapping, message):
     with pytest.raises(DataError, match=f"^data.csv: {message}$"):
-        naming.resolve_columns(["u1", "u2", "v1", "v2"], *PENG, mapping=mapping, source="data.csv")
+        column_roles.resolve_columns(["u1", "u2", "v1", "v2"], *PENG, mapping=mapping,
+                                     source="data.csv")
 
 
 @pytest.mark.parametrize(
@@ -999,8 +1005,8 @@ def test_resolve_two_names_one_column(mapping, message):
     ],
 )
 def test_default_columns(columns, time, trajectory):
-    assert naming.default_time_column(columns) == time
-    assert naming.default_trajectory_column(columns) == trajectory
+    assert column_roles.default_time_column(columns) == time
+    assert column_roles.default_trajectory_column(columns) == trajectory
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1088,7 +1094,7 @@ def test_random_bytes_give_a_table_or_a_data_error(tmp_path, prefix, data, suffi
 
 def test_importing_io_loads_neither_pandas_nor_pyarrow():
     code = (
-        "import sys, hamid.io; "
+        "import sys, hamid.data.readers; "
         "print(sorted(m for m in ('pandas', 'pyarrow', 'numpy') if m in sys.modules))"
     )
     out = subprocess.run(

@@ -123,10 +123,10 @@ def test_velocity_suffix_mm_s_is_converted(tmp_path, si, si_fit):
     (["x1 [mm]", "v1 [mm/s]"], [("x1 [mm]", "v1 [mm/s]")]),
 ])
 def test_pairing_rules(columns, pairs):
-    from hamid import naming
+    from hamid.data import column_roles
 
-    time = naming.default_time_column(columns)
-    assert naming.find_coordinates(columns, exclude={time} if time else set()) == pairs
+    time = column_roles.default_time_column(columns)
+    assert column_roles.find_coordinates(columns, exclude={time} if time else set()) == pairs
 
 
 def _si_report(hamid_cli, si_fit, path, *args) -> dict:
@@ -391,7 +391,7 @@ def test_windows_covering_less_than_half_the_record_are_warned(si):
     of the record, counted by hand for windows of 30 s."""
     result = hamid.fit(si, "peng-quadratic", method="weak", weak_window=4.0)
     assert not any("cover only" in w for w in result.warnings)
-    from hamid.plan import FitPlan, window_warnings
+    from hamid.linear.plan import FitPlan, window_warnings
 
     plan = FitPlan("weak", "", 30.0, None)
     # 40 s: windows start at 0 and 7.5 s, and reach 37.5 s (94%)

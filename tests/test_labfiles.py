@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import hamid
-from hamid import io as hio
-from hamid import labfiles
+from hamid.data import lab_formats
+from hamid.data import readers as hio
 from hamid.errors import DataError
 
 h5py = pytest.importorskip("h5py")
@@ -325,7 +325,7 @@ def test_missing_library_is_one_line(tmp_path, monkeypatch, module, suffix, pack
 def test_missing_library_through_the_cli(tmp_path, monkeypatch):
     from click.testing import CliRunner
 
-    from hamid.cli import cli
+    from hamid.cli.app import cli
 
     path = tmp_path / "run.h5"
     path.write_bytes(b"\x00" * 16)
@@ -336,13 +336,13 @@ def test_missing_library_through_the_cli(tmp_path, monkeypatch):
 
 
 def test_split_names_the_inner_path(tmp_path):
-    assert labfiles.split("a/run.h5:/g/x") == ("a/run.h5", "/g/x")
-    assert labfiles.split("run.MAT:data") == ("run.MAT", "data")
-    assert labfiles.split("run.csv") == ("run.csv", None)
-    assert labfiles.format_of("run.h5:/g") == "hdf5" and labfiles.format_of("a.csv") is None
+    assert lab_formats.split("a/run.h5:/g/x") == ("a/run.h5", "/g/x")
+    assert lab_formats.split("run.MAT:data") == ("run.MAT", "data")
+    assert lab_formats.split("run.csv") == ("run.csv", None)
+    assert lab_formats.format_of("run.h5:/g") == "hdf5" and lab_formats.format_of("a.csv") is None
     odd = tmp_path / "odd.h5:x.h5"   # a file whose name has the separator is that file
     odd.write_bytes(b"")
-    assert labfiles.split(str(odd)) == (str(odd), None)
+    assert lab_formats.split(str(odd)) == (str(odd), None)
 
 
 def test_missing_file(tmp_path):
@@ -354,7 +354,7 @@ def test_cli_fits_an_hdf5_group_with_columns(tmp_path, sample, truth):
     """`hamid fit run.h5:/bench/run --columns ...` through the command line, JSON out."""
     from click.testing import CliRunner
 
-    from hamid.cli import cli
+    from hamid.cli.app import cli
 
     columns, _ = sample
     path = tmp_path / "run.h5"

@@ -9,7 +9,13 @@ import numpy as np
 import pytest
 
 from hamid.errors import ModelError
-from hamid.model import BUILTINS, Lagrangian, builtin_model, model_from_expression, model_from_spec
+from hamid.model.models import (
+    BUILTINS,
+    Lagrangian,
+    builtin_model,
+    model_from_expression,
+    model_from_spec,
+)
 
 
 def _states(n_vars: int, n: int = 30, seed: int = 7) -> np.ndarray:

@@ -7,8 +7,8 @@ import pytest
 from conftest import PENG, with_noise
 
 import hamid
+from hamid.data.measurement import estimate_noise
 from hamid.errors import DataError, UsageError
-from hamid.measurement import estimate_noise
 
 VARIABLES = ["u1", "u2", "v1", "v2"]
 
@@ -110,8 +110,8 @@ def test_bad_savgol_window(clean_records, window, message):
 
 
 def test_hermite_estimates_are_unbiased():
-    from hamid.adjust import unbiased
-    from hamid.expr import Polynomial
+    from hamid.linear.adjust import unbiased
+    from hamid.model.expressions import Polynomial
 
     x = np.array([0.7, -1.3])
     sigma = np.array([0.3, 0.2])

@@ -1,6 +1,6 @@
 """No file is lost through a name a command derives (issue 33).
 
-Every file a command writes goes through one check (`hamid.writing.Outputs`): the `-o`
+Every file a command writes goes through one check (`hamid.data.writing.Outputs`): the `-o`
 output, a figure's panel files (FIG-K-NAME.EXT), `fit --each`'s ``OUT.partial``,
 `--residuals`, numbered realizations. None may be an input (through symlinks and hard
 links) nor another output of the same command; each is created fresh, replacing a symlink
@@ -30,10 +30,11 @@ import pytest
 from click.testing import CliRunner
 from helpers import hamid_command
 
-from hamid import batch, writing
-from hamid.cli import cli
+from hamid.batch import many_files
+from hamid.cli.app import cli
+from hamid.data import writing
 from hamid.errors import DataError, HamidError, UsageError
-from hamid.result import FitResult
+from hamid.result.fit_result import FitResult
 
 pytestmark = pytest.mark.skipif(os.name != "posix", reason="POSIX symlinks and hard links")
 
@@ -290,9 +291,9 @@ def test_a_pattern_does_not_enter_a_linked_folder(tmp_path, monkeypatch):
         Path(name).parent.mkdir(parents=True)
         Path(name).write_text(name)
     Path("runs/a/linked").symlink_to("../../elsewhere")
-    assert batch.expand_sources(["runs/**/*.csv"]) == ["runs/a/run1.csv"]
+    assert many_files.expand_sources(["runs/**/*.csv"]) == ["runs/a/run1.csv"]
     with pytest.raises(DataError, match=r"^runs/\*/\*/\*.csv: no file matches the pattern$"):
-        batch.expand_sources(["runs/*/*/*.csv"])
+        many_files.expand_sources(["runs/*/*/*.csv"])
 
 
 def test_a_file_named_twice_or_through_links_is_fitted_once(work, monkeypatch):
@@ -300,7 +301,7 @@ def test_a_file_named_twice_or_through_links_is_fitted_once(work, monkeypatch):
     os.link("data.csv", "hard.csv")
     Path("link.csv").symlink_to("data.csv")
     shutil.copyfile(DUFFING_CSV, "copy.csv")
-    found = batch.expand_sources(["data.csv", "./data.csv", "hard.csv", "link.csv", "*.csv",
+    found = many_files.expand_sources(["data.csv", "./data.csv", "hard.csv", "link.csv", "*.csv",
                                   str(work)])
     assert found == ["data.csv", "copy.csv"]
 
@@ -327,7 +328,7 @@ def test_patterns_match_what_glob_matches_without_links(tmp_path, monkeypatch, p
     pattern = pattern.format(top=tmp_path)
     expected = sorted(p for p in glob.glob(pattern, recursive=True) if os.path.isfile(p))
     assert expected, pattern
-    assert sorted(batch.expand_sources([pattern])) == expected
+    assert sorted(many_files.expand_sources([pattern])) == expected
 
 
 @pytest.mark.parametrize("pattern", ["a/*/", "**/"])
@@ -336,7 +337,7 @@ def test_a_pattern_of_folders_matches_no_file(tmp_path, monkeypatch, pattern):
     _tree()
     assert glob.glob(pattern, recursive=True)   # folders only
     with pytest.raises(DataError, match=f"^{re.escape(pattern)}: no file matches the pattern$"):
-        batch.expand_sources([pattern])
+        many_files.expand_sources([pattern])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -354,7 +355,7 @@ def test_a_pattern_of_folders_matches_no_file(tmp_path, monkeypatch, pattern):
 ], ids=["RecursionError", "ValueError", "MemoryError"])
 def test_any_error_in_one_file_is_its_record_and_the_others_are_fitted(work, monkeypatch,
                                                                       error, words):
-    real = batch.fit
+    real = many_files.fit
 
     @functools.wraps(real)   # fit_each binds the options to fit's signature
     def fit(source, *args, **kwargs):
@@ -362,9 +363,9 @@ def test_any_error_in_one_file_is_its_record_and_the_others_are_fitted(work, mon
             raise error
         return real(source, *args, **kwargs)
 
-    monkeypatch.setattr(batch, "fit", fit)
+    monkeypatch.setattr(many_files, "fit", fit)
     shutil.copyfile(DUFFING_CSV, work / "bad.csv")
-    fits = batch.fit_each([str(work / "bad.csv"), str(work / "data.csv")], jobs=1,
+    fits = many_files.fit_each([str(work / "bad.csv"), str(work / "data.csv")], jobs=1,
                           method="energy")
     assert isinstance(fits[0], HamidError)
     assert str(fits[0]) == f"{work / 'bad.csv'}: {words}"
@@ -373,10 +374,10 @@ def test_any_error_in_one_file_is_its_record_and_the_others_are_fitted(work, mon
 
 CHILD = textwrap.dedent("""
     import functools, sys
-    import hamid.batch
-    from hamid.cli import main
+    import hamid.batch.many_files
+    from hamid.cli.app import main
 
-    real = hamid.batch.fit
+    real = hamid.batch.many_files.fit
 
     @functools.wraps(real)
     def fit(source, *args, **kwargs):
@@ -384,7 +385,7 @@ CHILD = textwrap.dedent("""
             raise RecursionError("maximum recursion depth exceeded")
         return real(source, *args, **kwargs)
 
-    hamid.batch.fit = fit
+    hamid.batch.many_files.fit = fit
     sys.argv = ["hamid", *sys.argv[1:]]
     main()
 """)

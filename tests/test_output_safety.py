@@ -37,8 +37,8 @@ import pytest
 from click.testing import CliRunner
 from helpers import duffing_system, wait_until_integrating
 
-from hamid import io, writing
-from hamid.cli import cli
+from hamid.cli.app import cli
+from hamid.data import readers, writing
 
 pytestmark = pytest.mark.skipif(os.name != "posix", reason="POSIX files, signals and limits")
 
@@ -57,16 +57,16 @@ SYSTEM = duffing_system(t_end="20.0", dt="0.01")
 CHILD = r"""
 import contextlib, io, json, os, sys
 spec = json.loads(sys.argv[1])
-import hamid.api, hamid.cli
+import hamid.api, hamid.cli.app
 # what the checks before the work load, while root may still read it
 import codecs, decimal, errno, tempfile
-import hamid.io, hamid.report, hamid.result
+import hamid.data.readers, hamid.report.formats, hamid.result.fit_result
 with contextlib.suppress(ImportError):
-    import hamid.writing
+    import hamid.data.writing
 if spec["warm"]:
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
         try:
-            hamid.cli.cli.main(args=spec["warm"], prog_name="hamid", standalone_mode=False)
+            hamid.cli.app.cli.main(args=spec["warm"], prog_name="hamid", standalone_mode=False)
         except BaseException:
             pass
 for name in spec["stub"]:
@@ -78,7 +78,7 @@ if spec["nobody"]:
     os.setgid(65534)
     os.setuid(65534)
 sys.argv = ["hamid", *spec["args"]]
-hamid.cli.main()
+hamid.cli.app.main()
 """
 
 
@@ -175,7 +175,7 @@ def work(tmp_path, saved_result):
 
 def write_data(path, rows=None):
     """The Duffing sample, with its metadata (which names the model), perhaps shortened."""
-    table, metadata = io.read_table(DUFFING_CSV)
+    table, metadata = readers.read_table(DUFFING_CSV)
     writing.write_table(table if rows is None else table.head(rows), path, metadata=metadata)
     path.chmod(0o644)
 

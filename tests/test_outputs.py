@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from hamid.report import FORMATS, render
+from hamid.report.formats import FORMATS, render
 
 ROOT = Path(__file__).resolve().parent.parent
 DUFFING_CSV = ROOT / "sample_data" / "duffing.csv"
@@ -121,7 +121,7 @@ def test_standard_output_and_special_files_default_to_table(hamid_cli, saved, tm
 
 
 def test_the_cli_offers_the_renderers_formats():
-    from hamid.cli import _REPORT_FORMATS
+    from hamid.cli.app import _REPORT_FORMATS
 
     assert sorted(_REPORT_FORMATS) == sorted(FORMATS)
 

@@ -11,10 +11,11 @@ import pytest
 from conftest import with_noise
 
 import hamid
-from hamid import adjust, design, estimate, loading, measurement, plan, solve, writing
+from hamid.data import loading, measurement, writing
+from hamid.data.records import Records
+from hamid.linear import adjust, design, estimate, plan, solve
+from hamid.linear.unknowns import Unknowns
 from hamid.options import FitOptions
-from hamid.records import Records
-from hamid.unknowns import Unknowns
 
 
 @pytest.fixture(scope="module")

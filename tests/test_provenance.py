@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 import hamid
-from hamid import io
+from hamid.data import readers
 from hamid.errors import DataError
-from hamid.result import FitResult
+from hamid.result.fit_result import FitResult
 
 ROOT = Path(__file__).parent.parent
 SAMPLES = ROOT / "sample_data"
@@ -186,13 +186,13 @@ def test_with_command_sets_the_command_line(duffing):
 def test_file_digest_streams_in_blocks(tmp_path, size):
     path = tmp_path / "data.bin"
     path.write_bytes(os.urandom(size))
-    assert io.file_digest(path) == (size, _sha256(path))
-    assert io.file_digest(str(path)) == (size, _sha256(path))
+    assert readers.file_digest(path) == (size, _sha256(path))
+    assert readers.file_digest(str(path)) == (size, _sha256(path))
 
 
 def test_file_digest_names_a_missing_file(tmp_path):
     with pytest.raises(DataError, match="no such file"):
-        io.file_digest(tmp_path / "missing.csv")
+        readers.file_digest(tmp_path / "missing.csv")
 
 
 def test_a_fifo_as_input_is_read_once_and_not_hashed(tmp_path):

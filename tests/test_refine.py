@@ -1,5 +1,5 @@
 """What the trajectory refinement weights by, whether it is kept, and its errors when the
-model misses part of the recording (hamid.refine; docs/method.md, "The trajectory
+model misses part of the recording (hamid.refine.joint_refinement; docs/method.md, "The trajectory
 refinement")."""
 
 from __future__ import annotations
@@ -14,11 +14,14 @@ from conftest import DUFFING, PENG, with_noise
 from scipy.signal import savgol_coeffs, savgol_filter
 
 import hamid
-from hamid import estimate, inputs, measurement, options, refine, trajectory, writing
-from hamid.model import model_from_spec
-from hamid.records import Records
-from hamid.report import render
-from hamid.unknowns import Unknowns
+from hamid import options
+from hamid.data import input_size, measurement, writing
+from hamid.data.records import Records
+from hamid.linear import estimate
+from hamid.linear.unknowns import Unknowns
+from hamid.model.models import model_from_spec
+from hamid.refine import joint_refinement, trajectory
+from hamid.report.formats import render
 
 # A wrong model for Duffing data: the quartic spring alone, no linear one.
 QUARTIC = model_from_spec({"name": "quartic", "coordinates": ["x"], "velocities": ["v"],
@@ -61,7 +64,7 @@ def test_a_smoothed_channel_is_weighted_by_its_residual_scale(friction):
     frame = _smoothed(friction, seed=0)
     refinement = hamid.fit(frame, "duffing", damping="viscous").method["refinement"]
     assert refinement["applied"] is True
-    assert refinement["noise_chi2_per_dof"] > 10 * refine.CHI2_LIMIT
+    assert refinement["noise_chi2_per_dof"] > 10 * joint_refinement.CHI2_LIMIT
     assert refinement["noise"]["v"]["source"] == "residuals"
     # at least the error the smoothed channel really carries (its smoothed noise, and
     # what smoothing takes off the motion), which the differences see a fifth of; above
@@ -79,7 +82,7 @@ def test_a_given_noise_is_kept(friction):
     sigma_v = 0.0005   # too small: the misfit exceeds it, and it is kept all the same
     refinement = hamid.fit(frame, "duffing", damping="viscous",
                            noise={"v": sigma_v}).method["refinement"]
-    assert refinement["noise_chi2_per_dof"] > refine.CHI2_LIMIT
+    assert refinement["noise_chi2_per_dof"] > joint_refinement.CHI2_LIMIT
     assert refinement["noise"]["v"] == {"sigma": sigma_v, "source": "given"}
 
 
@@ -112,9 +115,9 @@ def test_the_right_model_predicts_held_out_segments_better():
 def test_few_segments_within_the_noise_are_kept_without_a_held_out_check(clean_records):
     refinement = hamid.fit(with_noise(clean_records["duffing"], 0.01, seed=5)).method[
         "refinement"]
-    assert refinement["segments"] < refine.CHECKED_SEGMENTS
+    assert refinement["segments"] < joint_refinement.CHECKED_SEGMENTS
     assert refinement["applied"] is True
-    assert refinement["noise_chi2_per_dof"] < refine.CHI2_LIMIT
+    assert refinement["noise_chi2_per_dof"] < joint_refinement.CHI2_LIMIT
     assert refinement["acceptance"] == {"rule": "noise"}
 
 
@@ -143,7 +146,7 @@ def test_a_wrong_model_keeps_the_linear_fit_read_in_chunks(clean_records, monkey
     frame = clean_records["duffing"]
     path = str(tmp_path / "duffing.parquet")
     writing.write_table(frame, path, metadata=frame.attrs["hamid"])
-    monkeypatch.setattr(options, "STREAM_BYTES", inputs.decoded_bytes(path) - 1)  # made small
+    monkeypatch.setattr(options, "STREAM_BYTES", input_size.decoded_bytes(path) - 1)  # made small
     auto, joint = hamid.fit(path, QUARTIC), hamid.fit(path, QUARTIC, method="joint")
     assert auto.samples is None
     refinement = auto.method["refinement"]
@@ -159,7 +162,7 @@ def test_too_few_segments_beyond_the_noise_keep_the_linear_fit(clean_records):
     short = frame[frame["t"] <= 12.0]
     refinement = hamid.fit(short, QUARTIC).method["refinement"]
     assert refinement["applied"] is False
-    assert refinement["segments"] < refine.CHECKED_SEGMENTS
+    assert refinement["segments"] < joint_refinement.CHECKED_SEGMENTS
     assert "too few to check it on segments held out" in refinement["reason"]
 
 
@@ -175,7 +178,7 @@ def test_a_failed_trajectory_fit_keeps_the_linear_fit(clean_records, monkeypatch
     assert any(w.startswith("the trajectory refinement was not kept") for w in result.warnings)
 
 
-@pytest.mark.parametrize("within", [trajectory.SETTLED, refine.FIRST_WITHIN])
+@pytest.mark.parametrize("within", [trajectory.SETTLED, joint_refinement.FIRST_WITHIN])
 def test_held_out_folds_match_refits_without_them(clean_records, within):
     """The second-order refits of the held-out check against Gauss-Newton run to the end
     on the other folds' segments, and the misfits of the held-out segments then; from a
@@ -260,9 +263,10 @@ def test_linear_refits_without_a_block_move_by_about_its_errors():
     linear, _, rows = captured["fit"]
     unknowns = Unknowns.of(hamid.load_model("duffing"), [], {})
     errors = np.sqrt(np.diag(linear.covariance))
-    assert refine._linear_without(rows, unknowns, 2, []) == pytest.approx(linear.theta,
+    assert joint_refinement._linear_without(rows, unknowns, 2, []) == pytest.approx(linear.theta,
                                                                           rel=1e-12)
-    block = refine._linear_without(rows, unknowns, 2, [(0, 480)])   # a fifth of the record
+    # a fifth of the record
+    block = joint_refinement._linear_without(rows, unknowns, 2, [(0, 480)])
     assert np.all(np.abs(block - linear.theta) < 2 * errors)
     assert np.all(np.abs(block - linear.theta) > 1e-3 * errors)
 
@@ -343,7 +347,7 @@ def test_lengthened_segments_reach_the_bound_of_one_state_per_trajectory(monkeyp
     estimates = np.array([p.estimate for p in result.parameters])
     assert np.all(np.abs(estimates - truth) < 3 * errors)
 
-    monkeypatch.setattr(refine, "LONGEST_PERIODS", 0.0)   # no segment joined
+    monkeypatch.setattr(joint_refinement, "LONGEST_PERIODS", 0.0)   # no segment joined
     fixed = hamid.fit(frame)
     assert fixed.method["refinement"]["lengthening"] == {
         "segments": 8, "segment_seconds": refinement["segment_seconds"], "rounds": 0,
@@ -362,7 +366,7 @@ def test_segments_stay_short_where_longer_ones_miss_the_motion():
     refinement = result.method["refinement"]
     assert "lengthened" not in render(result.to_dict(), "table", width=200)
     assert refinement["applied"] is True
-    assert refinement["noise_chi2_per_dof"] < refine.CHI2_LIMIT
+    assert refinement["noise_chi2_per_dof"] < joint_refinement.CHI2_LIMIT
     assert refinement["lengthening"] == _not_lengthened(refinement, "misfit")
 
 
@@ -443,7 +447,7 @@ def test_a_first_fit_stopped_far_off_is_within_the_noise_once_refitted():
     refinement = hamid.fit(with_noise(hamid.simulate(CHAOTIC), 0.01, seed=3)).method[
         "refinement"]
     assert {entry["source"] for entry in refinement["noise"].values()} == {"differences"}
-    assert refinement["noise_chi2_per_dof"] < refine.CHI2_LIMIT
+    assert refinement["noise_chi2_per_dof"] < joint_refinement.CHI2_LIMIT
     assert refinement["covariance"] == "misfit-scaled"
     assert refinement["lengthening"]["rounds"] >= 1
 
@@ -474,7 +478,7 @@ def test_noise_free_data_are_not_lengthened(clean_records):
     result = hamid.fit(clean_records["duffing"])
     refinement = result.method["refinement"]
     assert refinement["applied"] is True
-    assert refinement["chi2_per_dof"] < refine.CLEAN_CHI2
+    assert refinement["chi2_per_dof"] < joint_refinement.CLEAN_CHI2
     assert refinement["lengthening"] == _not_lengthened(refinement, "clean")
     assert result.estimates == pytest.approx(DUFFING["parameters"], rel=1e-8)
 
@@ -484,17 +488,17 @@ def test_the_refined_fit_is_settled_whether_joined_or_not(monkeypatch):
     go on from; when none is joined, it is settled before it is reported, and the
     estimates equal those of a first fit settled at once."""
     reported = []
-    made = refine._refined
+    made = joint_refinement._refined
 
     def seen(linear, fit, within):
         reported.append(fit)
         return made(linear, fit, within)
-    monkeypatch.setattr(refine, "_refined", seen)
+    monkeypatch.setattr(joint_refinement, "_refined", seen)
     frame = with_noise(hamid.simulate(PENG), 0.01, seed=1)
     joined = hamid.fit(frame)
-    monkeypatch.setattr(refine, "LONGEST_PERIODS", 0.0)   # no segment joined
+    monkeypatch.setattr(joint_refinement, "LONGEST_PERIODS", 0.0)   # no segment joined
     alone = hamid.fit(frame)
-    monkeypatch.setattr(refine, "FIRST_WITHIN", trajectory.SETTLED)
+    monkeypatch.setattr(joint_refinement, "FIRST_WITHIN", trajectory.SETTLED)
     at_once = hamid.fit(frame)
     assert joined.method["refinement"]["lengthening"]["rounds"] >= 1
     assert alone.method["refinement"]["lengthening"]["rounds"] == 0

@@ -1,4 +1,4 @@
-"""Tests for hamid.report: rendering a "hamid.fit/1" result; and checking loaded JSON
+"""Tests for hamid.report.formats: rendering a "hamid.fit/1" result; and checking loaded JSON
 (`FitResult.from_dict`, against hamid/schema/fit-1.json)."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import re
 import pytest
 
 from hamid.errors import DataError, UsageError
-from hamid.report import render
-from hamid.result import FitResult
+from hamid.report.formats import render
+from hamid.result.fit_result import FitResult
 
 ANSI = re.compile(r"\x1b\[")
 TEXT_FORMATS = ["table", "markdown"]

@@ -15,7 +15,7 @@ from statsmodels.stats.moment_helpers import cov2corr
 
 import hamid
 from hamid.errors import DataError, UsageError
-from hamid.result import FitResult
+from hamid.result.fit_result import FitResult
 
 SAMPLE = Path(__file__).resolve().parent.parent / "sample_data" / "henon_heiles.csv"
 

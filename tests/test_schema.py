@@ -16,12 +16,12 @@ from pathlib import Path
 import jsonschema
 import pytest
 
-from hamid import validation
 from hamid.errors import DataError
-from hamid.result import FitResult
+from hamid.result import validation
+from hamid.result.fit_result import FitResult
 
 GOLDEN = sorted((Path(__file__).parent / "golden").glob("*.json"))
-HAMID = [sys.executable, "-c", "from hamid.cli import main; main()"]
+HAMID = [sys.executable, "-c", "from hamid.cli.app import main; main()"]
 
 
 def _load(name: str) -> dict:

@@ -20,11 +20,11 @@ from conftest import DUFFING, HENON_HEILES, PENDULUM, PENG, with_noise
 from referencing import Registry, Resource
 
 import hamid
-from hamid import selecting, selection
-from hamid.cli import cli
+from hamid.cli.app import cli
 from hamid.errors import FitError, UsageError
-from hamid.library import Library
-from hamid.model import builtin_model, load_model
+from hamid.model.models import builtin_model, load_model
+from hamid.selection import best_subsets, select_terms
+from hamid.selection.library import Library
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = ROOT / "sample_data"
@@ -96,13 +96,13 @@ def test_clean_data_choose_the_true_terms_and_refit_them_exactly(records, name):
 
 @pytest.mark.parametrize("criterion", ["aic", "cv"])
 def test_the_other_criteria_choose_the_true_terms_on_clean_data(records, criterion):
-    choice = selecting.choose(records["peng-quadratic"],
-                              selecting.SelectOptions("poly:2:4", criterion=criterion))
+    choice = select_terms.choose(records["peng-quadratic"],
+                              select_terms.SelectOptions("poly:2:4", criterion=criterion))
     assert sorted(choice.library.texts(choice.chosen)) == sorted(_true_terms("peng-quadratic"))
 
 
 def test_a_library_over_twenty_terms_is_searched_stepwise(records):
-    choice = selecting.choose(records["peng-quadratic"], selecting.SelectOptions("poly:2:6"))
+    choice = select_terms.choose(records["peng-quadratic"], select_terms.SelectOptions("poly:2:6"))
     assert len(choice.library.terms) == 25 and not choice.ranking.exhaustive
     assert sorted(choice.library.texts(choice.chosen)) == sorted(_true_terms("peng-quadratic"))
 
@@ -120,8 +120,8 @@ def test_noisy_data_choose_the_true_terms_most_of_the_time(name):
     for noise, required in ((0.01, 0.95), (0.03, 0.80)):
         hits = 0
         for seed in range(40):
-            choice = selecting.choose(with_noise(clean, noise, seed),
-                                      selecting.SelectOptions(library))
+            choice = select_terms.choose(with_noise(clean, noise, seed),
+                                      select_terms.SelectOptions(library))
             hits += sorted(choice.library.texts(choice.chosen)) == truth
         assert hits / 40 >= required, (name, noise, hits)
 
@@ -179,7 +179,7 @@ def test_the_model_file_reads_back_as_the_chosen_model(records, tmp_path):
 
 @pytest.mark.parametrize("keep", ["x**3", "c_3", " x ** 3 "])
 def test_kept_terms_are_always_in(records, keep):
-    choice = selecting.choose(records["duffing"], selecting.SelectOptions("poly:1:4",
+    choice = select_terms.choose(records["duffing"], select_terms.SelectOptions("poly:1:4",
                                                                           keep=(keep,)))
     assert choice.library.texts(choice.chosen) == ["x**2", "x**3", "x**4"]
     assert choice.library.texts(choice.kept) == ["x**3"]
@@ -205,10 +205,10 @@ def test_a_library_over_other_coordinates_is_refused(records):
 
 def test_inclusion_probabilities_are_seeded_and_separate_true_from_spurious(records):
     noisy = with_noise(records["duffing"], 0.01, 0)
-    options = selecting.SelectOptions("poly:1:4", stability=20, seed=3)
-    first = selecting.choose(noisy, options).inclusion
-    again = selecting.choose(noisy, options).inclusion
-    other = selecting.choose(noisy, selecting.SelectOptions("poly:1:4", stability=20,
+    options = select_terms.SelectOptions("poly:1:4", stability=20, seed=3)
+    first = select_terms.choose(noisy, options).inclusion
+    again = select_terms.choose(noisy, options).inclusion
+    other = select_terms.choose(noisy, select_terms.SelectOptions("poly:1:4", stability=20,
                                                             seed=4)).inclusion
     assert first == again
     assert set(first) == {0, 1, 2}
@@ -223,7 +223,7 @@ def test_inclusion_probabilities_are_seeded_and_separate_true_from_spurious(reco
 ])
 def test_select_options_are_checked(options, message):
     with pytest.raises(UsageError, match=message):
-        selecting.SelectOptions("poly:1:4", **options)
+        select_terms.SelectOptions("poly:1:4", **options)
 
 
 TWIN = {"model": {"name": "twin", "coordinates": ["u1", "u2"], "velocities": ["v1", "v2"],
@@ -256,12 +256,12 @@ def test_collinear_terms_are_left_out_for_the_simpler_ones_with_a_warning():
 
 def test_a_kept_term_goes_first_and_kept_terms_that_cannot_be_told_apart_are_refused():
     frame = hamid.simulate(TWIN)
-    choice = selecting.choose(frame, selecting.SelectOptions("poly:2:4", keep=("u1*u2",)))
+    choice = select_terms.choose(frame, select_terms.SelectOptions("poly:2:4", keep=("u1*u2",)))
     assert {choice.library.terms[t].text: choice.library.texts(p)
             for t, p in choice.collinear}["u2**2"] == ["u1**2", "u1*u2"]
     with pytest.raises(FitError, match=r"cannot tell apart the terms kept .* u2\*\*2 is "
                                        r"collinear with u1\*\*2, u1\*u2"):
-        selecting.choose(frame, selecting.SelectOptions(
+        select_terms.choose(frame, select_terms.SelectOptions(
             "poly:2:4", keep=("u1*u2", "u1**2", "u2**2")))
 
 
@@ -287,10 +287,10 @@ def test_the_real_pendulum_keeps_cos_theta():
 
 # --- numerics against independent least squares ----------------------------------------
 
-def _design(X: np.ndarray, y: np.ndarray) -> selection.Design:
+def _design(X: np.ndarray, y: np.ndarray) -> best_subsets.Design:
     M = np.column_stack([X / np.linalg.norm(X, axis=0), y])
     n = len(y)
-    return selection.Design(M, np.arange(n), np.zeros(n, dtype=np.intp), 0, 1.0,
+    return best_subsets.Design(M, np.arange(n), np.zeros(n, dtype=np.intp), 0, 1.0,
                             1e-30)
 
 
@@ -298,7 +298,7 @@ def test_the_search_scores_subsets_as_least_squares_does():
     rng = np.random.default_rng(1)
     X = rng.standard_normal((400, 6))
     y = X[:, [1, 4]] @ [2.0, -3.0] + 0.1 * rng.standard_normal(400)
-    ranking = selection.search(_design(X, y), [], range(6), "bic")
+    ranking = best_subsets.search(_design(X, y), [], range(6), "bic")
     assert ranking.chosen.columns == (1, 4) and ranking.evaluated == 63
     rss = {}
     for columns in [(1, 4), tuple(range(6)), *(c.columns for c in ranking.candidates)]:
@@ -316,8 +316,8 @@ def test_collinear_columns_are_found_with_the_columns_they_are_made_of():
     rng = np.random.default_rng(2)
     A = rng.standard_normal((100, 4))
     A = np.column_stack([A, 2 * A[:, 0] - A[:, 2]])
-    assert selection.collinear(A, [0, 1, 2, 3, 4]) == [(4, [0, 2])]
-    assert selection.collinear(A, [4, 0, 1, 2, 3]) == [(2, [4, 0])]
+    assert best_subsets.collinear(A, [0, 1, 2, 3, 4]) == [(4, [0, 2])]
+    assert best_subsets.collinear(A, [4, 0, 1, 2, 3]) == [(2, [4, 0])]
 
 
 # --- the report and the command line -----------------------------------------------------
@@ -396,6 +396,6 @@ def test_data_without_velocity_columns_take_the_library_and_columns(records, tmp
     refused = invoke(["select", path])
     assert refused.exit_code == 1 and refused.stdout == ""
     assert "give --library MODEL.toml, or --library poly:N:D with --columns" in refused.stderr
-    choice = selecting.choose(str(path), selecting.SelectOptions("poly:1:4"),
+    choice = select_terms.choose(str(path), select_terms.SelectOptions("poly:1:4"),
                               reading={"columns": {"q1": "pos", "v1": "vel"}})
     assert choice.library.texts(choice.chosen) == ["q1**2", "q1**4"]

@@ -1,4 +1,4 @@
-"""Tests for hamid.simulation through `hamid.api.simulate`.
+"""Tests for hamid.simulation through `hamid.simulate`.
 
 Every expected trajectory comes from outside the code under test: closed forms (harmonic,
 damped harmonic, Coulomb friction, Duffing via Jacobi elliptic functions) or equations of
@@ -17,8 +17,8 @@ from scipy.integrate import cumulative_simpson, quad, solve_ivp
 from scipy.special import ellipj
 
 import hamid
-from hamid.api import simulate
 from hamid.errors import ModelError
+from hamid.simulation import simulate
 
 TOL = 1e-8  # agreement of simulated trajectories with the truth
 DRIFT = 1e-9  # relative energy (or energy balance) drift

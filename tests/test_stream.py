@@ -1,4 +1,5 @@
-"""Fits of files read in chunks (hamid.stream) against the same fits with the data in memory."""
+"""Fits of files read in chunks (hamid.linear.chunked) against the same fits with the data in
+memory."""
 
 from __future__ import annotations
 
@@ -9,9 +10,11 @@ from click.testing import CliRunner
 from conftest import PENG, with_noise
 
 import hamid
-from hamid import design, inputs, io, options, plan, stream, writing
-from hamid.cli import cli
+from hamid import options
+from hamid.cli.app import cli
+from hamid.data import input_size, readers, writing
 from hamid.errors import DataError, UsageError
+from hamid.linear import chunked, design, plan
 
 
 @pytest.fixture(scope="module")
@@ -110,14 +113,14 @@ def test_the_file_really_passes_in_many_chunks(noisy_files, monkeypatch):
     """Windows straddle the chunk boundaries: each of many chunks is shorter than a window."""
     frame, paths = noisy_files
     sizes = []
-    original = io.TableChunks.chunks
+    original = readers.TableChunks.chunks
 
     def counted(self, columns, rows):
         for chunk in original(self, columns, rows):
             sizes.append(len(next(iter(chunk.values()))))
             yield chunk
 
-    monkeypatch.setattr(io.TableChunks, "chunks", counted)
+    monkeypatch.setattr(readers.TableChunks, "chunks", counted)
     streamed = hamid.fit(paths["parquet"], chunk_rows=30)
     assert streamed.method["kind"] == "joint"
     window_samples = streamed.method["weak_window"] / float(np.diff(frame.t)[0])
@@ -297,7 +300,7 @@ def test_cli_chunk_rows(noisy_files, tmp_path):
 def test_a_file_over_the_size_limit_is_read_in_chunks_unless_asked_otherwise(
         noisy_files, monkeypatch, tmp_path):
     frame, paths = noisy_files
-    size = inputs.decoded_bytes(paths["parquet"])
+    size = input_size.decoded_bytes(paths["parquet"])
     monkeypatch.setattr(options, "STREAM_BYTES", size)   # the limit (64 MB decoded), made small
     assert hamid.fit(paths["parquet"]).samples is not None   # not over it: in memory
     monkeypatch.setattr(options, "STREAM_BYTES", size - 1)
@@ -324,7 +327,7 @@ def test_a_joint_fit_in_chunks_holds_no_more_for_a_longer_file(tmp_path, monkeyp
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    monkeypatch.setattr(stream._WindowRows, "CHUNK_WINDOWS", 256)
+    monkeypatch.setattr(chunked._WindowRows, "CHUNK_WINDOWS", 256)
 
     def peak(n_trajectories):
         rng = np.random.default_rng(n_trajectories)

@@ -28,14 +28,14 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from hamid.cli import cli
+from hamid.cli.app import cli
 
 pytestmark = pytest.mark.skipif(os.name != "posix", reason="POSIX descriptors and terminals")
 
 ROOT = Path(__file__).resolve().parents[1]
 DUFFING_CSV = ROOT / "sample_data" / "duffing.csv"
 DUFFING_TOML = ROOT / "sample_data" / "duffing.toml"
-HAMID = [sys.executable, "-c", "from hamid.cli import main; main()"]
+HAMID = [sys.executable, "-c", "from hamid.cli.app import main; main()"]
 ENV = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1", "NO_COLOR": "1"}
 EVIL = "\x1b]0;owned\x07\x1b[2J\x9b31m\u202e"
 SHOWN = "\\x1b]0;owned\\x07\\x1b[2J\\x9b31m\\u202e"
@@ -124,7 +124,7 @@ def test_standard_output_closed_is_noticed_before_the_fit(tmp_path):
     """The check comes first: a fit whose report cannot go anywhere does not run."""
     code = ("import os, hamid.api\n"
             "hamid.api.fit = lambda *a, **k: os._exit(99)\n"
-            "from hamid.cli import main; main()\n")
+            "from hamid.cli.app import main; main()\n")
     done = subprocess.run([sys.executable, "-c", code, "fit", str(DUFFING_CSV)],
                           stdout=None, stderr=subprocess.PIPE, env=ENV, timeout=60,
                           preexec_fn=lambda: os.close(1))
@@ -224,9 +224,9 @@ def run_on_terminal(args, *, cwd=None, timeout=60):
         "fit --residuals a link to /dev/stdout"])
 def test_parquet_is_not_written_to_a_terminal(tmp_path, args):
     (tmp_path / "tty.parquet").symlink_to("/dev/stdout")
-    code = ("import os, hamid.api\n"
-            "hamid.api.fit = hamid.api.simulate = lambda *a, **k: os._exit(99)\n"
-            "from hamid.cli import main; main()\n")
+    code = ("import os, hamid.api, hamid.simulation\n"
+            "hamid.api.fit = hamid.simulation.simulate = lambda *a, **k: os._exit(99)\n"
+            "from hamid.cli.app import main; main()\n")
     master, slave = os.openpty()
     try:
         done = subprocess.run([sys.executable, "-c", code, *map(str, args)], cwd=tmp_path,
@@ -273,11 +273,12 @@ def test_out_of_memory_reading_dev_zero():
 ], ids=["fit", "simulate"])
 def test_out_of_memory_in_the_work(monkeypatch, args, target, names):
     import hamid.api
+    import hamid.simulation
 
     def exhausted(*args, **kwargs):
         raise MemoryError
 
-    monkeypatch.setattr(hamid.api, target, exhausted)
+    monkeypatch.setattr(hamid.api if target == "fit" else hamid.simulation, target, exhausted)
     result = CliRunner().invoke(cli, [str(a) for a in args])
     assert result.exit_code == 1, result.stderr
     assert result.stdout == ""
@@ -466,6 +467,6 @@ def test_a_file_name_in_a_message_is_escaped(tmp_path):
     ("ζ = 0.5 ± 1e-3, ｋ, naïve", "", "ζ = 0.5 ± 1e-3, ｋ, naïve"),
 ], ids=["ESC", "C1 and DEL", "bidi and separators", "layout", "layout kept", "text"])
 def test_printable_escapes_controls_only(text, keep, shown):
-    from hamid.report import printable
+    from hamid.safe_text import printable
 
     assert printable(text, keep=keep) == shown

@@ -12,9 +12,9 @@ import pyarrow as pa
 import pytest
 
 import hamid
-from hamid import io as hio
+from hamid.data import readers as hio
+from hamid.data.text_layout import TextOptions
 from hamid.errors import DataError, UsageError
-from hamid.textlayout import TextOptions
 
 SAMPLE = "sample_data/duffing.csv"
 with open(SAMPLE, "rb") as _file:
@@ -232,7 +232,7 @@ def test_cli_fits_the_issue_units_row_file(tmp_path, plain):
     """Issue 18: a units row under the header was "'m' is not a number"."""
     from click.testing import CliRunner
 
-    from hamid.cli import cli
+    from hamid.cli.app import cli
 
     path = tmp_path / "daq.csv"
     path.write_bytes(_european(SAMPLE_BYTES, units=b"-;s;m;m/s"))

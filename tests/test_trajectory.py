@@ -1,4 +1,4 @@
-"""The trajectory refinement of automatic joint fits (hamid.trajectory)."""
+"""The trajectory refinement of automatic joint fits (hamid.refine.trajectory)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,12 @@ from click.testing import CliRunner
 from conftest import DUFFING, ELASTIC_PENDULUM, PENG, TWO_MASS, with_noise
 
 import hamid
-from hamid import dop853, inputs, options, plan, trajectory, writing
-from hamid.cli import cli
-from hamid.integration import common_times
+from hamid import options
+from hamid.cli.app import cli
+from hamid.data import input_size, writing
+from hamid.linear import plan
+from hamid.refine import dop853, trajectory
+from hamid.refine.integration import common_times
 
 CLEAN = {"peng-quadratic": PENG, "duffing": DUFFING, "two-mass": TWO_MASS,
          "elastic-pendulum": ELASTIC_PENDULUM}
@@ -115,7 +118,7 @@ def test_a_file_read_in_chunks_is_refined_like_one_in_memory(clean_records, monk
     path = str(tmp_path / "duffing.parquet")
     writing.write_table(frame, path, metadata=frame.attrs["hamid"])
     memory = hamid.fit(path)
-    monkeypatch.setattr(options, "STREAM_BYTES", inputs.decoded_bytes(path) - 1)  # made small
+    monkeypatch.setattr(options, "STREAM_BYTES", input_size.decoded_bytes(path) - 1)  # made small
     chunked = hamid.fit(path)
     assert chunked.samples is None and memory.samples is not None
     assert chunked.method["refinement"]["applied"] is True
@@ -155,7 +158,7 @@ def test_progress_hears_every_pass_and_every_batch(clean_records, monkeypatch, t
     frame = with_noise(clean_records["duffing"], 0.02, seed=3)
     path = str(tmp_path / "duffing.parquet")
     writing.write_table(frame, path, metadata=frame.attrs["hamid"])
-    monkeypatch.setattr(options, "STREAM_BYTES", inputs.decoded_bytes(path) - 1)  # made small
+    monkeypatch.setattr(options, "STREAM_BYTES", input_size.decoded_bytes(path) - 1)  # made small
     heard: list[str] = []
     result = hamid.fit(path, progress=heard.append)
     stages = ["periods of the trajectories", "window rows", "records for the trajectory fit",
@@ -286,7 +289,7 @@ def _peng_fit(length: float, noise: float = 0.01, start: float = 1.0,
               within: float = trajectory.SETTLED) -> trajectory.SegmentFit:
     """peng-quadratic, two trajectories of 40 s at `noise`, fitted over segments of
     `length` seconds from the truth times `start`, stopped `within` standard errors."""
-    from hamid.records import Records
+    from hamid.data.records import Records
 
     frame = with_noise(hamid.simulate(PENG), noise, seed=1)
     columns = ["u1", "u2", "v1", "v2"]

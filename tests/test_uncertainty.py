@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from scipy import signal, stats
 
 from hamid.errors import FitError
-from hamid.uncertainty import (
+from hamid.linear.uncertainty import (
     DESCRIPTIONS,
     ESTIMATORS,
     Covariance,

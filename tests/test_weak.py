@@ -9,11 +9,11 @@ from conftest import DUFFING, PENG, SYSTEMS, coverage, finite_difference_fit, wi
 from scipy import integrate
 
 import hamid
-import hamid.model
-from hamid import design
+import hamid.model.models
+from hamid.data.records import Records
 from hamid.errors import DataError, FitError, UsageError
-from hamid.model import model_from_spec
-from hamid.records import Records
+from hamid.linear import design
+from hamid.model.models import model_from_spec
 
 
 @pytest.mark.parametrize("method", ["weak", "joint", "auto"])
@@ -55,7 +55,7 @@ def test_weak_row_equals_the_integral_of_the_exact_solution():
     t = np.linspace(0.0, 12.0, 6001)
     records = Records(np.column_stack([A * np.cos(w * t), -A * w * np.sin(w * t)]), t,
                              np.zeros(len(t), dtype=np.int64), (1,))
-    model = hamid.model.model_from_expression("h", "v**2/2 + k*x**2/2", ["x"], ["v"])
+    model = hamid.model.models.model_from_expression("h", "v**2/2 + k*x**2/2", ["x"], ["v"])
     length = 2.0
     spans = design.windows(records, length)
     block = design.weak_block(model, records, spans)
@@ -158,7 +158,7 @@ def test_auto_falls_back_for_coarse_sampling(clean_records):
 
 def test_auto_falls_back_for_an_energy_that_is_not_natural(clean_records):
     frame = clean_records["duffing"]
-    model = hamid.model.model_from_expression(
+    model = hamid.model.models.model_from_expression(
         "gyro", "v**2/2 + k*x**2/2 + k3*x**4/4 + g*x*v", ["x"], ["v"])
     result = hamid.fit(frame, model)
     assert result.method["kind"] == "energy"
@@ -201,7 +201,7 @@ def test_joint_bounds_cover_the_truth():
 def test_auto_falls_back_when_no_window_fits(monkeypatch, clean_records):
     # A window longer than every record, as an automatic choice could give for a record
     # shorter than the oscillation it holds.
-    monkeypatch.setattr(hamid.design, "trajectory_scales",
+    monkeypatch.setattr(hamid.linear.design, "trajectory_scales",
                         lambda records, n: [(2000.0, 0.01)] * records.n_trajectories)
     result = hamid.fit(clean_records["duffing"])
     assert result.method["kind"] == "energy"

@@ -14,7 +14,7 @@ Methods
 energy, weak, joint, auto
     ``hamid.fit(frame, method=...)`` with its defaults (weak-form window: half the dominant
     period found from the data); ``auto`` is the joint fit refined by fitting the
-    integrated trajectories (hamid.trajectory). ``cov="classical"`` is passed to the
+    integrated trajectories (hamid.refine.trajectory). ``cov="classical"`` is passed to the
     linear methods only to save time: their estimates do not depend on ``cov`` (the script
     checks this on one record per system); ``auto`` keeps its default ``cov="hac"``, the
     only one under which the refinement runs.
@@ -53,7 +53,7 @@ import numpy as np
 import pandas as pd
 
 import hamid
-from hamid.model import Model, model_from_spec
+from hamid.model.models import Model, model_from_spec
 
 # The noise and the finite-difference peer are the test suite's own (tests/conftest.py).
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))

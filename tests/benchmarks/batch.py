@@ -35,7 +35,7 @@ from helpers import hamid_command  # noqa: E402
 
 def make_files(folder: Path, n_files: int, samples: int) -> list[str]:
     import hamid
-    from hamid import writing
+    from hamid.data import writing
 
     system = {"model": {"builtin": "duffing"}, "parameters": {"k": 1.0, "k3": 0.5},
               "initial": [{"x": 1.0, "v": 0.0}],

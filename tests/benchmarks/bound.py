@@ -16,7 +16,7 @@ and the Fisher information is sum_j J_j^T W J_j with W the true noise (1 / sigma
 every recorded column, positions and velocities alike, as `with_noise` makes them). The
 true bound frees one initial state per trajectory; the "segmented" bound frees one per
 segment of hamid's first segmentation (four dominant periods, the report's
-`method.refinement.segment_seconds`, cut by the same rule as hamid.trajectory), from the
+`method.refinement.segment_seconds`, cut by the same rule as hamid.refine.trajectory), from the
 same sensitivities by the flow's composition. The script checks its sensitivities
 against central differences of the integrated motion and its motion against the
 simulated record.
@@ -111,7 +111,7 @@ def sensitivities(forces: Callable[..., tuple[np.ndarray, ...]], theta: np.ndarr
 
 
 def _pieces(times: np.ndarray, length: float) -> list[tuple[int, int]]:
-    """hamid.trajectory's segments of about `length` seconds of one trajectory (rows)."""
+    """hamid.refine.trajectory's segments of about `length` seconds of one trajectory (rows)."""
     span = times[-1] - times[0]
     count = max(1, int(round(span / length)))
     edges = np.searchsorted(times, times[0] + span * np.arange(count + 1) / count)

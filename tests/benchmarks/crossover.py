@@ -5,11 +5,11 @@ length, as ratios measured in the same process.
     python tests/benchmarks/crossover.py [--lengths 100,250,400,625] [--repeats 2]
 
 A length k is 40·k seconds of the test system (k = 100: 160,002 samples). The processes
-are forced for every record (`hamid.integration.PARALLEL_VALUES` 0), so that the record
+are forced for every record (`hamid.refine.integration.PARALLEL_VALUES` 0), so that the record
 length from which they gain can be read off; `PARALLEL_VALUES` is set near it. Each case
-takes the best of `--repeats` fits, timed around `hamid.refine.refine` (starting the
-processes included). The values a round integrates are printed beside, in units of the
-current `PARALLEL_VALUES`.
+takes the best of `--repeats` fits, timed around `hamid.refine.joint_refinement.refine`
+(starting the processes included). The values a round integrates are printed beside, in units
+of the current `PARALLEL_VALUES`.
 """
 
 from __future__ import annotations
@@ -32,11 +32,11 @@ def main() -> None:
     from conftest import PENG, with_noise
 
     import hamid
-    from hamid import integration, refine, trajectory
+    from hamid.data.records import Records
     from hamid.executor import available_cores
-    from hamid.records import Records
+    from hamid.refine import integration, joint_refinement, trajectory
 
-    whole, spent = refine.refine, []
+    whole, spent = joint_refinement.refine, []
 
     def timed(*a, **k):
         begin = time.perf_counter()
@@ -44,7 +44,7 @@ def main() -> None:
             return whole(*a, **k)
         finally:
             spent.append(time.perf_counter() - begin)
-    refine.refine = timed
+    joint_refinement.refine = timed
     threshold, cores = integration.PARALLEL_VALUES, available_cores()
     print(f"{'samples':>10} {'values / PARALLEL_VALUES':>25} {'1 process, s':>13} "
           f"{f'{cores} processes, s':>14} {'speed-up':>9}")

@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from conftest import with_noise
 
 import hamid
-from hamid import estimate
+from hamid.linear import estimate
 
 SYSTEMS = ("duffing", "peng_quadratic")
 

@@ -3,7 +3,7 @@
     python tests/benchmarks/figures.py [--repeat 3] [--samples 801]
 
 A Henon-Heiles record of two trajectories of `--samples` samples each (1% noise) is
-fitted once; then, alternating, `hamid.figures.save` writes all six panels as PNG files,
+fitted once; then, alternating, `hamid.plot.figures.save` writes all six panels as PNG files,
 and a baseline makes six figures of the same size with constrained layout, each holding
 one line per trajectory and variable of every sample, and saves them as PNG. The best of
 `--repeat` rounds of each is reported, and their ratio: what the panels' own work (the
@@ -22,7 +22,7 @@ from pathlib import Path
 from matplotlib.figure import Figure
 
 import hamid
-from hamid import figures
+from hamid.plot import figures
 
 SYSTEM = {
     "model": {"builtin": "henon-heiles"},

@@ -4,12 +4,12 @@ rest of the same fit measured in the same process.
     python tests/benchmarks/held_out_check.py [--repeats 3] [--real ../shared/data/real]
 
 For each record, the default fit runs `--repeats` times; the time spent in the held-out
-check (`hamid.refine._held_out`) and in the trajectory fits (`hamid.trajectory.refine`,
-`fit`, `refit`) is taken from wrappers around those functions, and printed with the
-decision. Records: a 120 s Duffing record at 1% noise (the model right: held-out check,
-no raised noise), the bundled 20 s of a real pendulum (smoothed velocities: raised noise,
-sandwich, held-out check), and with `--real`, the whole single and double pendulum
-recordings of Kaheman et al. (model of the double pendulum in this file).
+check (`hamid.refine.joint_refinement._held_out`) and in the trajectory fits
+(`hamid.refine.trajectory.refine`, `fit`, `refit`) is taken from wrappers around those
+functions, and printed with the decision. Records: a 120 s Duffing record at 1% noise (the
+model right: held-out check, no raised noise), the bundled 20 s of a real pendulum (smoothed
+velocities: raised noise, sandwich, held-out check), and with `--real`, the whole single and
+double pendulum recordings of Kaheman et al. (model of the double pendulum in this file).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import hamid
-from hamid import refine, trajectory
+from hamid.refine import joint_refinement, trajectory
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests"))
@@ -62,7 +62,7 @@ def main() -> None:
                              "kaheman_double_pendulum/")
     args = parser.parse_args()
     spent: dict[str, float] = defaultdict(float)
-    _timed(spent, refine, "_held_out", "held-out check")
+    _timed(spent, joint_refinement, "_held_out", "held-out check")
     for name in ("refine", "fit", "refit"):
         _timed(spent, trajectory, name, "trajectory fits")
     duffing = with_noise(hamid.simulate({**DUFFING, "simulate": {"t_end": 120.0,

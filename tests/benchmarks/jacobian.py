@@ -1,4 +1,4 @@
-"""The refinement's Jacobian two ways, both integrated with `hamid.dop853`: forward
+"""The refinement's Jacobian two ways, both integrated with `hamid.refine.dop853`: forward
 differences (hamid's way) against the variational equations (issue 22).
 
     python tests/benchmarks/jacobian.py [--repeats 7] [--segments 64 256]
@@ -11,7 +11,7 @@ computed
 
 - (a) by forward differences: 1 + 2N + p copies of each segment's state, the initial
   states perturbed by `trajectory.STEP` times each variable's scale and the parameters by
-  `STEP * max(|theta|, 1e-3 max |theta|)`, as `hamid.trajectory` does, with its atol
+  `STEP * max(|theta|, 1e-3 max |theta|)`, as `hamid.refine.trajectory` does, with its atol
   (1e-2 rtol times each variable's scale, the same for every copy); `a diff` with the
   hand-written right-hand side, and `a hamid` with hamid's own (`Dynamics.at`, as the
   refinement integrates: the same values, a check that `a diff` is hamid's way, and
@@ -175,7 +175,7 @@ class System:
 def forward_differences(batch: Batch, rtol: float, hamid_rhs: bool = False) -> System:
     """(a): 1 + 2N + p copies of each segment, hamid's steps and atol; with `hamid_rhs`,
     hamid's own right-hand side (`Dynamics.at`) in place of the hand-written one."""
-    from hamid import trajectory
+    from hamid.refine import trajectory
 
     x0, theta = batch.x0, batch.theta
     B, n2 = x0.shape
@@ -205,9 +205,9 @@ def forward_differences(batch: Batch, rtol: float, hamid_rhs: bool = False) -> S
         return out.ravel()
 
     if hamid_rhs:
-        from hamid.dissipation import Dissipation
-        from hamid.dynamics import Dynamics
-        from hamid.model import builtin_model
+        from hamid.model.dissipation import Dissipation
+        from hamid.model.dynamics import Dynamics
+        from hamid.model.models import builtin_model
 
         model = builtin_model(batch.model)
         fun = Dynamics(model, Dissipation(model.coordinates, model.velocities)).at(
@@ -278,7 +278,7 @@ class Run:
 
 
 def run(label: str, batch: Batch, rtol: float) -> Run:
-    from hamid import dop853
+    from hamid.refine import dop853
 
     system = METHODS[label](batch, rtol)
     fun, step = system.fun, dop853._step

@@ -10,7 +10,7 @@ memory is per process):
 - baseline: read with pyarrow, build the six energy columns, centre each trajectory and
   call one numpy.linalg.lstsq;
 - hamid fit --method energy and --method joint as they run by default on these files
-  (read in chunks, hamid.stream), and with the data in memory (in_memory=True), whose
+  (read in chunks, hamid.linear.chunked), and with the data in memory (in_memory=True), whose
   peak is also given in units of the decoded data;
 - hamid fit with the default method, auto: the joint fit in chunks, then the trajectory
   refinement holding the records in memory; with chunk_rows=2^18 (bounded memory asked
@@ -60,7 +60,8 @@ peak = peak_kb()
 print(json.dumps({"seconds": elapsed, "peak_kb": peak, "theta": theta.tolist()}))
 """
 
-# The refinement's time is measured around hamid.refine.refine itself: the difference from
+# The refinement's time is measured around hamid.refine.joint_refinement.refine itself: the
+# difference from
 # --method joint would also count what only the linear fit's report costs (in memory, the
 # noise check's adjusted least squares, which a refined fit skips).
 HAMID = PEAK + r"""
@@ -107,7 +108,7 @@ def make_data(path: str, rows_per_trajectory: int, repetitive: bool = False) -> 
         "noise": {"relative": 0.01},
     }
     frame = hamid.simulate(system)
-    from hamid import writing
+    from hamid.data import writing
 
     if not repetitive:
         writing.write_table(frame, path, metadata=frame.attrs["hamid"])

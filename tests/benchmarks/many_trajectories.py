@@ -58,7 +58,7 @@ def make_data(path: str, n_trajectories: int) -> None:
     import numpy as np
 
     import hamid
-    from hamid import writing
+    from hamid.data import writing
 
     rng = np.random.default_rng(n_trajectories)
     amplitude = rng.uniform(0.3, 1.2, n_trajectories)

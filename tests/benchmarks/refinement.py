@@ -9,13 +9,13 @@ noise; peng-quadratic also at 10x and 100x the record length (the per-sample cos
 grow with it), and clean (the strict-tolerance pass); the 100x record again without the
 ties of the lengthening (what they cost).
 
-For each record the default fit runs `--repeats` times with ``jobs=1`` and with one
-process per core; the time spent in the whole refinement (`hamid.refine.refine`: the
-trajectory fits, the held-out check with its linear refits, the lengthening, starting the
-worker processes) is taken from a wrapper around it and printed in µs per sample, with
+For each record the default fit runs `--repeats` times with ``jobs=1`` and with one process
+per core; the time spent in the whole refinement (`hamid.refine.joint_refinement.refine`:
+the trajectory fits, the held-out check with its linear refits, the lengthening, starting
+the worker processes) is taken from a wrapper around it and printed in µs per sample, with
 the largest relative difference between the two fits' estimates (none: the batches do not
 depend on the workers). Records short enough to stay in one process
-(`hamid.integration.PARALLEL_VALUES`) cost the same both ways.
+(`hamid.refine.integration.PARALLEL_VALUES`) cost the same both ways.
 
 The peer is `scipy.optimize.least_squares` over `solve_ivp` (DOP853) with the same
 segments, weights and start: the free parameters and every
@@ -123,9 +123,9 @@ def main() -> None:
     from conftest import DUFFING, PENG, with_noise
 
     import hamid
-    from hamid import refine, trajectory
     from hamid.executor import available_cores
-    from hamid.model import model_from_spec
+    from hamid.model.models import model_from_spec
+    from hamid.refine import joint_refinement, trajectory
 
     chain = model_from_spec(CHAIN_SYSTEM["model"], where="chain3")
     longer = {f"peng-quadratic {k}x longer": {**PENG, "simulate": {**PENG["simulate"],
@@ -140,7 +140,7 @@ def main() -> None:
     spent: dict[str, float] = defaultdict(float)
     fits: list = []
     starts: list = []
-    whole = refine.refine
+    whole = joint_refinement.refine
 
     def timed_refinement(*a, **k):
         begin = time.perf_counter()
@@ -148,7 +148,7 @@ def main() -> None:
             return whole(*a, **k)
         finally:
             spent["refinement"] += time.perf_counter() - begin
-    refine.refine = timed_refinement
+    joint_refinement.refine = timed_refinement
     for name in ("refine", "refit"):   # the fits of the segments as cut
         original = getattr(trajectory, name)
 
@@ -209,7 +209,7 @@ def main() -> None:
           f"{ten[1] / two[1]:.2f}x of the short record; at 100x {hundred[0] / ten[0]:.2f}x / "
           f"{hundred[1] / ten[1]:.2f}x of the 10x record; clean / noisy: "
           f"{per_sample['peng-quadratic (2 DOF), clean'][0] / two[0]:.2f}x")
-    refine.LONGEST_PERIODS = 0.0   # no segments tied: what the lengthening costs
+    joint_refinement.LONGEST_PERIODS = 0.0   # no segments tied: what the lengthening costs
     untied_us, _ = timed(frame, None, 1)
     print(f"{label} without the ties of the lengthening: {untied_us:.2f} µs/sample, 1 job "
           f"(with them {hundred[0] / untied_us:.2f}x that)")

@@ -13,8 +13,8 @@ true ones.
 Methods
 -------
 hamid bic, hamid cv
-    ``hamid.selecting.choose`` with the library poly:N:4 (monomials of degree 2-4 in the
-    coordinates) and ``--criterion bic`` (the default) or ``cv``.
+    ``hamid.selection.select_terms.choose`` with the library poly:N:4 (monomials of degree
+    2-4 in the coordinates) and ``--criterion bic`` (the default) or ``cv``.
 STLSQ
     PySINDy 2.x, the equations of motion v' = Theta(q) xi with Theta the polynomials of
     degree 1-3 in the positions (the forces of a degree 2-4 potential), derivatives by
@@ -48,7 +48,7 @@ import warnings
 import numpy as np
 
 import hamid
-from hamid import selecting
+from hamid.selection import select_terms
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from conftest import with_noise  # noqa: I001
@@ -140,7 +140,7 @@ def main() -> None:
             hits = {}
             for criterion in ("bic", "cv"):
                 hits[f"hamid {criterion}"] = sum(
-                    sorted((c := selecting.choose(f, selecting.SelectOptions(
+                    sorted((c := select_terms.choose(f, select_terms.SelectOptions(
                         library, criterion=criterion))).library.texts(c.chosen)) == truth
                     for f in frames)
             threshold = None

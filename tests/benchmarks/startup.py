@@ -13,7 +13,7 @@ modules, scipy.special for the t quantiles, scipy.sparse for the windows, pyarro
 reader, click and rich),
 the linear fit itself (the joint fit's time less those imports), and the trajectory
 refinement of auto (auto's time less the joint fit's), of which importing its modules
-(hamid.trajectory with its DOP853 integrator: no scipy.integrate) is measured alone.
+(hamid.refine.trajectory with its DOP853 integrator: no scipy.integrate) is measured alone.
 
 DATA.csv is a peng-quadratic record of `--rows` rows (2 trajectories, with hamid's
 metadata line) made with `hamid.simulate` in a temporary folder, noise-free and with 1%
@@ -48,11 +48,11 @@ def hamid_command():
     script = Path(sysconfig.get_path("scripts")) / "hamid"
     if script.exists():
         return [str(script)]
-    return [sys.executable, "-c", "import sys; from hamid.cli import main; sys.exit(main())"]
+    return [sys.executable, "-c", "import sys; from hamid.cli.app import main; sys.exit(main())"]
 
 
 def make_data(folder, rows, noise=0.0):
-    from hamid import writing
+    from hamid.data import writing
 
     per_trajectory = rows // 2
     system = {"model": {"builtin": "peng-quadratic"}, "parameters": PENG,
@@ -142,9 +142,10 @@ def main():
     click_cmd = [py, "-c", "import click"]
     fit_base_cmd = [py, "-c", "import numpy, scipy.linalg, pyarrow.csv"]
     # with what a fit imports on its way: pyarrow's reader, scipy.sparse for the windows
-    modules = "import hamid.api, hamid.cli, hamid.report, rich.console, pyarrow.csv, scipy.sparse"
+    modules = ("import hamid.api, hamid.cli.app, hamid.report.formats, rich.console, "
+               "pyarrow.csv, scipy.sparse")
     imports = {"imports of a linear fit": [py, "-c", modules],
-               "the same and the refinement's": [py, "-c", modules + ", hamid.trajectory"]}
+               "the same and the refinement's": [py, "-c", modules + ", hamid.refine.trajectory"]}
     with tempfile.TemporaryDirectory() as folder:
         clean, noisy = make_data(folder, args.rows), make_data(folder, args.rows, 0.01)
         fits = {f"hamid fit ({args.rows} rows, noise-free)": [*hamid_cmd, "fit", str(clean)],

@@ -7,7 +7,7 @@ The records and noise are those of accuracy.py (t_end = 100 s, dt = 0.02 s, whit
 a fraction of each column's std on positions and velocities, fixed seeds). For each
 realization the default window (half the dominant period, found from that noisy record)
 is scaled by the factors below and passed as ``weak_window=``; the bump order p of
-psi = (1 - s^2)^p is set by monkeypatching ``hamid.design.BUMP_ORDER`` (read by
+psi = (1 - s^2)^p is set by monkeypatching ``hamid.linear.design.BUMP_ORDER`` (read by
 ``design.windows`` at call time). Score: median over the realizations of the worst
 parameter's relative error. Then the clean-data error for each order and factor, on the
 same systems sampled at a coarse dt = 0.05 s (and at dt = 0.02 s for comparison), where
@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 
 import hamid
-from hamid import design
+from hamid.linear import design
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from accuracy import SYSTEMS, T_END, code_state, with_noise, worst_relative_error

@@ -1,0 +1,328 @@
+"""Which file columns hold a model's coordinates, velocities, time and trajectory.
+
+The naming rules (`x` with `vx`, `x_dot`, `xdot` or `dx`; `x1`, `q1` or `u1` with `v1`;
+`theta` with `omega`; `t` or `time`, any case, with a unit; `trajectory`), unit suffixes,
+and their resolution against `--columns`. No numpy, pandas or pyarrow: the CLI may use them.
+
+A unit suffix is ``_UNIT``, `` [UNIT]`` or `` (UNIT)`` after the name (``x1_mm``,
+``v1_mm_s``, ``Time [s]``, ``t (ms)``); ``/`` in a unit reads as ``_`` (``mm/s``). A column
+with a suffix is matched by the name before it, and its values are brought to SI units
+(`COLUMN_UNITS`: metres, radians and their rates; `TIME_UNITS` for time).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Collection, Mapping, Sequence
+
+from hamid.data import readers
+from hamid.errors import DataError, UsageError
+
+__all__ = ["COLUMN_UNITS", "TIME_UNITS", "column_scale", "default_time_column",
+           "default_trajectory_column", "find_coordinates", "find_velocity",
+           "looks_like_time", "resolve_columns", "split_unit", "time_scale", "unit_text",
+           "velocity_names"]
+
+
+VELOCITY_PATTERNS = ("v{}", "{}_dot", "{}dot", "d{}")
+# Other pairs by name: x1, q1 or u1 with v1; theta with omega.
+_NUMBERED = re.compile(r"^[a-z]+(\d+)$")
+_ANGLE_RATES = {"theta": "omega", "phi": "omega"}
+
+
+TIME_COLUMNS = ("t", "time")
+# Seconds per unit of a time column.
+TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+# SI (metres, radians, and per second) per unit of a coordinate or velocity column.
+_LENGTHS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "nm": 1e-9,
+            "rad": 1.0, "mrad": 1e-3, "deg": math.pi / 180}
+COLUMN_UNITS = {**_LENGTHS, **{f"{unit}_s": factor for unit, factor in _LENGTHS.items()}}
+_BRACKETED = re.compile(r"^(.*?)\s*[\[(]\s*([^\])]*?)\s*[\])]$")
+
+
+def unit_text(text: str) -> str:
+    """A unit as written, in the form of the unit tables (lower case, ``u`` for micro, ``_``
+    for ``/``)."""
+    return text.strip().lower().replace("µ", "u").replace("μ", "u").replace("/", "_") \
+        .replace(" ", "")
+
+
+def split_unit(name: str, units: Collection[str]) -> tuple[str, str | None]:
+    """Split a column name into its name and a unit suffix of `units`, if it has one.
+
+    Examples
+    --------
+    >>> split_unit("v1_mm_s", COLUMN_UNITS)
+    ('v1', 'mm_s')
+    >>> split_unit("Time [ms]", TIME_UNITS)
+    ('Time', 'ms')
+    >>> split_unit("x_dot", COLUMN_UNITS)
+    ('x_dot', None)
+    """
+    bracketed = _BRACKETED.match(name)
+    if bracketed and bracketed.group(1) and unit_text(bracketed.group(2)) in units:
+        return bracketed.group(1), unit_text(bracketed.group(2))
+    lowered = unit_text(name)
+    for unit in sorted(units, key=len, reverse=True):
+        if lowered.endswith("_" + unit) and len(name) > len(unit) + 1:
+            return name[:-len(unit) - 1], unit
+    return name, None
+
+
+def column_scale(name: str) -> tuple[float, str | None]:
+    """The factor that brings a column to SI units by its suffix, and the unit (1, None
+    without one)."""
+    _, unit = split_unit(name, COLUMN_UNITS)
+    return (1.0, None) if unit is None else (COLUMN_UNITS[unit], unit)
+
+
+def time_scale(name: str, unit: str | None = None) -> tuple[float, str]:
+    """Seconds per unit of a time column: `unit` (--time-unit) if given, else the name's
+    suffix, else seconds."""
+    if unit is None:
+        unit = split_unit(name, TIME_UNITS)[1] or "s"
+    return TIME_UNITS[unit], unit
+
+
+def looks_like_time(name: str) -> bool:
+    """Whether a column is named as time (``t``, ``time``, ``timestamp``, any case or
+    unit), whether or not its unit is known."""
+    base = re.split(r"[\s_\[(]", name.strip(), maxsplit=1)[0].lower()
+    return base in ("t", "time", "timestamp", "times")
+
+
+TRAJECTORY_COLUMN = "trajectory"
+
+
+def _index(columns: Collection[str]) -> dict[str, str]:
+    """Name -> column: each column by its own name, and by its name without a unit suffix
+    when no column has that name and no other column has that base."""
+    index = {column: column for column in columns}
+    bases: dict[str, list[str]] = {}
+    for column in columns:
+        base, unit = split_unit(column, COLUMN_UNITS)
+        if unit is not None:
+            bases.setdefault(base, []).append(column)
+    for base, owners in bases.items():
+        if base not in index and len(owners) == 1:
+            index[base] = owners[0]
+    return index
+
+
+def velocity_names(coordinate: str) -> list[str]:
+    """The names a coordinate's velocity may have, in the order they are looked for.
+
+    Examples
+    --------
+    >>> velocity_names("x1")
+    ['vx1', 'x1_dot', 'x1dot', 'dx1', 'v1']
+    >>> velocity_names("theta")
+    ['vtheta', 'theta_dot', 'thetadot', 'dtheta', 'omega']
+    """
+    names = [pattern.format(coordinate) for pattern in VELOCITY_PATTERNS]
+    numbered = _NUMBERED.match(coordinate)
+    if numbered and not coordinate.startswith("v"):
+        names.append(f"v{numbered.group(1)}")
+    lowered = coordinate.lower()
+    for angle, rate in _ANGLE_RATES.items():
+        if lowered.startswith(angle) and (lowered == angle or lowered[len(angle):].isdigit()):
+            names.append(rate + coordinate[len(angle):])
+    return [name for name in dict.fromkeys(names) if name != coordinate]
+
+
+def find_velocity(coordinate: str, columns: Collection[str]) -> str | None:
+    """Return the column holding a coordinate's velocity, by `velocity_names`.
+
+    Parameters
+    ----------
+    coordinate : str
+        Name of the coordinate's column.
+    columns : collection of str
+        Column names to look in (a dict from `_index` is used as it is).
+
+    Returns
+    -------
+    velocity : str or None
+        The first of `velocity_names` present (by name, or by name before a unit suffix),
+        else None.
+
+    Examples
+    --------
+    >>> find_velocity("x", ["t", "x", "x_dot", "dx"])
+    'x_dot'
+    >>> find_velocity("x1_mm", ["x1_mm", "v1_mm_s"])
+    'v1_mm_s'
+    """
+    if not coordinate:
+        return None
+    index = columns if isinstance(columns, dict) else _index(columns)
+    base = split_unit(coordinate, COLUMN_UNITS)[0]
+    for name in (coordinate, base):
+        for candidate in velocity_names(name):
+            if candidate in index and index[candidate] != coordinate:
+                return index[candidate]
+    return None
+
+
+def find_coordinates(columns: Sequence[str], *, exclude: Collection[str]) -> list[tuple[str, str]]:
+    """Return the coordinate columns of a table and their velocity columns.
+
+    A coordinate is a column, not excluded, that has a velocity column by
+    `velocity_names` and is not itself the velocity of another such column.
+
+    Parameters
+    ----------
+    columns : sequence of str
+        Column names in file order.
+    exclude : collection of str
+        Columns that are never coordinates or velocities (time, trajectory).
+
+    Returns
+    -------
+    pairs : list of (str, str)
+        (coordinate column, velocity column), in file order.
+
+    Examples
+    --------
+    >>> find_coordinates(["t", "x", "y", "vx", "vy"], exclude={"t"})
+    [('x', 'vx'), ('y', 'vy')]
+    >>> find_coordinates(["x", "dx", "ddx"], exclude=())
+    [('x', 'dx')]
+    >>> find_coordinates(["time_ms", "x1_mm", "x2_mm", "v1", "v2"], exclude={"time_ms"})
+    [('x1_mm', 'v1'), ('x2_mm', 'v2')]
+    """
+    candidates = [column for column in columns if column and column not in exclude]
+    present = _index(candidates)   # once: a table may have tens of thousands of columns
+    velocity_of = {column: find_velocity(column, present) for column in candidates}
+    # Velocities of velocities (dx of x, then ddx of dx) are accelerations, not coordinates.
+    velocities = {velocity for velocity in velocity_of.values() if velocity is not None}
+    pairs: list[tuple[str, str]] = []
+    used: set[str] = set()
+    for column in candidates:
+        velocity = velocity_of[column]
+        if velocity is None or column in velocities or velocity in used:
+            continue
+        pairs.append((column, velocity))
+        used.add(velocity)
+    return pairs
+
+
+def resolve_columns(
+    columns: Sequence[str],
+    coordinates: Sequence[str],
+    velocities: Sequence[str],
+    *,
+    mapping: Mapping[str, str] | None = None,
+    source: str,
+) -> dict[str, str]:
+    """Find the file column of each coordinate and velocity of a model.
+
+    Each name is looked for in `mapping`, then as the same name (or the same name before a
+    unit suffix); a velocity not found so is looked for by `velocity_names`, applied to its
+    coordinate's name and to its coordinate's file column.
+
+    Parameters
+    ----------
+    columns : sequence of str
+        Column names of the file.
+    coordinates, velocities : sequence of str
+        The model's names; ``velocities[i]`` is the velocity of ``coordinates[i]``.
+    mapping : mapping of str to str, optional
+        Model name -> file column, as given by ``--columns``.
+    source : str
+        File name used in messages.
+
+    Returns
+    -------
+    columns : dict
+        Model name -> file column, coordinates first.
+
+    Raises
+    ------
+    UsageError
+        A key of `mapping` is not a name of the model.
+    DataError
+        A name has no column, a mapped column is missing, or two names share a column.
+
+    Examples
+    --------
+    >>> resolve_columns(["t", "pos", "vel"], ["x"], ["v"], mapping={"x": "pos", "v": "vel"},
+    ...                 source="run.csv")
+    {'x': 'pos', 'v': 'vel'}
+    """
+    mapping = dict(mapping or {})
+    names = [*coordinates, *velocities]
+    for key in mapping:
+        if key not in names:
+            raise UsageError(
+                f"--columns: {key!r} is not a coordinate or velocity of the model "
+                f"({', '.join(names)})"
+            )
+    present = set(columns)
+    index = _index(columns)
+    for key, column in mapping.items():
+        if column not in present:
+            raise DataError(
+                f"{source}: no column {column!r} (given for {key!r} by --columns; "
+                f"columns: {readers.list_columns(columns)})"
+            )
+    resolved: dict[str, str] = {}
+    for coordinate in coordinates:
+        column = mapping.get(coordinate, index.get(coordinate, coordinate))
+        if column not in present:
+            raise DataError(
+                f"{source}: no column for coordinate {coordinate!r} "
+                f"(columns: {readers.list_columns(columns)})"
+            )
+        resolved[coordinate] = column
+    # No velocities: they will be derived from the positions.
+    for coordinate, velocity in zip(coordinates if velocities else (), velocities, strict=True):
+        if velocity in mapping:
+            resolved[velocity] = mapping[velocity]
+            continue
+        looked_for = [velocity]
+        for base in (coordinate, resolved[coordinate],
+                     split_unit(resolved[coordinate], COLUMN_UNITS)[0]):
+            looked_for += velocity_names(base)
+        looked_for = list(dict.fromkeys(looked_for))
+        found = next((index[candidate] for candidate in looked_for if candidate in index),
+                     None)
+        if found is None:
+            raise DataError(
+                f"{source}: no column for velocity {velocity!r} of coordinate {coordinate!r} "
+                f"(looked for {', '.join(looked_for)}); map it with --columns "
+                f"{velocity}=COL, or derive velocities with --velocity savgol"
+            )
+        resolved[velocity] = found
+    owner: dict[str, str] = {}
+    for model_name, column in resolved.items():
+        if column in owner:
+            raise DataError(
+                f"{source}: column {column!r} is used for both {owner[column]!r} and "
+                f"{model_name!r}"
+            )
+        owner[column] = model_name
+    return resolved
+
+
+def default_time_column(columns: Sequence[str]) -> str | None:
+    """Return the time column, if the table has one: ``t``, else ``time``, else the first
+    column named so in any case with a unit of `TIME_UNITS` (``Time``, ``time_ms``,
+    ``t (ms)``, ``Time [s]``).
+
+    Examples
+    --------
+    >>> default_time_column(["time_ms", "x1_mm", "v1"])
+    'time_ms'
+    """
+    exact = next((name for name in TIME_COLUMNS if name in columns), None)
+    if exact is not None:
+        return exact
+    return next((name for name in columns
+                 if split_unit(name, TIME_UNITS)[0].strip().lower() in TIME_COLUMNS), None)
+
+
+def default_trajectory_column(columns: Sequence[str]) -> str | None:
+    """Return the trajectory column, ``trajectory``, if the table has one."""
+    return TRAJECTORY_COLUMN if TRAJECTORY_COLUMN in columns else None

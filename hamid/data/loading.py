@@ -1,0 +1,770 @@
+"""Reading the data into Records, whole or in chunks: the sources, the model they settle,
+the columns, and the checks that every trajectory's rows are contiguous and in time order.
+
+Both ways of reading share every rule here: a file read in chunks is read as it would be
+whole, with the same messages naming the same rows.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import sys
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from hamid.data import column_roles, input_size, measurement, readers
+from hamid.data.records import Records, runs
+from hamid.errors import DataError, UsageError
+from hamid.linear import design
+from hamid.model.dissipation import shorthand_names
+from hamid.model.models import (
+    BUILTINS,
+    Model,
+    builtin_model,
+    load_model,
+    model_from_info,
+    poly_model_over,
+)
+from hamid.options import FitOptions
+
+__all__ = ["Chunked", "Loaded", "in_memory_name", "in_memory_table", "load", "open_chunks",
+           "trajectory_label"]
+
+# Times beyond this overflow in the sums of squares the residual summary takes.
+_LARGEST_TIME = 1e150
+_IN_MEMORY = ("<DataFrame>", "<dict>", "<array>")   # `in_memory_name`
+
+
+@dataclass(frozen=True)
+class Loaded:
+    """Records read whole, the model, and what the report says about the data."""
+
+    model: Model
+    records: Records
+    truth: dict[str, float]
+    data_info: dict[str, Any]
+    notes: tuple[str, ...]
+    velocity_gain: float | None  # noise gain of derived velocities, None when measured
+    row_sources: tuple[tuple[str, int], ...]  # (source, first row) of each input table
+    # each trajectory's period and time step (`design.trajectory_scales`), None without a
+    # time column: found once, for the velocity check, the derivation and the plan
+    trajectory_scales: list[tuple[float | None, float]] | None
+    file_rows: Any = None   # the row read of each row of the records, when rows were dropped
+
+    def locate(self, row: int) -> tuple[str, int]:
+        """The source and 1-based data row of a row of the records."""
+        if self.file_rows is not None:
+            row = int(self.file_rows[row])
+        source, first = next((s, f) for s, f in reversed(self.row_sources) if f <= row)
+        return source, row - first + 1
+
+    def scales(self) -> list[tuple[float | None, float]] | None:
+        """Each trajectory's period and time step, None without a time column."""
+        return self.trajectory_scales
+
+    def durations(self) -> list[float] | None:
+        """Each trajectory's length in seconds, None without a time column."""
+        t = self.records.t
+        return None if t is None else [float(t[stop - 1] - t[start])
+                                       for start, stop in self.records.bounds()]
+
+
+def load(data: Any, model: str | os.PathLike[str] | Model | None,
+         options: FitOptions) -> Loaded:
+    """Read the sources whole, settle the model and arrange the rows by trajectory."""
+    table = in_memory_table(data)
+    if table is not None:
+        tables = [table]
+    else:
+        paths = [data] if isinstance(data, str | os.PathLike) else list(data)
+        if not paths:
+            raise UsageError("no data given")
+        tables = [(input_size.name_of(p), *readers.read_columns(p, format=options.format,
+                                                        text=options.text,
+                                                        name=input_size.name_of(p)))
+                  for p in paths]
+    sources = [name for name, _, _ in tables]
+    metadata = tables[0][2]
+    if model is None:
+        _check_same_model(tables)
+    m, notes = _settle_model(model, metadata, [str(c) for c in tables[0][1]], sources[0],
+                             options)
+    derived = options.velocity == "savgol"
+    parts, labels, mapping, units = [], [], {}, {}
+    while tables:   # each table's columns let go once its records are read
+        source, frame, table_metadata = tables.pop(0)
+        names = [str(c) for c in frame]
+        mapping = column_roles.resolve_columns(
+            names, m.coordinates, () if derived else m.velocities, mapping=options.columns,
+            source=source)
+        time, trajectory = _special_columns(names, mapping, options, source, notes)
+        units = _units(names, mapping, time, options, table_metadata, source)
+        notes.extend(units["notes"])
+        reader = Reader(m, mapping, time, trajectory, source,
+                        typed=source in _IN_MEMORY or readers.is_parquet(source),
+                        scales=units["scale"], missing_ok=options.gaps == "split")
+        piece = next(reader.read([(frame, 0)]))
+        del frame
+        notes.extend(reader.notes)
+        if labels:
+            piece = dataclasses.replace(piece, group=piece.group + len(labels))
+        parts.append(piece)
+        if len(sources) == 1:
+            labels.extend(reader.labels)
+        elif reader.trajectory is None:
+            labels.append(source)
+        else:
+            labels.extend(f"{source}:{label}" for label in reader.labels)
+    has_time = all(part.t is not None for part in parts)
+    records = parts[0] if len(parts) == 1 else Records(
+        np.vstack([part.X for part in parts]),
+        np.concatenate([part.t for part in parts]) if has_time else None,
+        np.concatenate([part.group for part in parts]), ())
+    records = dataclasses.replace(records, labels=tuple(labels))
+    firsts = np.cumsum([0] + [len(part.group) for part in parts[:-1]])
+    del parts
+    arrow = sys.modules.get("pyarrow")   # the tables read are gone: their memory goes back
+    if arrow is not None:
+        arrow.default_memory_pool().release_unused()
+    row_sources = tuple((name, int(f)) for name, f in zip(sources, firsts, strict=True))
+    records, file_rows = _split_gaps(records, options.gaps, row_sources, notes)
+    labels = list(records.labels)
+    # from the coordinates, which a derivation of the velocities leaves as they are
+    scales = (None if records.t is None
+              else design.trajectory_scales(records, len(m.coordinates)))
+    period = None if scales is None else design.median_period(scales)
+    if not derived and records.t is not None:
+        notes.extend(measurement.velocity_check(records, m.coordinates, m.velocities, mapping,
+                                                period))
+    derivation = None
+    if derived:
+        records, derivation = _derive_velocities(records, m, options.window, options.order,
+                                                 period)
+        notes.append(f"velocities derived from the positions (Savitzky-Golay, window "
+                     f"{derivation[0]} samples, order {options.order}); their noise is "
+                     "correlated with the positions'")
+    data_info = _data_info(sources, len(records.group), len(labels),
+                           mapping, options, units)
+    if derivation:
+        data_info.update(velocity_window=derivation[0], velocity_order=options.order)
+    return Loaded(m, records, _truth(metadata, m), data_info, tuple(notes),
+                  derivation[1] if derivation else None, row_sources, scales, file_rows)
+
+
+class Reader:
+    """Rows of one table, whole or chunk by chunk, as Records: trajectories numbered in
+    order of first appearance; every trajectory's rows contiguous and its times
+    increasing, also across chunks. Errors name the table's 1-based data row."""
+
+    def __init__(self, model: Model, mapping: Mapping[str, str], time: str | None,
+                 trajectory: str | None, source: str, typed: bool,
+                 scales: Mapping[str, float] | None = None, missing_ok: bool = False,
+                 chunked: bool = False) -> None:
+        self.model, self.mapping, self.source = model, mapping, source
+        # Missing cells read as NaN (for `_split_gaps`), else they are errors.
+        self.missing_ok = missing_ok
+        # Read in chunks: time gaps are refused (`_refuse_gaps`), with each trajectory's
+        # median step.
+        self.chunked, self._steps = chunked, {}
+        # Column -> factor to SI units (seconds for time), applied as values are read.
+        self.scales = dict(scales or {})
+        self.time, self.trajectory = time, trajectory
+        # Without a trajectory column the table is one trajectory, labelled 1.
+        self._ids: dict[Any, int] = {} if trajectory else {1: 0}
+        # A table that stores its columns' types (Parquet, a DataFrame) and keeps numbers
+        # as text is read all the same, and the report says so.
+        self.typed, self.text_columns = typed, set()
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """What the report says of how the table was read."""
+        return tuple(f"{self.source}: column {column!r} stores its numbers as text; read "
+                     "them as numbers" for column in sorted(self.text_columns))
+
+    def _numbers(self, chunk: Mapping[str, Any], column: str, row: int) -> np.ndarray:
+        values = readers.column_values(chunk[column])
+        if self.typed and values.dtype.kind not in "iuf":
+            self.text_columns.add(column)
+        missing = None
+        if self.missing_ok:
+            missing = (np.isnan(values.astype(np.float64)) if values.dtype.kind in "iuf" else
+                       np.fromiter((readers.is_missing(v) or (isinstance(v, str) and not v.strip())
+                                    for v in values), bool, len(values)))
+            if missing.any():
+                values = values.copy()
+                values[missing] = 0
+        try:
+            numbers = readers.numeric_values(values, column, self.source, first_row=row + 1)
+        except DataError as exc:
+            if self.chunked and str(exc).endswith("missing value"):
+                raise DataError(f"{exc}; a file read in chunks is not cut at dropouts: read "
+                                "it whole (Python: in_memory=True; the command line: "
+                                "--residuals FILE)") from None
+            raise
+        if missing is not None and missing.any():
+            numbers[missing] = np.nan
+        factor = self.scales.get(column, 1.0)
+        return numbers if factor == 1.0 else numbers * factor
+
+    @property
+    def columns(self) -> list[str]:
+        """The table's columns that are read."""
+        wanted = [self.mapping[v] for v in self.model.variables if v in self.mapping]
+        return list(dict.fromkeys([*wanted, *(c for c in (self.time, self.trajectory) if c)]))
+
+    @property
+    def labels(self) -> tuple[Any, ...]:
+        """The trajectory labels seen so far, in order of their numbers."""
+        return tuple(self._ids)
+
+    def read(self, chunks: Iterable[tuple[Mapping[str, Any], int]]) -> Iterator[Records]:
+        """The records of each chunk (column name -> values, and its first row counted
+        from 0), checked in order; one pass over the table."""
+        previous, last_t, closed = None, None, set()
+        for chunk, row in chunks:
+            n = len(chunk[self.columns[0]])
+            X = np.column_stack([self._numbers(chunk, self.mapping[v], row)
+                                 if v in self.mapping else np.zeros(n)
+                                 for v in self.model.variables])
+            t = self._numbers(chunk, self.time, row) if self.time else None
+            if t is not None and np.any(np.abs(t) > _LARGEST_TIME):
+                k = int(np.argmax(np.abs(t) > _LARGEST_TIME))
+                raise DataError(f"{self.source}: column {self.time!r}, row {row + k + 1}: time "
+                                f"{t[k]:g} is too large to compute with (at most "
+                                f"{_LARGEST_TIME:g}); is it the time column?")
+            group = (self._keys(readers.column_values(chunk[self.trajectory]), row)
+                     if self.trajectory else np.zeros(n, np.int64))
+            starts = np.flatnonzero(np.diff(group, prepend=-1 if previous is None
+                                            else previous))
+            for start in starts:
+                if int(group[start]) in closed:
+                    raise DataError(f"{self.source}: column {self.trajectory!r}, row "
+                                    f"{row + start + 1}: a trajectory resumes after rows of "
+                                    "another; sort the file by trajectory then time")
+                if previous is not None:
+                    closed.add(previous)
+                previous = int(group[start])
+            if t is not None:
+                before = np.concatenate([[np.nan if last_t is None else last_t], t[:-1]])
+                same = np.ones(n, dtype=bool)
+                same[starts] = False
+                # a missing time is cut at by `_split_gaps`
+                bad = np.flatnonzero(same & ~(t > before) & ~np.isnan(t) & ~np.isnan(before))
+                if bad.size:
+                    k = int(bad[0])
+                    raise DataError(f"{self.source}: column {self.time!r}, row {row + k + 1}: "
+                                    f"time does not increase ({before[k]:g} then {t[k]:g})")
+                if self.chunked:
+                    self._refuse_gaps(t - before, same, group, row)
+                last_t = float(t[-1])
+            yield Records(X, t, group, ())
+
+    def _refuse_gaps(self, steps: np.ndarray, same: np.ndarray, group: np.ndarray,
+                     row: int) -> None:
+        """A file read in chunks is not cut at time gaps (`_split_gaps` cuts records in
+        memory): a step over `GAP_STEPS` times its trajectory's median step in the first
+        chunk that holds three of its rows is an error, not a different fit."""
+        reference = np.empty(len(group))
+        for j, start, stop in runs(group):
+            if j not in self._steps and stop - start >= 3:
+                self._steps[j] = float(np.median(steps[start + 1:stop]))
+            reference[start:stop] = self._steps.get(j, np.inf)
+        gap = np.flatnonzero(same & (steps > GAP_STEPS * reference))
+        if gap.size:
+            k = int(gap[0])
+            raise DataError(f"{self.source}: row {row + k + 1}: a time gap of {steps[k]:g} s "
+                            f"(over {GAP_STEPS:g} times the median step); a file read in "
+                            "chunks is not cut at gaps: read it whole (Python: "
+                            "in_memory=True; the command line: --residuals FILE), or cut it "
+                            "with a trajectory column")
+
+    def _keys(self, values: np.ndarray, row: int) -> np.ndarray:
+        """The trajectory number of each row of a chunk of the trajectory column."""
+        if values.dtype.kind in "iu":
+            missing = np.zeros(len(values), bool)
+        elif values.dtype.kind == "f":
+            missing = np.isnan(values)
+        else:
+            missing = np.fromiter((readers.is_missing(v) for v in values), bool, len(values))
+        if missing.any():
+            raise DataError(f"{self.source}: column {self.trajectory!r}, row "
+                            f"{row + int(np.flatnonzero(missing)[0]) + 1}: missing "
+                            "trajectory label")
+        change = np.flatnonzero(values[1:] != values[:-1]) + 1
+        keys = np.empty(len(values), dtype=np.int64)
+        for start, stop in zip([0, *change], [*change, len(values)], strict=True):
+            keys[start:stop] = self._ids.setdefault(trajectory_label(values[start]),
+                                                    len(self._ids))
+        return keys
+
+
+@dataclass(frozen=True)
+class Chunked:
+    """One file read in chunks of rows, a pass at a time (`hamid.linear.chunked`)."""
+
+    model: Model
+    notes: tuple[str, ...]
+    truth: dict[str, float]
+    table: readers.TableChunks
+    reader: Reader
+    chunk_rows: int
+    progress: Callable[[str], None] | None
+    units: dict[str, Any]
+
+    @property
+    def labels(self) -> tuple[Any, ...]:
+        return self.reader.labels
+
+    def rows(self, purpose: str) -> Iterator[tuple[Records, int]]:
+        """Each chunk's records and the file row (0-based) of its first row, in a pass for
+        `purpose` (what `progress` is told)."""
+
+        def chunks() -> Iterator[tuple[Mapping[str, Any], int]]:
+            row = 0
+            for chunk in self.table.chunks(self.reader.columns, self.chunk_rows):
+                if self.progress is not None:
+                    self.progress(f"{self.table.name}: {purpose}, from row {row + 1:,}")
+                yield chunk, row
+                row += len(chunk[self.reader.columns[0]])
+
+        row = 0
+        for records in self.reader.read(chunks()):
+            yield records, row
+            row += len(records.group)
+
+    def scales(self) -> list[tuple[float | None, float]] | None:
+        """Each trajectory's period and time step, from the first samples of each that
+        `design.trajectory_scales` looks at, which are held until the trajectory ends."""
+        if self.reader.time is None:
+            return None
+        scales: list[tuple[float | None, float]] = []
+        held: list[Records] = []
+        kept = 0   # samples of the current trajectory held
+        N = len(self.model.coordinates)
+
+        def finish() -> None:
+            if held:
+                t = np.concatenate([r.t for r in held])
+                X = np.vstack([r.X[:, :N] for r in held])
+                scales.extend(design.trajectory_scales(
+                    Records(X, t, np.zeros(len(t), np.int64), (0,)), N))
+                held.clear()
+
+        for records, _ in self.rows("periods of the trajectories"):
+            for j, start, stop in runs(records.group):
+                if held and held[-1].group[0] != j:
+                    finish()
+                    kept = 0
+                stop = min(stop, start + design.SCALE_SAMPLES - kept)
+                if stop > start:
+                    held.append(records.slice(start, stop))
+                    kept += stop - start
+        finish()
+        return scales
+
+    def whole(self, n_samples: int) -> Records:
+        """All the records of the file, for the trajectory refinement."""
+        X = np.empty((n_samples, len(self.model.variables)))
+        t = np.empty(n_samples)
+        group = np.empty(n_samples, dtype=np.int64)
+        for records, row in self.rows("records for the trajectory fit"):
+            rows = slice(row, row + len(records.group))
+            X[rows], t[rows], group[rows] = records.X, records.t, records.group
+        return Records(X, t, group, self.labels)
+
+    def data_info(self, sizes: np.ndarray, options: FitOptions) -> dict[str, Any]:
+        """What the report says about the data, once a pass has counted the samples."""
+        return _data_info([self.table.name], int(sizes.sum()), len(self.labels),
+                          self.reader.mapping, options, self.units)
+
+
+def open_chunks(path: str | os.PathLike[str], model: str | os.PathLike[str] | Model | None,
+                options: FitOptions, chunk_rows: int,
+                progress: Callable[[str], None] | None) -> Chunked:
+    """A file to read in chunks of `chunk_rows` rows: its model and columns, settled as
+    `load` settles them."""
+    table = readers.TableChunks(path, format=options.format, text=options.text,
+                           name=input_size.name_of(path))
+    m, notes = _settle_model(model, table.metadata, table.columns, table.name, options)
+    if m.dissipation:
+        raise UsageError(f"{table.name}: the model's dissipation function needs the data in "
+                         "memory (its work is integrated along each whole trajectory); "
+                         "give the model file with --model")
+    mapping = column_roles.resolve_columns(table.columns, m.coordinates, m.velocities,
+                                     mapping=options.columns, source=table.name)
+    time, trajectory = _special_columns(table.columns, mapping, options, table.name, notes)
+    units = _units(table.columns, mapping, time, options, table.metadata, table.name)
+    notes.extend(units["notes"])
+    reader = Reader(m, mapping, time, trajectory, table.name,
+                    typed=table.format == "parquet", scales=units["scale"], chunked=True)
+    return Chunked(m, tuple(notes), _truth(table.metadata, m), table, reader, chunk_rows,
+                   progress, units)
+
+
+def _data_info(sources: list[str], n_samples: int, n_trajectories: int,
+               mapping: Mapping[str, str], options: FitOptions,
+               units: Mapping[str, Any]) -> dict[str, Any]:
+    """What the report says about the data (docs/output.md, `data`)."""
+    return {"sources": sources, "n_samples": n_samples,
+            "n_trajectories": n_trajectories, "columns": dict(mapping),
+            "velocity_source": options.velocity, "time": units["time"],
+            "time_unit": units["time_unit"],
+            "scale": {c: f for c, f in units["scale"].items() if f != 1.0},
+            **({"reading": options.reading} if options.reading else {})}
+
+
+def _units(names: list[str], mapping: Mapping[str, str], time: str | None,
+           options: FitOptions, metadata: Mapping[str, Any] | None,
+           source: str) -> dict[str, Any]:
+    """The time column, its unit, and the factor bringing each column read to SI units
+    (seconds for time): --scale, else the column's unit suffix, else the unit the table's
+    metadata records (``{"units": {column: unit}}``), else 1."""
+    recorded = metadata.get("units") if isinstance(metadata, Mapping) else None
+    recorded = recorded if isinstance(recorded, Mapping) else {}
+    given = dict(options.scale or {})
+    read = [*mapping.values(), *([time] if time else [])]
+    for column in given:
+        if column not in read:
+            raise UsageError(f"--scale: {column!r} is not a column read from {source} "
+                             f"(read: {', '.join(read)})")
+    scale: dict[str, float] = {}
+    unknown = []
+    for column in mapping.values():
+        factor, unit = column_roles.column_scale(column)
+        if unit is None and isinstance(recorded.get(column), str):
+            factor = column_roles.COLUMN_UNITS.get(column_roles.unit_text(recorded[column]), 1.0)
+            if column_roles.unit_text(recorded[column]) not in column_roles.COLUMN_UNITS \
+                    and column not in given:
+                unknown.append(f"{column!r} ({recorded[column]!r})")
+        scale[column] = given.get(column, factor)
+    time_unit = None
+    if time is not None:
+        unit = options.time_unit
+        if unit is None and column_roles.split_unit(time, column_roles.TIME_UNITS)[1] is None \
+                and isinstance(recorded.get(time), str) \
+                and column_roles.unit_text(recorded[time]) in column_roles.TIME_UNITS:
+            unit = column_roles.unit_text(recorded[time])
+        scale[time], time_unit = column_roles.time_scale(time, unit)
+        if time in given:
+            scale[time], time_unit = given[time], f"{given[time]:g} s"
+    elif options.time_unit is not None:
+        raise UsageError(f"--time-unit {options.time_unit}: {source} has no time column; "
+                         "name it with --time COL")
+    notes = [f"{source}: the units of {', '.join(unknown)} are not among those converted "
+             f"({', '.join(column_roles.COLUMN_UNITS)}): read as SI; give --scale COL=FACTOR"
+             ] if unknown else []
+    return {"time": time, "time_unit": time_unit, "scale": scale, "notes": notes}
+
+
+def dissipative(model: str | os.PathLike[str] | Model | None) -> bool:
+    """Whether a model given to a fit has its own dissipation function (and so needs the
+    data in memory)."""
+    if isinstance(model, str | os.PathLike) and os.fspath(model).endswith(".toml"):
+        model = load_model(model)
+    return isinstance(model, Model) and model.dissipation is not None
+
+
+def _settle_model(model: str | os.PathLike[str] | Model | None,
+                  metadata: Mapping[str, Any] | None, names: list[str], source: str,
+                  options: FitOptions) -> tuple[Model, list[str]]:
+    """The model given, else the one the file's metadata records, else poly:N:3 over every
+    column that has a velocity column (said in a note)."""
+    if isinstance(model, Model):
+        return model, []
+    if model is not None:
+        return load_model(model), []
+    if metadata and isinstance(metadata.get("model"), Mapping):
+        return _model_from_metadata(metadata["model"], source), []
+    exclude = {c for c in (
+        options.time or column_roles.default_time_column(names),
+        options.trajectory or column_roles.default_trajectory_column(names)) if c}
+    pairs = column_roles.find_coordinates(names, exclude=exclude)
+    if not pairs:
+        raise DataError(f"{source}: no model given and no coordinate with a velocity column "
+                        f"found (columns: {', '.join(names)}); give --model "
+                        f"{_model_beside(source)}, or name velocities vx, x_dot, xdot, dx "
+                        "or v1 for x1; for positions without velocities give --model and "
+                        "--velocity savgol")
+    if options.columns:
+        raise UsageError("--columns needs --model (the assumed model takes the file's names)")
+    # The model's names are the columns' without their units (`x [mm]` is `x`), which
+    # `naming.resolve_columns` matches back to the columns and scales to SI.
+    def name(column: str) -> str:
+        return column_roles.split_unit(column, column_roles.COLUMN_UNITS)[0]
+
+    m = poly_model_over([name(q) for q, _ in pairs], [name(v) for _, v in pairs])
+    return m, [f"no model given: assumed {m.name} over the coordinates "
+               f"{', '.join(m.coordinates)} (pick one with --model {_model_beside(source)})"]
+
+
+def _check_same_model(tables: list[tuple[str, Any, Any]]) -> None:
+    """Files whose metadata record different models are not fitted together by default."""
+    def recorded(metadata: Any) -> Any:
+        info = metadata.get("model") if isinstance(metadata, Mapping) else None
+        return (info.get("name"), info.get("energy")) if isinstance(info, Mapping) else None
+
+    first = recorded(tables[0][2])
+    for name, _, metadata in tables[1:]:
+        other = recorded(metadata)
+        if other != first:
+            said = [f"{source}: {'no model' if m is None else repr(m[0])}"
+                    for source, m in ((tables[0][0], first), (name, other))]
+            raise UsageError(f"the files record different models ({'; '.join(said)}); fit "
+                             "them apart, or give the model of all of them with --model")
+
+
+def _model_beside(source: str) -> str:
+    """The model file to suggest for a data file: a .toml beside it whose name begins its
+    name (pendulum.toml for pendulum_encoder.csv), else NAME|FILE.toml."""
+    folder = os.path.dirname(source) or "."
+    try:
+        models = sorted(name for name in os.listdir(folder) if name.endswith(".toml"))
+    except OSError:
+        return "NAME|FILE.toml"
+    stem = os.path.basename(source).split(".")[0]
+    fitting = [name for name in models if stem.startswith(name[:-len(".toml")])]
+    if fitting:
+        return os.path.join(os.path.dirname(source), max(fitting, key=len))
+    if len(models) == 1:
+        return os.path.join(os.path.dirname(source), models[0])
+    return "NAME|FILE.toml"
+
+
+def _model_from_metadata(info: Mapping[str, Any], source: str) -> Model:
+    """The model a simulated file records (built-in by name, else from its energy), with
+    its dissipation function."""
+    name = info.get("name")
+    own = info.get("dissipation")
+    if isinstance(name, str) and (name in BUILTINS or name.startswith("poly:")) and not own:
+        candidate = builtin_model(name)
+        if candidate.energy == info.get("energy"):
+            return candidate
+    try:
+        return model_from_info(info, where=f"{source}: metadata model")
+    except (KeyError, TypeError) as exc:
+        raise DataError(f"{source}: the hamid metadata has no usable model ({exc}); "
+                        "give one with --model") from exc
+
+
+def _special_columns(names: list[str], mapping: Mapping[str, str], options: FitOptions,
+                     source: str, notes: list[str]) -> tuple[str | None, str | None]:
+    """The time and trajectory columns: as asked for, else by their usual names. A column
+    named as time that is not taken is said in `notes`."""
+    found = []
+    for asked, default, option in (
+            (options.time, column_roles.default_time_column(names), "--time"),
+            (options.trajectory, column_roles.default_trajectory_column(names), "--trajectory")):
+        if asked is not None and asked not in names:
+            raise DataError(f"{source}: no column {asked!r} for {option} "
+                            f"(columns: {', '.join(names)})")
+        found.append(default if asked is None else asked)
+    if found[0] is None:
+        unused = [name for name in names if column_roles.looks_like_time(name)
+                  and name not in mapping.values() and name != found[1]]
+        if unused:
+            notes.append(f"{source}: column {unused[0]!r} looks like time but its unit is "
+                         f"not one of {', '.join(column_roles.TIME_UNITS)}: it was not used; give "
+                         f"--time {unused[0]} --time-unit UNIT")
+    return found[0], found[1]
+
+
+def _truth(metadata: Mapping[str, Any] | None, m: Model) -> dict[str, float]:
+    """The true parameters a simulated file records for this model, else none."""
+    if not (metadata and isinstance(metadata.get("model"), Mapping)
+            and metadata["model"].get("energy") == m.energy):
+        return {}
+    # A simulated record had no damping but what its [damping] table lists.
+    undamped = dict.fromkeys(shorthand_names(m.coordinates), 0.0) \
+        if isinstance(metadata.get("damping"), Mapping) else {}
+    values = {**undamped, **(metadata.get("parameters") or {}),
+              **(metadata.get("damping") or {})}
+    return {k: float(v) for k, v in values.items() if isinstance(v, int | float)}
+
+
+GAP_STEPS = 5.0   # a time step over this many times the median step is a gap
+SHORTEST_PIECE = 3   # pieces of fewer samples are dropped
+
+
+def _split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int], ...],
+                notes: list[str]) -> tuple[Records, Any]:
+    """Cut the trajectories at rows with a missing value (dropped) and at time steps over
+    `GAP_STEPS` times their trajectory's median step, into trajectories of their own (each
+    with its own energy level); nothing is interpolated. With ``gaps="error"`` a time gap is
+    an error (missing values already are). Returns the records and, when rows were dropped,
+    the row read of each row kept."""
+    missing = np.isnan(records.X).any(axis=1)
+    if records.t is not None:
+        missing |= np.isnan(records.t)
+    kept = np.flatnonzero(~missing)
+    group, t = records.group, records.t
+    whole = len(kept) == len(group)   # no copies of the columns when nothing is missing
+    cut = np.zeros(len(kept), dtype=bool)
+    if not whole:
+        cut[1:] = (kept[1:] - kept[:-1] > 1) & (group[kept[1:]] == group[kept[:-1]])
+    n_gaps = 0
+    if t is not None and len(kept) > 1:
+        tk, gk = (t, group) if whole else (t[kept], group[kept])
+        steps = np.diff(tk)
+        same = gk[1:] == gk[:-1]
+        adjacent = same if whole else same & (kept[1:] - kept[:-1] == 1)
+        limit = np.full(len(steps), np.inf)
+        # each trajectory's steps are contiguous: one slice each (a mask per trajectory
+        # made this quadratic in their number, 15 s for 5,000)
+        for _, start, stop in runs(gk[1:]):
+            mine = steps[start:stop][adjacent[start:stop]]
+            if mine.size:
+                limit[start:stop] = GAP_STEPS * float(np.median(mine))
+        back = np.flatnonzero(same & ~(steps > 0))
+        if back.size:
+            source, row = _locate(row_sources, int(kept[back[0] + 1]))
+            raise DataError(f"{source}: row {row}: time does not increase across the missing "
+                            "values before it; sort the file by trajectory then time")
+        gap = same & (steps > limit)
+        if gap.any() and gaps == "error":
+            source, row = _locate(row_sources, int(kept[np.argmax(gap) + 1]))
+            raise DataError(f"{source}: row {row}: a time gap of {steps[np.argmax(gap)]:g} s "
+                            f"(over {GAP_STEPS:g} times the median step); give --gaps split "
+                            "to fit the pieces as separate trajectories")
+        n_gaps = int(gap.sum())
+        cut[1:] |= gap
+    n_dropouts = int(cut.sum()) - n_gaps
+    if not cut.any() and not missing.any():
+        return records, None
+    start = np.ones(len(kept), dtype=bool)
+    start[1:] = cut[1:] | (group[kept[1:]] != group[kept[:-1]])
+    piece = np.cumsum(start) - 1
+    sizes = np.bincount(piece) if len(piece) else np.zeros(0, np.int64)
+    short = sizes < SHORTEST_PIECE
+    keep_rows = ~short[piece] if len(piece) else np.zeros(0, bool)
+    kept, piece = kept[keep_rows], piece[keep_rows]
+    if not len(kept):
+        raise DataError(f"{', '.join(source for source, _ in row_sources)}: no piece of "
+                        f"{SHORTEST_PIECE} samples or more is left once the trajectories are "
+                        "cut at missing values and time gaps; give --gaps error to see where")
+    # pieces in order of appearance, each numbered as a trajectory of its own
+    pieces, first = np.unique(piece, return_index=True)
+    owner = group[kept[first]].tolist()
+    count = np.bincount(owner)
+    labels, seen = [], {}
+    for j in owner:
+        seen[j] = seen.get(j, 0) + 1
+        label = records.labels[j]
+        labels.append(label if count[j] == 1 else f"{label}/{seen[j]}")
+    new_group = np.searchsorted(pieces, piece).astype(np.int64)
+    notes.append(f"{n_dropouts + n_gaps} cut(s) in the trajectories ({n_dropouts} at missing "
+                 f"values, {n_gaps} at time gaps over {GAP_STEPS:g} times the median step): "
+                 f"{len(labels)} trajectories fitted, each with its own energy level; "
+                 f"{int(missing.sum())} row(s) with missing values and "
+                 f"{int((~keep_rows).sum())} row(s) in pieces under {SHORTEST_PIECE} samples "
+                 "dropped, nothing interpolated (--gaps error refuses instead)")
+    return Records(records.X[kept], None if t is None else t[kept], new_group,
+                   tuple(labels)), kept
+
+
+def _locate(row_sources: tuple[tuple[str, int], ...], row: int) -> tuple[str, int]:
+    source, first = next((s, f) for s, f in reversed(row_sources) if f <= row)
+    return source, row - first + 1
+
+
+def _derive_velocities(records: Records, model: Model, window: int | None, order: int,
+                       period: float | None) -> tuple[Records, tuple[int, float]]:
+    """Records whose velocities come from Savitzky-Golay differentiation of the positions
+    (`period`, the dominant one, sets the default window)."""
+    from hamid.data import measurement
+
+    if records.t is None:
+        raise UsageError("--velocity savgol needs a time column; name it with --time COL "
+                         "(and its unit with --time-unit)")
+    N = len(model.coordinates)
+    if window is None:
+        dt = float(np.median(np.diff(records.t)))
+        window = measurement.default_savgol_window(None if period is None else period / dt,
+                                                   order)
+    V, gain = measurement.savgol_velocities(records.X[:, :N], records.t, records.bounds(),
+                                            window=window, order=order)
+    X = records.X.copy()
+    X[:, N:] = V
+    return dataclasses.replace(records, X=X), (window, gain)
+
+
+def noise_levels(loaded: Loaded,
+                 noise: str | Mapping[str, float] | None) -> tuple[Any, dict[str, float] | None]:
+    """Noise std per model variable, from the user or estimated; None without --noise."""
+    from hamid.data import measurement
+
+    if noise is None or noise == "none":
+        return None, None
+    model, records = loaded.model, loaded.records
+    N = len(model.coordinates)
+    if noise == "auto":
+        sigma = measurement.estimate_noise(records.X, records.bounds())
+    elif isinstance(noise, Mapping):
+        by_column = {column: name for name, column in loaded.data_info["columns"].items()}
+        sigma = np.zeros(len(model.variables))
+        for key, value in noise.items():
+            name = key if key in model.variables else by_column.get(key)
+            if name is None:
+                raise UsageError(f"--noise: {key!r} is not a column of the model "
+                                 f"({', '.join(model.variables)})")
+            if not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
+                raise UsageError(f"--noise: {key}={value!r} is not a non-negative number")
+            k = model.variables.index(name)
+            spread = float(records.spread[k])
+            if value > 2 * spread:   # the column's spread holds its noise and its motion
+                raise UsageError(f"--noise: {key}={value:g} is more than twice the spread of "
+                                 f"the column itself (standard deviation {spread:.3g}); give "
+                                 "the noise in the column's units")
+            sigma[k] = float(value)
+    else:
+        raise UsageError(f"--noise must be none, auto or COL=SIGMA,..., found {noise!r}")
+    if loaded.velocity_gain is not None:
+        sigma[N:] = sigma[:N] * loaded.velocity_gain
+    if not np.any(sigma > 0):
+        raise UsageError("--noise: every column has zero noise; leave --noise out instead")
+    return sigma, {name: float(s) for name, s in zip(model.variables, sigma, strict=True)}
+
+
+def trajectory_label(value: Any) -> Any:
+    """A trajectory column's value as the label reported: a Python scalar, whole numbers
+    as int (a column with missing cells is read as floats)."""
+    value = value.item() if hasattr(value, "item") else value
+    return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
+def in_memory_name(data: Any) -> str | None:
+    """The name of data given in memory, in messages and the report's sources:
+    ``<DataFrame>`` (pandas), ``<array>`` (a NumPy structured array) or ``<dict>`` (a
+    mapping of column name to array); None for files."""
+    pandas = sys.modules.get("pandas")   # no import: a DataFrame needs pandas loaded
+    if pandas is not None and isinstance(data, pandas.DataFrame):
+        return "<DataFrame>"
+    if isinstance(data, np.ndarray) and data.dtype.names:
+        return "<array>"
+    return "<dict>" if isinstance(data, Mapping) else None
+
+
+def in_memory_table(data: Any) -> tuple[str, Mapping[str, Any], Any] | None:
+    """Data given in memory as a table, read as a file's columns would be: its name
+    (`in_memory_name`), its columns and its metadata (a DataFrame's ``attrs["hamid"]``);
+    None for files."""
+    name = in_memory_name(data)
+    if name == "<DataFrame>":
+        return name, data, data.attrs.get("hamid")
+    if name == "<array>":
+        return name, {field: data[field] for field in data.dtype.names}, None
+    if name is None:
+        return None
+    columns = {str(key): np.asarray(values) for key, values in data.items()}
+    for key, values in columns.items():
+        if values.ndim != 1:
+            raise DataError(f"{name}: column {key!r} has shape {values.shape}; give one "
+                            "one-dimensional array per column")
+    if len({len(values) for values in columns.values()}) > 1:
+        listed = ", ".join(f"{key}: {len(values)}" for key, values in columns.items())
+        raise DataError(f"{name}: the columns have different lengths ({listed})")
+    return name, columns, None

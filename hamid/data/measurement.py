@@ -1,0 +1,215 @@
+"""What the recording itself tells about its errors: noise levels and derived velocities."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+from hamid.data.records import Records
+from hamid.errors import DataError, UsageError
+
+__all__ = ["DIFFERENCE_ORDER", "estimate_noise", "savgol_velocities", "velocity_check"]
+
+# Differences of this order remove a smooth signal (its k-th difference is ~ (w dt)^k) and
+# keep white noise, scaled by sqrt(C(2k, k)).
+DIFFERENCE_ORDER = 4
+_MAD_TO_SIGMA = 1.4826  # median absolute deviation of a Gaussian, in standard deviations
+# A Savitzky-Golay filter must differentiate the polynomials of its order to this accuracy
+# (in units of the window): an error e of its coefficients puts about 4e into the velocities
+# at the default window. scipy's coefficients go from 1e-9 to 100% wrong within a few samples
+# of window, not smoothly (order 5: first above at 1,195 samples, 1,913 3e-5, 2,001 wrong;
+# order 9: first above at 59, 101 wrong).
+SAVGOL_EXACTNESS = 1e-6
+
+
+def estimate_noise(X: npt.NDArray[np.float64],
+                   bounds: Sequence[tuple[int, int]]) -> npt.NDArray[np.float64]:
+    """White-noise standard deviation of each column, from differences within trajectories.
+
+    The k-th difference of white noise of std sigma has std sigma * sqrt(C(2k, k)), while
+    that of a smooth, finely sampled signal is negligible; the median absolute deviation
+    keeps a few outliers from inflating the estimate.
+
+    Parameters
+    ----------
+    X : ndarray, shape (n_samples, n_columns)
+    bounds : list of (start, stop)
+        Row range of each trajectory.
+
+    Returns
+    -------
+    sigma : ndarray, shape (n_columns,)
+    """
+    k = DIFFERENCE_ORDER
+    usable = [(a, b) for a, b in bounds if b - a > k]
+    if not usable:
+        raise DataError(f"too few samples to estimate the noise (need more than {k} per "
+                        "trajectory); give --noise COL=SIGMA instead of auto")
+    # one column of differences at a time, reordered in place by the medians (a column's
+    # order does not change its median): no copy of the record's size
+    differences = np.empty(sum(b - a - k for a, b in usable))
+    mad = np.empty(X.shape[1])
+    for column in range(X.shape[1]):
+        row = 0
+        for a, b in usable:
+            differences[row:row + b - a - k] = np.diff(X[a:b, column], n=k)
+            row += b - a - k
+        differences -= np.median(differences, overwrite_input=True)
+        mad[column] = np.median(np.abs(differences, out=differences), overwrite_input=True)
+    return _MAD_TO_SIGMA * mad / math.sqrt(math.comb(2 * k, k))
+
+
+def savgol_velocities(Q: npt.NDArray[np.float64], t: npt.NDArray[np.float64],
+                      bounds: Sequence[tuple[int, int]], *, window: int,
+                      order: int) -> tuple[npt.NDArray[np.float64], float]:
+    """Velocities of the coordinates by Savitzky-Golay differentiation, per trajectory.
+
+    The edges use the filter's ``interp`` mode (a polynomial fitted to the first and last
+    window), so they carry no wild values. Sampling must be even within each trajectory.
+
+    Returns
+    -------
+    V : ndarray, shape like Q
+    gain : float
+        How much the filter amplifies white noise of the positions into the velocities:
+        std(v noise) = gain * std(q noise).
+    """
+    from scipy.signal import savgol_coeffs, savgol_filter
+
+    if window % 2 == 0 or window <= order:
+        raise UsageError(f"--window must be odd and larger than --order ({order}), "
+                         f"found {window}")
+    _check_savgol(window, order)
+    V = np.empty_like(Q)
+    gain = 0.0
+    for a, b in bounds:
+        t_j = t[a:b]
+        if b - a < window:
+            raise DataError(f"a trajectory of {b - a} samples is shorter than the "
+                            f"Savitzky-Golay window of {window}; use a smaller --window")
+        step = np.diff(t_j)
+        dt = float(np.mean(step))
+        if not np.allclose(step, dt, rtol=1e-6, atol=0):
+            row = int(np.argmax(np.abs(step - dt) > 1e-6 * dt)) + a + 2
+            raise DataError(f"--velocity savgol needs evenly sampled times; the time step "
+                            f"changes at row {row} ({step.min():g} to {step.max():g})")
+        V[a:b] = savgol_filter(Q[a:b], window, order, deriv=1, delta=dt, axis=0,
+                               mode="interp")
+        gain = max(gain, float(np.linalg.norm(savgol_coeffs(window, order, deriv=1,
+                                                            delta=dt))))
+    return V, gain
+
+
+def _savgol_error(window: int, order: int) -> float:
+    """How far scipy's Savitzky-Golay derivative misses on the polynomials of its order, in
+    units of the window. Its coefficients come from the powers of the sample offsets,
+    x**order, which over a long window span more than a double holds: the filter then
+    misses even the derivative of a straight line."""
+    from scipy.signal import savgol_coeffs
+
+    half = window // 2
+    x = np.arange(-half, half + 1) / half
+    # d/dx (x/half)**k at 0 is 1/half for k = 1 and 0 for every other k up to the order
+    found = np.vander(x, order + 1, increasing=True).T @ savgol_coeffs(window, order, deriv=1,
+                                                                       use="dot") * half
+    return float(np.max(np.abs(found - np.eye(order + 1)[1])))
+
+
+def _check_savgol(window: int, order: int) -> None:
+    """Refuse a filter that cannot be computed accurately (`_savgol_error`)."""
+    if _savgol_error(window, order) > SAVGOL_EXACTNESS:
+        raise UsageError(f"--velocity savgol: a filter of order {order} over {window} samples "
+                         "cannot be computed accurately (scipy's coefficients lose their "
+                         "precision); give a shorter --window or a lower --order")
+
+
+def default_savgol_window(period_samples: float | None, order: int) -> int:
+    """An odd window of about a tenth of the dominant period, and at least order + 2, but
+    no longer than a filter of that order can be computed accurately over."""
+    target = 11 if period_samples is None else int(round(period_samples / 10))
+    window = max(target, order + 2)
+    window = window if window % 2 else window + 1
+    if _savgol_error(window, order) <= SAVGOL_EXACTNESS:
+        return window
+    # the error grows with the window, if not smoothly: bisect for an accurate one below
+    # (for too high an order there is none, and savgol_velocities refuses the shortest)
+    good, bad = (order + 2) | 1, window
+    while bad - good > 2:
+        middle = (good + bad) // 4 * 2 + 1
+        good, bad = (middle, bad) if _savgol_error(middle, order) <= SAVGOL_EXACTNESS \
+            else (good, middle)
+    return good
+
+
+VELOCITY_RATIO = 1.25   # measured velocities this far from the positions' rate are said
+VELOCITY_SPAN = 8       # samples over which the positions' change is compared
+# A lag of the velocities behind the positions acts like a viscous force of damping ratio
+# about pi * lag / period (v(t - lag) = v - lag a, and a = -w^2 q for an oscillation); one
+# that would add more than this to the damping ratio is said.
+LAG_DAMPING_RATIO = 5e-4
+LAG_SIGNIFICANCE = 4.0   # standard errors: a lag the noise could fake is not said
+
+
+def velocity_check(records: Records, coordinates: Sequence[str], velocities: Sequence[str],
+                   mapping: Mapping[str, str], period: float | None) -> list[str]:
+    """Warnings when the measured velocities disagree with the rate of change of the
+    positions: a column in other units (mm with m/s), a wrong time unit, or a lag (a
+    velocity channel filtered after the fact).
+
+    Over spans of `VELOCITY_SPAN` samples, the change of each coordinate is regressed on
+    the integral of its velocity and on the change of the velocity: x(t+s) - x(t) =
+    ratio * integral(v) + lag * (v(t+s) - v(t)) to first order in a lag. A ratio beyond
+    `VELOCITY_RATIO` either way is said, and so is a lag that acts like damping of ratio
+    over `LAG_DAMPING_RATIO` at the dominant `period` (None: no lag is judged) and is
+    `LAG_SIGNIFICANCE` standard errors from zero. Integrals rather than differences keep
+    the position noise from being amplified.
+    """
+    assert records.t is not None
+    N = len(coordinates)
+    warnings = []
+    for k, (q, v) in enumerate(zip(coordinates, velocities, strict=True)):
+        normal, right, squares, count = np.zeros((2, 2)), np.zeros(2), 0.0, 0
+        for start, stop in records.bounds():
+            t, x = records.t[start:stop], records.X[start:stop, k]
+            rate = records.X[start:stop, N + k]
+            span = min(VELOCITY_SPAN, len(t) - 1)
+            if span < 1:
+                continue
+            integral = np.concatenate([[0.0], np.cumsum(np.diff(t) * (rate[1:] + rate[:-1])
+                                                        / 2)])
+            a = x[span:] - x[:-span]
+            B = np.column_stack([integral[span:] - integral[:-span], rate[span:] - rate[:-span]])
+            normal += B.T @ B
+            right += B.T @ a
+            squares, count = squares + float(a @ a), count + len(a)
+        if normal[0, 0] <= 0 or not np.all(np.isfinite(normal)):
+            continue
+        with np.errstate(all="ignore"):
+            ratio = right[0] / normal[0, 0]
+            fit = np.linalg.lstsq(normal, right, rcond=1e-12)[0]
+        if not np.isfinite(ratio):
+            continue
+        name_q, name_v = mapping.get(q, q), mapping.get(v, v)
+        if not 1 / VELOCITY_RATIO <= ratio <= VELOCITY_RATIO:
+            warnings.append(
+                f"the positions {name_q!r} change {ratio:.3g} times as fast as the "
+                f"velocities {name_v!r} say: are the units mixed (mm with m/s) or "
+                "the time unit wrong? Give --time-unit, or --scale COL=FACTOR")
+            continue
+        lag = float(fit[1] / fit[0])
+        # the lag's standard error from the residuals, the overlap of the spans counted
+        residual = max(squares - float(fit @ right), 0.0) / max(count - 2, 1)
+        with np.errstate(all="ignore"):
+            spread = math.sqrt(residual * abs(np.linalg.pinv(normal)[1, 1]) * span) / abs(fit[0])
+        if (period and np.isfinite(lag) and abs(lag) > LAG_SIGNIFICANCE * spread
+                and math.pi * abs(lag) / period > LAG_DAMPING_RATIO):
+            warnings.append(
+                f"the velocities {name_v!r} {'lag behind' if lag > 0 else 'run ahead of'} "
+                f"the positions {name_q!r} by {abs(lag):.3g} s ({abs(lag) / period:.2g} of a "
+                "period; a filtered channel?): that acts like a damping ratio of "
+                f"{'+' if lag < 0 else '-'}{math.pi * abs(lag) / period:.2g} and biases "
+                "damping estimates; derive the velocities with --velocity savgol")
+    return warnings

@@ -1,0 +1,152 @@
+"""Which rows the fit takes (energy, weak, joint), why, and whether it is refined.
+
+Decided once, from the options, the model and each trajectory's period and time step
+(docs/method.md, "Choosing the rows"), and revised only when the records turn out to hold
+too few weak-form windows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from hamid.errors import DataError, FitError, UsageError
+from hamid.linear import design
+from hamid.model.models import Model
+from hamid.options import REFINEMENT_BYTES, FitOptions
+
+__all__ = ["FitPlan", "decide", "refinement_obstacle"]
+
+CHUNKED_NOT_REFINED = ("it holds the records in memory, and --chunk-rows asks for "
+                       "bounded memory")
+
+
+@dataclass(frozen=True)
+class FitPlan:
+    """The rows to fit and why.
+
+    kind : "energy", "weak" or "joint".
+    reason : the report's words for the choice (and, once known, for the refinement).
+    window : the weak-form window in seconds (None for energy rows).
+    scales : each trajectory's period and time step (None without a time column, or when
+        the energy rows were asked for and no window needs sizing).
+    """
+
+    kind: str
+    reason: str
+    window: float | None
+    scales: list[tuple[float | None, float]] | None
+
+    def check_windows(self, n_windows: int, free_names: list[str], n_trajectories: int,
+                      options: FitOptions) -> FitPlan:
+        """This plan, or the energy rows' when `auto` finds too few windows to fit.
+
+        Windows are the independent units of the weak and joint errors, so more are needed
+        than unknowns (the levels count in joint).
+        """
+        needed = len(free_names) + (n_trajectories if self.kind == "joint" else 0) + 1
+        if self.kind == "energy" or n_windows >= needed:
+            return self
+        shortage = (f"the records hold {n_windows} weak-form windows of {self.window:.3g} s, "
+                    f"fewer than the {needed} that {needed - 1} unknowns need")
+        if options.method == "auto" and options.weak_window is None:
+            return FitPlan("energy", f"{shortage}; fitted the energy rows", None, self.scales)
+        if n_windows == 0:
+            raise DataError(f"the records are too short for one weak-form window of "
+                            f"{self.window:.4g} s; use --method energy or a shorter "
+                            "--weak-window")
+        raise FitError(f"cannot determine {', '.join(free_names)}: {shortage}; use "
+                       "--method energy or a shorter --weak-window")
+
+    def refined(self, info: dict[str, Any]) -> FitPlan:
+        """The plan with what the refinement did added to its reason."""
+        note = ("; refined by fitting the integrated trajectories" if info["applied"]
+                else f"; not refined by fitting trajectories: {info['reason']}")
+        return FitPlan(self.kind, self.reason + note, self.window, self.scales)
+
+
+def decide(options: FitOptions, model: Model,
+           scales: list[tuple[float | None, float]] | None) -> FitPlan:
+    """Which rows to fit, why, and the weak-form window.
+
+    `scales` holds each trajectory's period and time step (`design.trajectory_scales`),
+    None without a time column.
+    """
+    method, weak_window = options.method, options.weak_window
+    if method == "energy":
+        return FitPlan("energy", "asked for with --method energy", None, scales)
+    obstacle = None
+    window = weak_window
+    if scales is None:
+        obstacle = "the data have no time column"
+    elif not model.is_natural:
+        obstacle = "the energy is not natural (E = T + V), so Lagrange's equations do not apply"
+    elif window is None:
+        period = design.median_period(scales)
+        if period is None:
+            obstacle = "no oscillation was found in the coordinates to size the windows"
+        else:
+            window = period / 2
+    if obstacle is None:
+        dt = float(np.median([step for _, step in scales]))
+        per_window = window / dt
+        # within rounding: a window of 1 s at dt = 0.05 s is 19.999999999999996 steps
+        if per_window < design.MIN_SAMPLES_PER_WINDOW * (1 - 1e-9):
+            obstacle = (f"a weak-form window of {window:.3g} s holds only {per_window:.3g} "
+                        f"samples (at least {design.MIN_SAMPLES_PER_WINDOW} are needed)")
+    if obstacle is not None:
+        if method != "auto":
+            raise UsageError(f"--method {method} is not possible: {obstacle}")
+        return FitPlan("energy", f"{obstacle}; fitted the energy rows", None, scales)
+    how = "given" if weak_window is not None else "half the dominant period"
+    if method == "auto":
+        return FitPlan("joint", f"time column sampled finely enough for weak-form windows "
+                       f"of {window:.3g} s ({how})", window, scales)
+    return FitPlan(method, f"asked for with --method {method}; windows of {window:.3g} s "
+                   f"({how})", window, scales)
+
+
+def window_warnings(fit_plan: FitPlan, durations: list[float] | None) -> list[str]:
+    """A warning when weak-form windows are longer than some trajectories (which then give
+    no weak-form rows)."""
+    if fit_plan.window is None or not durations:
+        return []
+    window, step = fit_plan.window, fit_plan.window * design.WINDOW_STEP
+    notes = []
+    short = [d for d in durations if d < window]
+    if short:
+        notes.append(f"{len(short)} of {len(durations)} trajectories are shorter than the "
+                     f"weak-form window of {window:.3g} s (the shortest lasts "
+                     f"{min(short):.3g} s) and give no weak-form rows; give a shorter "
+                     "--weak-window, or check the time unit")
+    # windows start every `step` and end within the trajectory: what they reach of it
+    covered = sum(np.floor((d - window) / step) * step + window for d in durations
+                  if d >= window)
+    if sum(durations) > 0 and covered < 0.5 * sum(durations):
+        notes.append(f"the weak-form windows cover only {covered / sum(durations):.0%} of "
+                     "the record; give a shorter --weak-window, or check the time unit")
+    return notes
+
+
+def refinement_obstacle(options: FitOptions, records_bytes: int | None = None) -> str | None:
+    """Why an automatic joint fit is not refined by trajectories, or None when it is.
+
+    `records_bytes` is the size of the records that a fit read in chunks would hold in
+    memory for the refinement (None for a fit in memory).
+    """
+    if "coulomb" in options.damping:
+        return ("Coulomb friction makes the motion jump at every stop, which the trajectory "
+                "fit's integration and differences do not follow")
+    if options.cov != "hac":
+        return (f"the trajectory fit has a covariance of its own, and --cov {options.cov} "
+                "asks for that of the linear fit")
+    if options.bias_correct:
+        return "--bias-correct asks for the linear fit"
+    if records_bytes is not None and options.chunk_rows is not None:
+        return CHUNKED_NOT_REFINED
+    if records_bytes is not None and records_bytes > REFINEMENT_BYTES:
+        return (f"it holds the records in memory, {records_bytes / 2**30:.1f} GiB here, over "
+                f"the limit of {REFINEMENT_BYTES / 2**30:g} GiB")
+    return None

@@ -1,0 +1,177 @@
+"""Rayleigh's dissipation function: the forces that take energy out of a model.
+
+R(q, v) = sum_k c_k R_k(q, v) is linear in its coefficients c_k. The dissipative force on
+coordinate i is F_i = -dR/dv_i, and the power dissipated is -F.v = sum_i v_i dR/dv_i
+(docs/method.md, "Damping: the energy balance"). A model file may give R in its
+``[damping]`` table, e.g. joint friction between two arms:
+
+    [damping]
+    dissipation = "k1*omega1**2/2 + k2*(omega2 - omega1)**2/2"
+    parameters = ["k1", "k2"]
+
+and ``--damping viscous|coulomb|quadratic`` is shorthand for one term per coordinate:
+c_q v**2/2, mu_q abs(v) and d_q abs(v)**3/3, whose forces are -c v, -mu sign(v) and
+-d |v| v. Both go through the safe expression parser (`hamid.model.expressions`) as one function,
+so
+the energy balance, the weak-form rows, the refinement and the simulator see one kind of
+dissipation, however it was written.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import numpy.typing as npt
+
+from hamid.errors import ModelError
+from hamid.model import expressions
+
+__all__ = ["SHORTHAND", "Dissipation", "shorthand_names"]
+
+Array = npt.NDArray[np.float64]
+
+# kind -> (coefficient prefix, the term of R per unit coefficient in the velocity {v})
+SHORTHAND: dict[str, tuple[str, str]] = {
+    "viscous": ("c", "{v}**2/2"),
+    "coulomb": ("mu", "abs({v})"),
+    "quadratic": ("d", "abs({v})**3/3"),
+}
+
+
+def shorthand_names(coordinates: Sequence[str]) -> dict[str, tuple[str, int]]:
+    """Every shorthand coefficient name a model allows -> (kind, coordinate index)."""
+    return {f"{prefix}_{q}": (kind, i) for kind, (prefix, _) in SHORTHAND.items()
+            for i, q in enumerate(coordinates)}
+
+
+@dataclass(frozen=True, eq=False)
+class Dissipation:
+    """R = sum_k c_k R_k over the state (coordinates, velocities); no terms: conservative.
+
+    `function` and `parameters` are the model file's own R (None and () without one);
+    `names` are every coefficient, the model file's first, then the shorthand ones.
+    """
+
+    coordinates: tuple[str, ...]
+    velocities: tuple[str, ...]
+    names: tuple[str, ...] = ()
+    parts: tuple[expressions.Func, ...] = ()
+    function: str | None = None
+    parameters: tuple[str, ...] = ()
+
+    @classmethod
+    def build(cls, coordinates: Sequence[str], velocities: Sequence[str], *,
+              function: str | None = None, parameters: Sequence[str] = (),
+              shorthand: Sequence[str] = (), where: str = "[damping]") -> Dissipation:
+        """R from a model file's function of `parameters` plus shorthand coefficients
+        (names such as ``c_x``, `shorthand_names`)."""
+        coordinates, velocities = tuple(coordinates), tuple(velocities)
+        allowed = shorthand_names(coordinates)
+        unknown = [name for name in shorthand if name not in allowed]
+        if unknown:
+            raise ModelError(f"{where}: not damping coefficients of this model: "
+                             f"{', '.join(unknown)}")
+        clash = sorted(set(parameters) & set(shorthand))
+        if clash:
+            raise ModelError(f"{where}: {', '.join(clash)} is both a parameter of the "
+                             "dissipation function and a --damping coefficient; rename it")
+        terms = [f"({function})"] if function is not None else []
+        for name in shorthand:
+            kind, i = allowed[name]
+            terms.append(f"{name}*{SHORTHAND[kind][1].format(v=velocities[i])}")
+        names = (*parameters, *shorthand)
+        if not terms:
+            return cls(coordinates, velocities)
+        tree = expressions.parse(" + ".join(terms), [*coordinates, *velocities, *names],
+                          where=f"{where}: dissipation")
+        _, parts = expressions.split_linear(tree, coordinates + velocities, names,
+                                     where=f"{where}: dissipation", what="dissipation")
+        return cls(coordinates, velocities, names, parts, function, tuple(parameters))
+
+    def with_kinds(self, kinds: Sequence[str]) -> Dissipation:
+        """This R plus the shorthand terms of `kinds` (``--damping``), kind by kind and
+        coordinate by coordinate."""
+        return self.with_shorthand([f"{SHORTHAND[kind][0]}_{q}" for kind in kinds
+                                    for q in self.coordinates])
+
+    def with_shorthand(self, names: Sequence[str]) -> Dissipation:
+        """This R plus shorthand terms by coefficient name (``c_x``, `shorthand_names`)."""
+        if not names:
+            return self
+        return Dissipation.build(self.coordinates, self.velocities, function=self.function,
+                                 parameters=self.parameters,
+                                 shorthand=[*self.names[len(self.parameters):], *names])
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    @property
+    def n(self) -> int:
+        return len(self.coordinates)
+
+    @property
+    def variables(self) -> tuple[str, ...]:
+        return self.coordinates + self.velocities
+
+    @cached_property
+    def _forces(self) -> Callable[[Array], Array]:
+        """dR_k/dv_i of every part k and velocity i, in one compiled call."""
+        return expressions.Func.stack([part.diff(v) for part in self.parts
+                                       for v in self.velocities])
+
+    @cached_property
+    def _slopes(self) -> Callable[[Array], Array]:
+        """d(dR_k/dv_i)/dx_c of every part k, velocity i and state variable c."""
+        return expressions.Func.stack([part.diff(v).diff(x) for part in self.parts
+                                for v in self.velocities for x in self.variables])
+
+    def force_parts(self, X: Array) -> Array:
+        """dR_k/dv_i at the states X (n, 2N): shape (n, N, K)."""
+        values = _evaluate(self._forces, X)
+        return values.reshape(len(self), self.n, len(X)).transpose(2, 1, 0)
+
+    def power_parts(self, X: Array) -> Array:
+        """sum_i v_i dR_k/dv_i at the states X (n, 2N): the power each coefficient
+        dissipates, shape (n, K)."""
+        return np.einsum("nik,ni->nk", self.force_parts(X), X[:, self.n:])
+
+    def forces_at(self, Yt: Array, coefficients: Array) -> Array:
+        """F_i = -sum_k c_k dR_k/dv_i at states Yt (2N, n), the variables on the first
+        axis: shape (N, n). `coefficients` is (K,), or (K, n) with one column per state."""
+        n = Yt.shape[1]
+        values = self._forces(Yt)
+        if values.shape[1:] != (n,):   # constant entries
+            values = np.broadcast_to(values, (len(values), n))
+        values = values.reshape(len(self), self.n, n)
+        c = np.asarray(coefficients, dtype=np.float64)
+        return -(np.einsum("kin,k->in", values, c) if c.ndim == 1
+                 else np.einsum("kin,kn->in", values, c))
+
+    def force_slopes(self, X: Array, coefficients: Array) -> Array:
+        """d(-F_i)/dx_c = sum_k c_k d(dR_k/dv_i)/dx_c at states X (n, 2N): (n, N, 2N)."""
+        values = _evaluate(self._slopes, X).reshape(len(self), self.n, 2 * self.n, len(X))
+        return np.einsum("kicn,k->nic", values, np.asarray(coefficients, dtype=np.float64))
+
+    def power_slopes(self, X: Array, coefficients: Array) -> Array:
+        """d(sum_k c_k power_k)/dx_c at states X (n, 2N), shape (n, 2N): the product rule
+        on sum_i v_i dR/dv_i."""
+        c = np.asarray(coefficients, dtype=np.float64)
+        slopes = np.einsum("nic,ni->nc", self.force_slopes(X, c), X[:, self.n:])
+        slopes[:, self.n:] += self.force_parts(X) @ c
+        return slopes
+
+    @cached_property
+    def kinks(self) -> tuple[tuple[expressions.Func, ...], ...]:
+        """Per part, the functions of the state at whose zeros it is not smooth (the
+        arguments of abs and sign): integrals over time are split there."""
+        return tuple(tuple(expressions.kinks(part.expression, self.variables))
+                     if isinstance(part, expressions.Symbolic) else () for part in self.parts)
+
+
+def _evaluate(stack: Callable[[Array], Array], X: Array) -> Array:
+    """A stack's values at the states X (n, 2N), constant entries broadcast: (funcs, n)."""
+    values = stack(np.asarray(X, dtype=np.float64).T)
+    return np.broadcast_to(values, (len(values), len(X)))

@@ -1,0 +1,356 @@
+"""The fit's report: estimates with bounds, levels, the residual summary, conditioning,
+what the method did, per-sample rows, dissipation and warnings (docs/output.md)."""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from hamid import __version__
+from hamid.data import loading, readers
+from hamid.errors import DataError
+from hamid.linear import design, uncertainty
+from hamid.linear.design import Block
+from hamid.linear.estimate import LinearFit, NoiseCheck, ResidualSums, Rows
+from hamid.linear.plan import FitPlan
+from hamid.linear.unknowns import Unknowns
+from hamid.model.dissipation import Dissipation
+from hamid.model.models import Model
+from hamid.options import FitOptions, percent
+from hamid.result.fit_result import (
+    EnergyLevel,
+    FitResult,
+    InputFile,
+    ParameterEstimate,
+    ProvenanceInfo,
+    plain_data,
+)
+
+__all__ = ["Provenance", "dissipation_summary", "fit_result", "run_provenance", "samples"]
+
+# A drift is reported when the energy changes by more than this fraction over the record
+# and a straight line in time explains this share of the residual variance.
+_DRIFT_CHANGE, _DRIFT_SHARE = 0.01, 0.2
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """What the report says about the data and how they were weighted."""
+
+    data: dict[str, Any]
+    labels: tuple[Any, ...]
+    truth: dict[str, float]
+    notes: tuple[str, ...]
+    noise: dict[str, float] | None = None
+    noise_check: NoiseCheck | None = None
+
+
+def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: ResidualSums,
+               plan: FitPlan, options: FitOptions, provenance: Provenance,
+               refinement: dict[str, Any] | None, dissipation: dict[str, Any] | None = None,
+               samples: dict[str, Any] | None = None,
+               run: ProvenanceInfo | None = None) -> FitResult:
+    """The fit's report: estimates with bounds, levels, residuals, conditioning, warnings,
+    the free parameters' covariance and the run's provenance (`run_provenance`)."""
+    stderr = np.sqrt(np.clip(np.diag(fit.covariance), 0, None))
+    low, high = uncertainty.confidence_bounds(fit.theta, stderr, fit.df, options.level)
+    truth = provenance.truth
+    parameters, free_index = [], 0
+    for k, name in enumerate(unknowns.names):
+        role = unknowns.role(k)
+        if name in unknowns.fixed:
+            parameters.append(ParameterEstimate(name, role, unknowns.fixed[name], None, None,
+                                                None, truth.get(name), True))
+            continue
+        i, free_index = free_index, free_index + 1
+        parameters.append(ParameterEstimate(
+            name, role, float(fit.theta[i]), _finite_or_none(stderr[i]),
+            _finite_or_none(low[i]), _finite_or_none(high[i]), truth.get(name), False))
+    stats = {**residuals.stats(provenance.labels), "blocks": fit.block_stats}
+    method = {
+        "kind": plan.kind, "kind_reason": plan.reason, "weak_window": plan.window,
+        "damping": list(options.damping),
+        "weighting": "none" if provenance.noise is None else "noise",
+        "noise": provenance.noise, "weighting_rounds": fit.weighting_rounds,
+        "bias_correction": options.bias_correct, "covariance": options.cov,
+        "covariance_description": fit.description, "level": options.level,
+        "fixed": dict(unknowns.fixed), "block_variance": fit.block_variance,
+        "refinement": refinement,
+        "discretization": None if fit.discretization is None else dict(
+            zip(unknowns.free_names, fit.discretization.tolist(), strict=True)),
+    }
+    cond = fit.conditioning
+    conditioning = {
+        "condition_number": cond.condition_number,
+        "singular_values": list(cond.singular_values),
+        "weakest_direction": cond.weakest_direction, "status": cond.status,
+        "blocks": fit.block_conditions,
+    }
+    levels = tuple(EnergyLevel(label, float(level), _finite_or_none(error), int(size))
+                   for label, level, error, size in zip(provenance.labels, fit.h, fit.h_stderr,
+                                                        fit.sizes, strict=True))
+    warnings = [*provenance.notes,
+                *_warnings(parameters, stats, cond, fit.df, options, plan.kind, refinement,
+                           [*options.damping, *(["Rayleigh"] if model.dissipation else [])]),
+                *_noise_warnings(provenance.noise_check)]
+    return FitResult(
+        hamid_version=__version__,
+        model=model.info(),
+        data=plain_data(provenance.data),
+        method=plain_data(method),
+        parameters=tuple(parameters),
+        energy_levels=levels,
+        residuals=plain_data(stats),
+        conditioning=plain_data(conditioning),
+        warnings=tuple(warnings),
+        dissipation=plain_data(dissipation),
+        covariance={"names": [p.name for p in parameters if not p.fixed],
+                    "matrix": plain_data(_symmetric(fit.covariance).tolist())},
+        provenance=run,
+        samples=samples,
+    )
+
+
+def run_provenance(data: Any, options: FitOptions) -> ProvenanceInfo:
+    """The inputs (size, SHA-256), the time now (UTC), the versions of hamid, numpy, scipy
+    and pyarrow, and the bootstrap's seed; `command` is None (the CLI sets it).
+
+    Each file is hashed in one streaming pass of 1 MiB blocks (`io.file_digest`); a file
+    that cannot be read is listed without size and digest, for the reading to report.
+    """
+    from datetime import UTC, datetime
+
+    items = data if isinstance(data, list | tuple) else [data]
+    return {
+        "inputs": [_input_file(item) for item in items],
+        "utc": datetime.now(UTC).isoformat(timespec="seconds").replace("+00:00", "Z"),
+        "versions": {"hamid": __version__, "numpy": np.__version__,
+                     "scipy": _version("scipy"), "pyarrow": _version("pyarrow")},
+        "seed": options.seed if options.cov == "bootstrap" else None,
+        "command": None,
+    }
+
+
+def _input_file(item: Any) -> InputFile:
+    """Helper: one input's name, size and digest (None for stdin, a DataFrame, an error)."""
+    if not isinstance(item, str | os.PathLike):
+        return {"path": loading.in_memory_name(item) or type(item).__name__, "size": None,
+                "sha256": None}
+    if readers.is_stdio(item):
+        return {"path": readers.STDIN, "size": None, "sha256": None}
+    if not os.path.isfile(item):   # a FIFO or device: hashing would use up or never end
+        return {"path": os.fsdecode(item), "size": None, "sha256": None}
+    try:
+        size, sha256 = readers.file_digest(item)
+    except DataError:
+        return {"path": os.fsdecode(item), "size": None, "sha256": None}
+    return {"path": os.fsdecode(item), "size": size, "sha256": sha256}
+
+
+def _version(package: str) -> str | None:
+    """Helper: an installed package's version (of the module loaded, if it is), or None."""
+    module = sys.modules.get(package)
+    if module is not None and isinstance(getattr(module, "__version__", None), str):
+        return str(module.__version__)
+    from importlib import metadata
+
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def samples(rows: Rows, fit: LinearFit, model: Model, unknowns: Unknowns, plan: FitPlan,
+            labels: tuple[Any, ...]) -> dict[str, Any]:
+    """Each sample's trajectory, time, fitted energy, energy residual and the weight its
+    energy equation carried (for --residuals). The last use of the rows' energy rows of
+    every sample: they are let go (`Rows.release`) before the outputs that do not need
+    them are made."""
+    energy = rows.energy
+    estimates = unknowns.estimates(fit.theta)
+    residual = energy.A @ fit.theta   # then in place: no more arrays of the record's length
+    residual -= energy.b
+    residual -= fit.h[energy.group]
+    group, time, n_samples = energy.group, energy.time, energy.n_rows
+    fitted = design.fitted_energy(rows.all_energy, model, estimates)
+    del energy
+    rows.release()
+    return {"trajectory": np.asarray(labels, dtype=object)[group], "t": time,
+            "energy": fitted, "residual": residual,
+            "weight": design.sample_weights(plan.kind, rows.blocks, n_samples, rows.windows)}
+
+
+def _symmetric(covariance: Any) -> Any:
+    """Helper: a covariance matrix made exactly symmetric (its rounding-level asymmetry
+    averaged out; the diagonal, and so the standard errors, unchanged)."""
+    matrix = np.asarray(covariance, dtype=float)
+    return (matrix + matrix.T) / 2
+
+
+def _finite_or_none(x: float) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def dissipation_summary(model: Model, source: loading.Loaded, damping: Dissipation,
+                        estimates: dict[str, float], energy_rows: Block,
+                        h: Any) -> dict[str, Any] | None:
+    """Energy lost per trajectory and, for one viscous coordinate, the damping ratio.
+
+    The energy lost is the fitted dissipated work over the record divided by the energy
+    above the lowest potential energy seen on the trajectory.
+    """
+    if not damping:
+        return None
+    records = source.records
+    n_energy = len(model.parameters)
+    coefficients = np.array([estimates[name] for name in damping.names])
+    work = energy_rows.A[:, n_energy:] @ coefficients if energy_rows.A.shape[1] > n_energy \
+        else np.zeros(energy_rows.n_rows)
+    theta = [estimates[name] for name in model.parameters]
+    at_rest = records.X.copy()
+    at_rest[:, len(model.coordinates):] = 0.0
+    potential = model.total_energy(at_rest, theta)
+    trajectories = []
+    for j, (start, stop) in enumerate(records.bounds()):
+        available = h[j] - potential[start:stop].min()
+        trajectories.append({"trajectory": records.labels[j],
+                             "energy_lost_fraction": float(work[stop - 1] / available)
+                             if available > 0 else None})
+    scales = source.scales()   # found on loading
+    period = design.median_period(scales) if scales else None
+    ratio = None
+    viscous = f"c_{model.coordinates[0]}"
+    if len(model.coordinates) == 1 and viscous in damping.names and period and \
+            model.is_natural:
+        moving = at_rest.copy()
+        moving[:, 1] = 1.0
+        mass = float(np.mean(model.total_energy(moving, theta) - potential)) * 2
+        ratio = estimates[viscous] * period / (4 * np.pi * mass)
+    return {"trajectories": trajectories, "equivalent_damping_ratio": ratio,
+            "period": period}
+
+
+def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: Any,
+              df: int, options: FitOptions, kind: str,
+              refinement: dict[str, Any] | None, damping: list[str]) -> list[str]:
+    """Plain-words warnings about the fit; `damping` names its kinds of dissipation."""
+    level, cov = options.level, options.cov
+    notes = []
+    for d in stats["drift"]:
+        change = d["relative_change"]
+        if change is not None and abs(change) > _DRIFT_CHANGE and d["trend_share"] > _DRIFT_SHARE:
+            notes.append(f"trajectory {d['trajectory']}: the energy drifts by {change:+.1%} "
+                         "over the record; the system may be damped or forced "
+                         "(try --damping viscous)" if not damping else
+                         f"trajectory {d['trajectory']}: the energy balance still drifts by "
+                         f"{change:+.1%} over the record with {', '.join(damping)} damping; "
+                         "try another kind of --damping, or the system is forced")
+    if cond.status != "ok":
+        combination = " ".join(f"{w:+.2f}*{n}" for n, w in
+                               sorted(cond.weakest_direction.items(), key=lambda x: -abs(x[1]))
+                               if abs(w) >= 0.05)
+        notes.append(f"the problem is {'severely' if cond.status == 'severe' else 'moderately'}"
+                     f" ill-conditioned (condition number {cond.condition_number:.3g}); the "
+                     f"data determine {combination} worst: record larger amplitudes or add a "
+                     "trajectory at another energy")
+    critical = uncertainty.t_quantile(df, level)
+    for p in parameters:
+        if p.stderr is not None and abs(p.estimate) < critical * p.stderr:
+            notes.append(f"{p.name} is not significantly different from zero "
+                         f"(its {percent(level)} interval contains 0)")
+    autocorrelation = stats["lag1_autocorrelation"]
+    if cov in ("classical", "hc") and kind != "energy":
+        notes.append(f"--cov {cov} treats overlapping weak-form windows as independent and "
+                     "understates the errors; use --cov hac")
+    elif cov in ("classical", "hc") and autocorrelation is not None and autocorrelation > 0.5:
+        notes.append(f"residuals are strongly autocorrelated (lag-1 {autocorrelation:.2f}); "
+                     f"--cov {cov} understates the errors, use --cov hac")
+    return notes + _misfit(stats, refinement)
+
+
+# Self-checks of the energy residuals, once they are above rounding (exact data leave
+# residuals of 1e-11 of the energy, smooth and so autocorrelated): a model that explains
+# less than this share of the energy's variation, or residuals more autocorrelated than
+# this from one sample to the next, probably does not fit.
+_ROUNDING, _LOW_R_SQUARED, _HIGH_AUTOCORRELATION = 1e-6, 0.5, 0.9
+
+
+def _misfit(stats: dict[str, Any], refinement: dict[str, Any] | None) -> list[str]:
+    """Warnings that the model probably does not fit the recording."""
+    notes = _refinement_notes(refinement)
+    relative, r_squared = stats["relative_rms"], stats["r_squared"]
+    autocorrelation = stats["lag1_autocorrelation"]
+    if relative is None or relative < _ROUNDING:
+        return notes
+    if r_squared is not None and r_squared < _LOW_R_SQUARED:
+        notes.append(f"the model explains little of the energy's variation (R² "
+                     f"{r_squared:.2f} of the energy rows): a wrong model, inconsistent units "
+                     "or time scale, or noise as large as the motion")
+    if autocorrelation is not None and autocorrelation > _HIGH_AUTOCORRELATION:
+        notes.append(f"the energy residuals are strongly autocorrelated (lag-1 "
+                     f"{autocorrelation:.2f}): the model misses part of the motion (a term, "
+                     "damping or forcing), or the units are inconsistent")
+    return notes
+
+
+def _refinement_notes(refinement: dict[str, Any] | None) -> list[str]:
+    """Why the trajectory refinement was not kept, or, when it was kept although its misfit
+    exceeds the noise, what it weighted by and why it was kept."""
+    if refinement is None:
+        return []
+    if not refinement["applied"]:
+        if not refinement["reason"].startswith("the integrated model"):
+            return []   # left aside for an option or the model's form: said in kind_reason
+        return [f"the trajectory refinement was not kept: {refinement['reason']}; the "
+                "linear fit is reported: the model may be wrong or incomplete"]
+    raised = {name: entry["sigma"] for name, entry in refinement["noise"].items()
+              if entry["source"] == "residuals"}
+    if not raised:
+        return []
+    acceptance = refinement["acceptance"]
+    levels = ", ".join(f"{name} {sigma:.3g}" for name, sigma in raised.items())
+    return [f"the integrated model misses the recording by "
+            f"{refinement['noise_chi2_per_dof']:.3g} times the noise variance estimated "
+            "from differences (channels smoothed before recording, or physics the model "
+            f"lacks): the trajectory refinement weighted by the residual scale ({levels}), "
+            f"its standard errors are the sandwich over its {refinement['segments']} "
+            "segments, and it was kept because it predicts segments held out of its fit no "
+            f"worse than the linear fit (misfit {acceptance['held_out_refined']:.4g} against "
+            f"{acceptance['held_out_linear']:.4g} per value, t = {acceptance['t']:.2f})"]
+
+
+# Noise this large a share of a column's spread is about as large as the motion; a bias
+# of a third of the standard error already lowers the cover of 95% bounds to 94%, and
+# one of a standard error to 83%.
+_NOISY, _BIASED = 0.5, 1 / 3
+
+
+def _noise_warnings(check: NoiseCheck | None) -> list[str]:
+    """Warnings that the measurement noise makes the linear fit untrustworthy."""
+    if check is None:
+        return []
+    notes = []
+    noisiest = max(check.ratio, key=check.ratio.__getitem__)
+    if check.ratio[noisiest] > _NOISY:
+        notes.append(f"the measurement noise is about as large as the motion (the noise "
+                     f"estimated in {noisiest} is {check.ratio[noisiest]:.2f} of its spread): "
+                     "no fit of these data can be trusted; record with less noise")
+    elif check.uncorrectable:
+        notes.append("the measurement noise biases these least-squares estimates, and is too "
+                     "large for --bias-correct to remove")
+    if check.bias:
+        biased = {k: v for k, v in check.bias.items() if abs(v) > _BIASED}
+        if biased:
+            listed = ", ".join(f"{k} by {v:+.1f}" for k, v in
+                               sorted(biased.items(), key=lambda kv: -abs(kv[1])))
+            notes.append(f"the measurement noise biases these least-squares estimates by more "
+                         f"than a third of their standard errors ({listed} standard errors), "
+                         "so their bounds hold the truth less often than they say; rerun "
+                         "with --noise auto --bias-correct")
+    return notes
