@@ -54,7 +54,7 @@ def decoded_bytes(path: str | os.PathLike[str], *, format: str | None = None,
     if format is None and labfiles.format_of(path) is not None:
         return on_disk
     fmt = io.check_format(format) if format is not None else io.input_format(path)
-    name = os.fsdecode(path)
+    name = name_of(path)
     with io.opened(path, name) as stream:
         head = stream.read(compressed.HEAD_BYTES)
     codec = compressed.codec_of(head)
