@@ -204,7 +204,7 @@ JSON_PROBLEMS = {"deep": (DEEP_JSON, "not readable JSON: nested too deeply"),
                  "digits": (LONG_NUMBER, "not readable JSON: a number has more than")}
 
 
-@pytest.mark.parametrize("kind", ["csv", "parquet"])
+@pytest.mark.parametrize("kind", ["csv", "parquet", "mat"])
 @pytest.mark.parametrize("problem", list(JSON_PROBLEMS))
 def test_metadata_too_deep_or_too_long_is_one_line(tmp_path, kind, problem):
     """Metadata nested 100,000 deep or with a 5,001-digit integer: internal RecursionError
@@ -214,12 +214,16 @@ def test_metadata_too_deep_or_too_long_is_one_line(tmp_path, kind, problem):
     path = tmp_path / f"m.{kind}"
     if kind == "csv":
         path.write_text(f"# hamid: {text}\n" + frame.to_csv(index=False))
-    else:
+    elif kind == "parquet":
         import pyarrow as pa
         import pyarrow.parquet as pq
 
         table = pa.Table.from_pandas(frame, preserve_index=False)
         pq.write_table(table.replace_schema_metadata({b"hamid": text.encode()}), path)
+    else:
+        import scipy.io
+
+        scipy.io.savemat(path, {**{c: frame[c].to_numpy() for c in frame}, "hamid": text})
     with pytest.raises(DataError, match=f"^{path}: (line 1: )?the hamid metadata: {message}"):
         hio.read_columns(path)
     report = tmp_path / "r.json"
