@@ -22,7 +22,7 @@ READ_BYTES = 256 << 20
 LINE_BYTES = 1 << 20
 
 
-def json_value(text: str | bytes, where: str) -> Any:
+def json_value(text: str, where: str) -> Any:
     """The value of a JSON text, or a DataError naming `where` (a file, or a file and what
     in it: ``run.csv: line 1: the hamid metadata``).
 
@@ -36,8 +36,6 @@ def json_value(text: str | bytes, where: str) -> Any:
                         f"{exc.msg}") from exc
     except RecursionError:
         raise DataError(f"{where}: not readable JSON: nested too deeply") from None
-    except UnicodeDecodeError as exc:
-        raise DataError(f"{where}: not readable JSON: not UTF-8 text") from exc
     except ValueError as exc:
         raise DataError(f"{where}: not readable JSON: a number has more than "
                         f"{sys.get_int_max_str_digits()} digits") from exc
