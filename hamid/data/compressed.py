@@ -10,11 +10,12 @@ import os
 import re
 from collections.abc import Iterator
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
+from hamid import read_limits
 from hamid.errors import DataError
 
-__all__ = ["SUFFIXES", "codec_of", "decompressed", "opened", "suffix"]
+__all__ = ["SUFFIXES", "arrow_stream", "codec_of", "decompressed", "opened", "suffix"]
 
 # Whatever the file's name (standard input too).
 _MAGIC = {"gzip": re.compile(rb"\x1f\x8b"),
@@ -44,14 +45,21 @@ def codec_of(head: bytes) -> str | None:
 
 
 def decompressed(data: bytes, name: str) -> bytes:
-    """`data` decompressed when it is gzip, bzip2 or Zstandard; other data as they are."""
+    """`data` decompressed when it is gzip, bzip2 or Zstandard; other data as they are.
+    Decompressed whole, the text is refused past `hamid.read_limits.READ_BYTES` (a small file
+    can hold gigabytes of text)."""
     codec = codec_of(data)
     if codec is None:
         return data
     import pyarrow as pa
 
+    most = read_limits.READ_BYTES
     with _damage(name, codec):
-        return bytes(pa.CompressedInputStream(pa.BufferReader(data), codec).read())
+        text = pa.CompressedInputStream(pa.BufferReader(data), codec).read(most + 1)
+    if len(text) > most:
+        raise DataError(f"{name}: decompresses to more than {most >> 20} MiB, the most "
+                        "decompressed whole; decompress it to a file first")
+    return bytes(text)
 
 
 @contextlib.contextmanager
@@ -65,6 +73,25 @@ def opened(stream: IO[bytes], codec: str, name: str) -> Iterator[IO[bytes]]:
     with _damage(name, codec), io.BufferedReader(pa.CompressedInputStream(
             pa.PythonFile(stream, mode="r"), codec)) as reader:
         yield reader
+
+
+@contextlib.contextmanager
+def arrow_stream(path: str | os.PathLike[str], codec: str | None,
+                 name: str) -> Iterator[Any]:
+    """A file as an Arrow stream, decompressed as it is read when `codec` is given.
+
+    For pyarrow's streaming readers: they read ahead in threads of their own, where a
+    Python file object would be called back, and a call still under way when the
+    interpreter exits aborts it (issue 33).
+    """
+    import pyarrow as pa
+
+    with pa.OSFile(os.fspath(path)) as raw:
+        if codec is None:
+            yield raw
+            return
+        with _damage(name, codec), pa.CompressedInputStream(raw, codec) as stream:
+            yield stream
 
 
 @contextlib.contextmanager

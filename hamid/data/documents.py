@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import json
 import os
-import sys
 from typing import Any
 
 from hamid.data.readers import json_kind, not_utf8, read_bytes
 from hamid.errors import DataError, ModelError
+from hamid.read_limits import json_value, toml_document
 
 __all__ = ["read_json", "read_jsonl", "read_toml"]
 
@@ -32,17 +31,12 @@ def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
     DataError
         The file cannot be read.
     """
-    import tomllib
-
     data, name = read_bytes(path)
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise not_utf8(data, name, "not valid TOML: ", ModelError) from exc
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ModelError(f"{name}: not valid TOML: {exc}") from exc
+    return toml_document(text, name)
 
 
 def read_json(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -97,19 +91,7 @@ def read_jsonl(path: str | os.PathLike[str]) -> list[tuple[str, dict[str, Any]]]
 
 def _json_object(text: str, name: str) -> dict[str, Any]:
     """Helper: the JSON object of a text, or an error naming `name`."""
-    try:
-        document = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise DataError(
-            f"{name}: not valid JSON (line {exc.lineno}, column {exc.colno}): {exc.msg}"
-        ) from exc
-    except RecursionError:
-        # json's parser recurses once per nesting level: 100,000 brackets exhaust the stack.
-        raise DataError(f"{name}: not readable JSON: nested too deeply") from None
-    except ValueError as exc:
-        # An integer of more digits than int() converts (sys.get_int_max_str_digits()).
-        raise DataError(f"{name}: not readable JSON: a number has more than "
-                        f"{sys.get_int_max_str_digits()} digits") from exc
+    document = json_value(text, name)
     if not isinstance(document, dict):
         raise DataError(f"{name}: expected a JSON object, found {json_kind(document)}")
     return document

@@ -12,6 +12,7 @@ decompression), its columns from its header line.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import sys
 import tempfile
@@ -53,13 +54,15 @@ def decoded_bytes(path: str | os.PathLike[str], *, format: str | None = None,
     if format is None and lab_formats.format_of(path) is not None:
         return on_disk
     fmt = readers.check_format(format) if format is not None else readers.input_format(path)
-    with open(path, "rb") as stream:
+    name = name_of(path)
+    with readers.opened(path, name) as stream:
         head = stream.read(compressed.HEAD_BYTES)
     codec = compressed.codec_of(head)
     if codec is None and (fmt == "parquet" or fmt is None and head.startswith(b"PAR1")):
         return _parquet_bytes(path, on_disk)
+    sample, whole, ratio = _text_sample(path, codec, name)
     try:
-        return _text_bytes(path, on_disk, codec, fmt, text)
+        return _text_bytes(sample, whole, on_disk * ratio, fmt, text, name)
     except DataError:
         return on_disk
 
@@ -76,12 +79,10 @@ def _parquet_bytes(path: str | os.PathLike[str], on_disk: int) -> int:
     return metadata.num_rows * metadata.num_columns * CELL_BYTES
 
 
-def _text_bytes(path: str | os.PathLike[str], on_disk: int, codec: str | None,
-                fmt: str | None, options: text_layout.TextOptions | None) -> int:
-    """Helper: the rows of text (its size over the bytes per row of its first lines)
-    times the cells of its header line, times 8."""
-    name = os.fsdecode(path)
-    sample, whole, ratio = _text_sample(path, codec, name)
+def _text_bytes(sample: bytes, whole: bool, size: float, fmt: str | None,
+                options: text_layout.TextOptions | None, name: str) -> int:
+    """Helper: the rows of text (its `size` decompressed over the bytes per row of its
+    first lines) times the cells of its header line, times 8."""
     if not whole:
         sample = sample[:sample.rfind(b"\n") + 1]
     layout = text_layout.layout(sample, name, fmt, options)
@@ -90,7 +91,7 @@ def _text_bytes(path: str | os.PathLike[str], on_disk: int, codec: str | None,
     cells = header.count(layout.delimiter.encode()) + 1
     if whole or not n_rows:
         return max(n_rows, 1) * cells * CELL_BYTES
-    text = on_disk * ratio - layout.start - len(header) - 1   # of the rows, decompressed
+    text = size - layout.start - len(header) - 1   # of the rows, decompressed
     return int(text / (len(rows) / n_rows) * cells * CELL_BYTES)
 
 
@@ -102,11 +103,14 @@ def _text_sample(path: str | os.PathLike[str], codec: str | None,
     A compressed file is read from in 64 KiB pieces, and its codec reads the file in
     blocks ahead of them; the ratio is the text given between the first block read and the
     last over the file's bytes read between them (three blocks on, within a few percent).
+    At most 16 samples of text are decompressed, whatever the file's lines (a bomb of
+    zeros).
     """
-    with open(path, "rb") as raw:
+    with readers.opened(path, name) as raw:
         if codec is None:
             sample = raw.read(SAMPLE_BYTES)
-            return sample, len(sample) < SAMPLE_BYTES, 1.0
+            whole = len(sample) < SAMPLE_BYTES
+            return sample if whole else _lines_checked(sample, name), whole, 1.0
         with compressed.opened(raw, codec, name) as stream:
             kept, given, blocks = bytearray(), 0, []
             read = raw.tell()
@@ -117,12 +121,22 @@ def _text_sample(path: str | os.PathLike[str], codec: str | None,
                 kept += piece[:SAMPLE_BYTES - len(kept)]
                 if len(kept) >= SAMPLE_BYTES and len(blocks) >= 3 \
                         or given >= 16 * SAMPLE_BYTES:
+                    if len(blocks) < 2:   # a bomb: all of it in one block
+                        blocks = [(0, 0), (given, read)]
                     (given_0, read_0), (given_1, read_1) = blocks[0], blocks[-1]
-                    ratio = ((given_1 - given_0) / (read_1 - read_0) if len(blocks) > 1
-                             else given / read)
-                    return bytes(kept), False, ratio
+                    ratio = (given_1 - given_0) / (read_1 - read_0)
+                    return _lines_checked(bytes(kept), name), False, ratio
             # all of it read: the ratio is exact
             return bytes(kept), given == len(kept), given / max(raw.tell(), 1)
+
+
+def _lines_checked(sample: bytes, name: str) -> bytes:
+    """Helper: the start of a text that goes on, refused when it holds no line break (no
+    table: a header of millions of cells, or none at all)."""
+    if b"\n" not in sample:
+        raise DataError(f"{name}: its first line is longer than {len(sample):,} bytes; "
+                        "it is not a table of delimited text")
+    return sample
 
 
 @dataclass(frozen=True)
@@ -174,25 +188,29 @@ def spooled(data: Any) -> Iterator[Any]:
 def _copy_stdin(path: str) -> None:
     """Helper: standard input into the file `path`, 1 MiB at a time."""
     try:
-        copy = open(path, "wb")  # noqa: SIM115 (closed below)
+        # closing writes what is still buffered: a full disk can show there too
+        with open(path, "wb") as copy:
+            while block := _stdin_block():
+                copy.write(block)
     except OSError as exc:
         raise _unkept(exc) from exc
-    with copy:
-        while True:
-            try:
-                block = sys.stdin.buffer.read(1 << 20)
-            except OSError as exc:
-                raise DataError(f"{readers.STDIN}: cannot read: {readers.os_reason(exc)}") from exc
-            if not block:
-                return
-            try:
-                copy.write(block)
-            except OSError as exc:
-                raise _unkept(exc) from exc
+
+
+def _stdin_block() -> bytes:
+    """Helper: the next MiB of standard input, empty at its end."""
+    try:
+        return sys.stdin.buffer.read(1 << 20)
+    except OSError as exc:
+        raise DataError(f"{readers.STDIN}: cannot read: {readers.os_reason(exc)}") from exc
 
 
 def _unkept(exc: OSError) -> DataError:
     """Helper: the error when standard input cannot be kept in a temporary file."""
-    return DataError(f"{readers.STDIN}: cannot keep it in a temporary file in "
-                     f"{tempfile.gettempdir()} ({readers.os_reason(exc)}); set TMPDIR to a "
-                     "folder with room, or give a file")
+    folder = tempfile.gettempdir()
+    if exc.errno == errno.ENOSPC:
+        return DataError(f"{readers.STDIN}: cannot keep it in a temporary file: the temporary "
+                         f"folder {folder} is full; set TMPDIR to a folder with room, or "
+                         "give a file")
+    return DataError(f"{readers.STDIN}: cannot keep it in a temporary file in {folder} "
+                     f"({readers.os_reason(exc)}); set TMPDIR to a folder with room, or give "
+                     "a file")

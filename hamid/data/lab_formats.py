@@ -32,12 +32,12 @@ the file. A library that is not installed is a one-line error naming
 from __future__ import annotations
 
 import importlib
-import json
 import os
 import re
 from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
+from hamid.data import text_layout
 from hamid.errors import DataError
 
 __all__ = ["FORMATS", "chunks", "format_of", "read", "split"]
@@ -138,14 +138,7 @@ def _metadata(text: Any, name: str) -> dict[str, Any] | None:
         return None
     if isinstance(text, bytes):
         text = text.decode("utf-8", errors="replace")
-    try:
-        metadata = json.loads(str(text))
-    except json.JSONDecodeError as exc:
-        raise DataError(f"{name}: the hamid metadata is not valid JSON ({exc.msg} at "
-                        f"column {exc.colno})") from exc
-    if not isinstance(metadata, dict):
-        raise DataError(f"{name}: the hamid metadata is not a JSON object")
-    return metadata
+    return text_layout.parse_metadata(str(text).encode("utf-8", errors="replace"), name)
 
 
 def _is_numeric(values: Any) -> bool:

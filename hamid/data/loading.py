@@ -7,6 +7,7 @@ whole, with the same messages naming the same rows.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -326,16 +327,21 @@ class Chunked:
 
         def chunks() -> Iterator[tuple[Mapping[str, Any], int]]:
             row = 0
-            for chunk in self.table.chunks(self.reader.columns, self.chunk_rows):
-                if self.progress is not None:
-                    self.progress(f"{self.table.name}: {purpose}, from row {row + 1:,}")
-                yield chunk, row
-                row += len(chunk[self.reader.columns[0]])
+            with contextlib.closing(self.table.chunks(self.reader.columns,
+                                                      self.chunk_rows)) as table_chunks:
+                for chunk in table_chunks:
+                    if self.progress is not None:
+                        self.progress(f"{self.table.name}: {purpose}, from row {row + 1:,}")
+                    yield chunk, row
+                    row += len(chunk[self.reader.columns[0]])
 
         row = 0
-        for records in self.reader.read(chunks()):
-            yield records, row
-            row += len(records.group)
+        # closed when an error stops the pass, not when the interpreter exits: the file's
+        # reader and the thread reading ahead for it end here
+        with contextlib.closing(chunks()) as pieces:
+            for records in self.reader.read(pieces):
+                yield records, row
+                row += len(records.group)
 
     def scales(self) -> list[tuple[float | None, float]] | None:
         """Each trajectory's period and time step, from the first samples of each that

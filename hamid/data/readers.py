@@ -15,11 +15,13 @@ import contextlib
 import json
 import math
 import os
+import stat
 import sys
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, Literal
 
+from hamid import read_limits
 from hamid.data import compressed, lab_formats, text_layout
 from hamid.errors import DataError, ModelError, UsageError
 
@@ -30,7 +32,7 @@ if TYPE_CHECKING:
     import pyarrow as pa
 
 __all__ = ["as_numpy", "column_values", "file_digest", "is_missing", "is_parquet",
-           "numeric_column", "not_utf8", "numeric_values", "read_bytes", "read_columns",
+           "numeric_column", "not_utf8", "numeric_values", "opened", "read_bytes", "read_columns",
            "read_table"]
 
 Format = Literal["csv", "tsv", "parquet"]
@@ -394,7 +396,7 @@ class TableChunks:
             self.columns = list(self._whole)
             return
         fmt = check_format(format) if format is not None else input_format(source)
-        with _opened(source, self.name) as stream:
+        with opened(source, self.name) as stream:
             head = stream.read(compressed.HEAD_BYTES)
         if not head:
             raise DataError(f"{self.name}: file is empty")
@@ -417,7 +419,7 @@ class TableChunks:
     @contextlib.contextmanager
     def _open(self) -> Iterator[IO[bytes]]:
         """Helper opening the file, decompressing it as it is read when it is compressed."""
-        with _opened(self.path, self.name) as stream:
+        with opened(self.path, self.name) as stream:
             if self.compression is None:
                 yield stream
             else:
@@ -439,16 +441,8 @@ class TableChunks:
         self.metadata = text_layout.parse_metadata(raw, self.name) if raw is not None else None
 
     def _open_text(self, fmt: Format | None, options: text_layout.TextOptions | None) -> None:
-        head, more = b"", 0
-        skip = options.skip_rows if options else 0
         with self._open() as stream:
-            for number, line in enumerate(stream):   # comment and blank lines, the header
-                head += line                         # line, and a few rows for the layout
-                text = line.removeprefix(text_layout.UTF8_BOM) if head == line else line
-                more += bool(more) or (number >= skip and text.strip()
-                                       and not text.startswith(b"#"))
-                if more > 9:
-                    break
+            head = text_layout.head(stream, self.name, options.skip_rows if options else 0)
         self.layout = text_layout.layout(head, self.name, fmt, options)
         self.offset, self.metadata = self.layout.start, self.layout.metadata
         self.delimiter = self.layout.delimiter
@@ -511,11 +505,12 @@ class TableChunks:
                 yield from parquet.iter_batches(batch_size=rows, columns=columns,
                                                 row_groups=[group])
             return
-        with self._open() as stream:
+        with compressed.arrow_stream(self.path, self.compression, self.name) as stream:
             stream.read(self.offset)   # comment lines and the byte-order mark
+            block = max(rows * 64, 1 << 12)
             reader = pacsv.open_csv(
                 stream,
-                read_options=pacsv.ReadOptions(block_size=max(rows * 64, 1 << 12),
+                read_options=pacsv.ReadOptions(block_size=block,
                                                skip_rows_after_names=self.layout.skip),
                 parse_options=pacsv.ParseOptions(delimiter=self.delimiter),
                 convert_options=pacsv.ConvertOptions(
@@ -523,19 +518,35 @@ class TableChunks:
                     include_columns=[self._raw[c] for c in columns],
                     column_types={self._raw[c]: pa.string() for c in columns} if as_text
                     else None))
-            for batch in reader:
-                yield batch.rename_columns([c.strip() for c in batch.schema.names])
+            with contextlib.closing(reader), _rows_within(self.name, block):
+                # closed, its read-ahead ends before the file closes
+                for batch in reader:
+                    yield batch.rename_columns([c.strip() for c in batch.schema.names])
 
 
 @contextlib.contextmanager
-def _opened(source: str | os.PathLike[str], name: str) -> Iterator[IO[bytes]]:
-    """Helper opening a file for reading, with file errors as DataError."""
+def opened(source: str | os.PathLike[str], name: str) -> Iterator[IO[bytes]]:
+    """A file opened for reading, with file errors as DataError naming it."""
     try:
         stream = open(source, "rb")  # noqa: SIM115 (closed below)
     except OSError as exc:
         raise _file_error(exc, source, name) from exc
     with stream:
         yield stream
+
+
+@contextlib.contextmanager
+def _rows_within(name: str, block: int) -> Iterator[None]:
+    """Helper naming the error of pyarrow's chunked reader at a row longer than a block."""
+    import pyarrow as pa
+
+    try:
+        yield
+    except pa.ArrowInvalid as exc:
+        if "straddl" not in str(exc):
+            raise
+        raise DataError(f"{name}: a row is longer than {block:,} bytes, the text read at a "
+                        "time; is it delimited text?") from exc
 
 
 @contextlib.contextmanager
@@ -695,18 +706,21 @@ def _cell(text: str) -> str:
 
 
 def read_bytes(source: str | os.PathLike[str]) -> tuple[bytes, str]:
-    """Helper function reading a whole file, or standard input for ``"-"``."""
+    """Helper function reading a whole file, or standard input for ``"-"``; a stream
+    (standard input, a device, a FIFO) at most `hamid.read_limits.READ_BYTES`."""
     if is_stdio(source):
         if sys.stdin is None:   # a process started without one (pythonw, a closed fd 0)
             raise DataError(f"{STDIN}: cannot read: standard input is closed")
         try:
-            return sys.stdin.buffer.read(), STDIN
+            return read_limits.read_at_most(sys.stdin.buffer, STDIN, "standard input"), STDIN
         except OSError as exc:
             raise DataError(f"{STDIN}: cannot read: {os_reason(exc)}") from exc
     name = os.fsdecode(source)
-    with _opened(source, name) as stream:
+    with opened(source, name) as stream:
         try:
-            return stream.read(), name
+            if stat.S_ISREG(os.fstat(stream.fileno()).st_mode):
+                return stream.read(), name
+            return read_limits.read_at_most(stream, name, "a device or pipe"), name
         except OSError as exc:
             raise _file_error(exc, source, name) from exc
 
@@ -720,7 +734,7 @@ def file_digest(source: str | os.PathLike[str]) -> tuple[int, str]:
     digest, size = hashlib.sha256(), 0
     block = bytearray(1 << 20)
     view = memoryview(block)
-    with _opened(source, name) as stream:
+    with opened(source, name) as stream:
         try:
             while n := stream.readinto(view):
                 digest.update(view[:n])

@@ -17,13 +17,14 @@ Given or detected: `TextOptions` gives any of them; otherwise
 from __future__ import annotations
 
 import dataclasses
-import json
 import re
-from typing import Any
+from typing import IO, Any
 
+from hamid import read_limits
 from hamid.errors import DataError, UsageError
+from hamid.read_limits import json_value
 
-__all__ = ["Layout", "TextOptions", "json_kind", "layout", "parse_metadata", "points"]
+__all__ = ["Layout", "TextOptions", "head", "json_kind", "layout", "parse_metadata", "points"]
 
 UTF8_BOM = b"\xef\xbb\xbf"
 _METADATA_LINE = re.compile(rb"#\s*hamid:(.*)")
@@ -84,6 +85,10 @@ def layout(head: bytes, name: str, fmt: str | None,
     for _ in range(options.skip_rows):
         end = head.find(b"\n", start)
         start = len(head) if end < 0 else end + 1
+        if start >= len(head):   # not a loop of billions of rows over nothing
+            lines = head.count(b"\n") + (not head.endswith(b"\n"))
+            raise DataError(f"{name}: --skip-rows {options.skip_rows:,} reaches the end of "
+                            f"the text ({lines:,} lines)")
     start, metadata = _skip_comments(head, start, name)
     if start >= len(head):
         raise DataError(f"{name}: has comment lines but no header line")
@@ -108,6 +113,29 @@ def layout(head: bytes, name: str, fmt: str | None,
                  if unit}
         metadata = {**(metadata or {}), "units": units}
     return Layout(start, metadata, delimiter, decimal, int(units_row))
+
+
+def head(stream: IO[bytes], name: str, skip_rows: int = 0) -> bytes:
+    """The start of a text read line by line: preamble, comment and blank lines, the
+    header line and a few rows (what `layout` needs), each line at most
+    `hamid.read_limits.LINE_BYTES` and all of them at most `hamid.read_limits.READ_BYTES`."""
+    lines: list[bytes] = []
+    more, size, longest = 0, 0, read_limits.LINE_BYTES
+    while line := stream.readline(longest + 1):
+        if len(line) > longest:
+            raise DataError(f"{name}: line {len(lines) + 1:,} is longer than "
+                            f"{longest >> 20} MiB; is it delimited text?")
+        if size > read_limits.READ_BYTES:
+            raise DataError(f"{name}: more than {read_limits.READ_BYTES >> 20} MiB of lines "
+                            "before the data rows")
+        text = line.removeprefix(UTF8_BOM) if not lines else line
+        more += bool(more) or (len(lines) >= skip_rows and text.strip()
+                               and not text.startswith(b"#"))
+        lines.append(line)
+        size += len(line)
+        if more > _SNIFF_ROWS + 1:
+            break
+    return b"".join(lines)
 
 
 def points(column: Any) -> Any:
@@ -168,22 +196,16 @@ def _skip_comments(data: bytes, start: int, name: str) -> tuple[int, dict[str, A
 
 
 def parse_metadata(raw: bytes, name: str, line_number: int | None = None) -> dict[str, Any]:
-    """Decode the JSON of hamid's metadata."""
-    where = f"line {line_number}: " if line_number is not None else ""
+    """Decode the JSON of hamid's metadata (of text, Parquet or a lab file)."""
+    where = f"{name}: line {line_number}: " if line_number is not None else f"{name}: "
     try:
-        metadata = json.loads(raw.decode("utf-8"))
+        text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise DataError(f"{name}: {where}the hamid metadata is not UTF-8 text") from exc
-    except json.JSONDecodeError as exc:
-        raise DataError(
-            f"{name}: {where}the hamid metadata is not valid JSON ({exc.msg} at column "
-            f"{exc.colno})"
-        ) from exc
+        raise DataError(f"{where}the hamid metadata is not UTF-8 text") from exc
+    metadata = json_value(text, f"{where}the hamid metadata")
     if not isinstance(metadata, dict):
-        raise DataError(
-            f"{name}: {where}the hamid metadata is not a JSON object "
-            f"(found {json_kind(metadata)})"
-        )
+        raise DataError(f"{where}the hamid metadata is not a JSON object "
+                        f"(found {json_kind(metadata)})")
     return metadata
 
 

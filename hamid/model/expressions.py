@@ -44,6 +44,8 @@ CONSTANTS = {"pi": math.pi}
 MAX_LENGTH = 10_000
 MAX_EXPONENT = 64
 MAX_DEPTH = 500  # nesting of the syntax tree; deeper trees would exhaust the Python stack
+MAX_NESTING = 100  # as sympy nests: sin(sin(...)) 135 deep exhausts its derivatives' stack
+_FAMILIES = {ast.Add: "+", ast.Sub: "+", ast.Mult: "*"}
 MAX_TERMS = 10_000  # monomials an expanded energy may have, against blow-up
 MAX_DEGREE = 256  # total degree of an expanded energy (Polynomial tabulates every power)
 # A sum this small against the sum of its terms' sizes is zero up to rounding.
@@ -94,6 +96,9 @@ def parse(text: str, names: Sequence[str] | None, *, where: str = "energy") -> a
     if foreign is not None:
         raise ModelError(f"{where}: {foreign!r} (U+{ord(foreign):04X}) is not ASCII; "
                          "names, numbers and operators are written in ASCII")
+    if "#" in text:   # Python would read the rest as a comment and drop it silently
+        raise ModelError(f"{where}: '#' (character {text.index('#') + 1}) is not allowed "
+                         f"in an expression: {text.strip()[:60]!r}")
     try:
         with warnings.catch_warnings():
             # Python would print a warning about text such as '1if x' on standard error;
@@ -105,14 +110,18 @@ def parse(text: str, names: Sequence[str] | None, *, where: str = "energy") -> a
     except (SyntaxError, ValueError, MemoryError, RecursionError) as exc:
         detail = getattr(exc, "msg", None) or str(exc) or type(exc).__name__
         raise ModelError(f"{where}: cannot parse {text.strip()!r}: {detail}") from exc
-    depth, stack = 0, [(tree, 1)]
-    while stack:
-        node, level = stack.pop()
-        depth = max(depth, level)
-        stack.extend((child, level + 1) for child in ast.iter_child_nodes(node))
-    if depth > MAX_DEPTH:
-        raise ModelError(f"{where}: the expression is nested {depth} levels deep "
-                         f"(at most {MAX_DEPTH})")
+    depth, nesting, stack = 0, 0, [(tree, 0, 0, None)]
+    while stack:   # sympy flattens a + b - c and a*b*c: nesting counts them as one level
+        node, level, nested, outer = stack.pop()
+        family = _FAMILIES.get(type(getattr(node, "op", None)))
+        nested += family is None or family != outer
+        depth, nesting = max(depth, level + 1), max(nesting, nested)
+        stack.extend((child, level + 1, nested, family) for child in ast.iter_child_nodes(node))
+    found, most, what = (depth, MAX_DEPTH, "") if depth > MAX_DEPTH else (
+        nesting, MAX_NESTING, " in functions, powers and brackets")
+    if found > most:
+        raise ModelError(f"{where}: the expression is nested {found} levels deep{what} "
+                         f"(at most {most})")
     allowed = None if names is None else set(names)
     called = {id(n.func) for n in ast.walk(tree) if isinstance(n, ast.Call)}
     for node in ast.walk(tree):
@@ -182,14 +191,10 @@ def _constant_value(node: ast.expr) -> float | None:
             return math.inf
     if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.UAdd | ast.USub):
         inner = _constant_value(node.operand)
-        if inner is None:
-            return None
-        return -inner if isinstance(node.op, ast.USub) else inner
+        return inner if inner is None or isinstance(node.op, ast.UAdd) else -inner
     if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div):
         num, den = _constant_value(node.left), _constant_value(node.right)
-        if num is None or den is None or den == 0:
-            return None
-        return num / den
+        return None if num is None or den is None or den == 0 else num / den
     return None
 
 

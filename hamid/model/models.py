@@ -375,10 +375,7 @@ def model_from_spec(spec: Mapping[str, Any], *, where: str = "[model]") -> Model
     for key in ("coordinates", "velocities", "energy"):
         if key not in spec:
             raise ModelError(f"{where}: missing key {key!r} (or give 'builtin')")
-    for key in ("coordinates", "velocities", "parameters"):
-        if key in spec and not (isinstance(spec[key], list)
-                                and all(isinstance(v, str) for v in spec[key])):
-            raise ModelError(f"{where}: {key!r} must be a list of names")
+    _check_lists(spec, where)
     if not isinstance(spec["energy"], str):
         raise ModelError(f"{where}: 'energy' must be a string")
     name = spec.get("name", "custom")
@@ -386,6 +383,17 @@ def model_from_spec(spec: Mapping[str, Any], *, where: str = "[model]") -> Model
         raise ModelError(f"{where}: 'name' must be a string")
     return model_from_expression(name, spec["energy"], spec["coordinates"],
                                  spec["velocities"], spec.get("parameters"), where=where)
+
+
+def _check_lists(spec: Mapping[str, Any], where: str) -> None:
+    """Helper: the names of a model's description are lists of text (a string "theta"
+    would be read as the names t, h, e, t, a)."""
+    for key in ("coordinates", "velocities", "parameters"):
+        value = spec.get(key)
+        if value is not None and not (isinstance(value, list)
+                                      and all(isinstance(v, str) for v in value)):
+            found = f", not the string {value[:40]!r}" if isinstance(value, str) else ""
+            raise ModelError(f"{where}: {key!r} must be a list of names{found}")
 
 
 _MODEL_FILE_KEYS = ("model", "parameters", "initial", "simulate", "noise", "damping")
@@ -418,6 +426,7 @@ def load_model(name_or_path: str | os.PathLike[str]) -> Model:
 def model_from_info(info: Mapping[str, Any], *, where: str) -> Model:
     """The model a report or a simulated file records (`Model.info`), with its
     dissipation function."""
+    _check_lists(info, where)
     model = model_from_expression(str(info.get("name") or "custom"), info["energy"],
                                   info["coordinates"], info["velocities"],
                                   info.get("parameters"), where=where)
