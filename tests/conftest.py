@@ -2,14 +2,33 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 import pytest
 from helpers import hamid_command
+from hypothesis import settings
 
 import hamid
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# CI reruns give the same examples: a failure there is reproducible, not a lucky draw, and a
+# busy runner cannot fail a test on Hypothesis's time limit.
+settings.register_profile("ci", derandomize=True, deadline=None)
+if os.environ.get("CI"):
+    settings.load_profile("ci")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Child processes (`python -c` in temporary folders, the command line) import this
+    working tree, not whatever copy of hamid is installed: its root goes first on their
+    PYTHONPATH, before the test modules build their environments."""
+    paths = [str(ROOT), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    os.environ["PYTHONPATH"] = os.pathsep.join(paths)
 
 PENG = {
     "model": {"builtin": "peng-quadratic"},

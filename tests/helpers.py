@@ -23,14 +23,12 @@ def wait_until_integrating(process, timeout: float = 30.0) -> None:
 
 
 def hamid_command() -> list[str]:
-    """The command that runs hamid's CLI in a subprocess: the installed script, else the
-    module through this interpreter."""
-    import shutil
+    """The command that runs hamid's CLI in a subprocess: this interpreter and the working
+    tree (first on the children's PYTHONPATH, tests/conftest.py), never a `hamid` script
+    found on PATH, which may belong to another copy."""
     import sys
 
-    found = shutil.which("hamid")
-    return [found] if found is not None else [sys.executable, "-c",
-                                              "from hamid.cli import main; main()"]
+    return [sys.executable, "-c", "from hamid.cli import main; main()"]
 
 
 def duffing_system(*, k: str = "1.0", k3: str = "0.5", x: str = "1.0", v: str = "0.0",

@@ -789,7 +789,7 @@ def test_subprocess_pipeline(tmp_path):
     command = (f"set -o pipefail; {hamid} simulate --config {_quote([DUFFING_TOML])} -o - "
                f"--format csv | {hamid} fit - --format json")
     done = subprocess.run(["bash", "-c", command], capture_output=True, text=True,
-                          timeout=60, cwd=tmp_path)
+                          timeout=600, cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout)
     assert result["schema"] == "hamid.fit/1"
@@ -800,7 +800,7 @@ def test_subprocess_pipeline(tmp_path):
 
 def test_subprocess_error_exit_code(tmp_path):
     done = subprocess.run([*hamid_command(), "fit", "nosuch.csv"], capture_output=True,
-                          text=True, timeout=60, cwd=tmp_path)
+                          text=True, timeout=600, cwd=tmp_path)
     assert done.returncode == 1
     assert done.stdout == ""
     assert done.stderr == "Error: nosuch.csv: no such file\n"
@@ -812,7 +812,7 @@ def test_closed_pipe_ends_quietly():
     command = (f"set -o pipefail; {hamid} simulate --config {_quote([PENG_TOML])} -o - "
                "--format csv | head -n 1")
     done = subprocess.run(command, shell=True, executable="bash", capture_output=True,
-                          text=True, timeout=60)
+                          text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     assert done.stdout.startswith(META_PREFIX)
     assert done.stdout.count("\n") == 1
@@ -837,7 +837,7 @@ def test_reader_gone_before_the_first_write(tmp_path, args):
     os.close(read_end)
     try:
         done = subprocess.run([*hamid_command(), *args], stdout=write_end,
-                              stderr=subprocess.PIPE, text=True, timeout=60)
+                              stderr=subprocess.PIPE, text=True, timeout=600)
     finally:
         os.close(write_end)
     assert done.returncode == 0, done.stderr

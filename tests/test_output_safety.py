@@ -102,7 +102,7 @@ def command(args, *, warm=(), stub=(), patch="", nobody=False):
 
 
 def run(args, *, cwd=None, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, limits=(),
-        before=None, timeout=60, **spec):
+        before=None, timeout=600, **spec):
     """Run the command line in a real process; `limits` are (resource, bytes) pairs."""
 
     def prepare():
@@ -271,7 +271,7 @@ def _read_fifo_with_cat(fifo):
 
 def _received(reader):
     try:
-        data, _ = reader.communicate(timeout=10)
+        data, _ = reader.communicate(timeout=120)
     except subprocess.TimeoutExpired:  # the FIFO was never opened: no data reached it
         reader.kill()
         data, _ = reader.communicate()
