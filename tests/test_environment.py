@@ -40,3 +40,13 @@ def test_ci_loads_a_derandomized_hypothesis_profile(tmp_path):
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                           check=True, cwd=tmp_path, env=env, timeout=600)
     assert done.stdout.split() == ["True", "None"]
+
+
+def test_the_readme_test_command_is_what_ci_runs():
+    """Word for word, and in a folder of its own: two runs at once share no environment."""
+    readme = (ROOT / "README.md").read_text().splitlines()
+    start = next(i for i, line in enumerate(readme)
+                 if line.startswith("Install and run the tests"))
+    command = next(line.strip() for line in readme[start:] if line.startswith("    "))
+    assert command in (ROOT / ".ci" / "run").read_text().splitlines()
+    assert "mktemp -d" in command and "/tmp/" not in command
