@@ -620,10 +620,14 @@ def test_tiny_time_steps_print_nothing_on_stdout(tmp_path):
     data.write_text("t,x,v\n" + "".join(f"{i}e-300,{i % 3 + 1},{i % 2}\n" for i in range(6)))
     done = subprocess.run([*hamid_command(), "fit", str(data), "--model", "duffing"],
                           capture_output=True, text=True, timeout=600)
-    assert "DLASCL" not in done.stdout
+    # Times 1e-300 apart are numbers like any other, and the energy rows the fit falls back
+    # to (too few samples for windows) never divide by them: the fit runs, and its report
+    # says how little these six samples tell. LAPACK's own complaint (DLASCL, printed on
+    # standard output) must not land among the report's lines.
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("hamid fit — duffing, method energy")
+    assert "DLASCL" not in done.stdout and "DLASCL" not in done.stderr
     assert "internal error" not in done.stderr
-    assert done.returncode in (0, 1)
-    assert done.returncode == 0 or done.stdout == ""
 
 
 # ---------------------------------------------------------------------------------------------

@@ -178,11 +178,13 @@ def test_residuals_in_a_file_with_the_report_on_standard_output(hamid_cli, tmp_p
 
 
 def test_residuals_and_report_to_standard_output_sent_to_dev_null(hamid_cli):
-    """/dev/null as standard output: nothing there can interleave."""
+    """/dev/null as standard output: nothing there can interleave (a pipe is refused, above),
+    and the fit runs as any other, without a message."""
     done = subprocess.run([*hamid_cli, "fit", str(DUFFING_CSV), *FAST, "--residuals",
                            "/dev/stdout"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                           text=True, timeout=600)
     assert done.returncode == 0, done.stderr
+    assert done.stderr == ""
 
 
 # --- the text layout of `fit` ----------------------------------------------------------------
