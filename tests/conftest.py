@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 from helpers import hamid_command
 from hypothesis import settings
+from scipy import stats
 
 import hamid
 
@@ -105,6 +106,15 @@ def coverage(clean: pd.DataFrame, truth: dict[str, float], relative: float, n: i
         for p in result.parameters:
             hits[p.name] += p.ci_low <= truth[p.name] <= p.ci_high
     return {name: count / n for name, count in hits.items()}
+
+
+def spread_band(dof: int, tail: float) -> tuple[float, float]:
+    """Where the root mean square of `dof` standard normal values (or the standard deviation
+    of dof + 1 of them) falls, but for `tail` of the time on each side: the quantiles of
+    sqrt(chi2(dof) / dof). A Monte Carlo ratio of spread to reported error, when the errors
+    are right."""
+    low, high = np.sqrt(stats.chi2.ppf([tail, 1 - tail], dof) / dof)
+    return float(low), float(high)
 
 
 def truth_of(system: dict[str, Any]) -> dict[str, float]:
