@@ -24,7 +24,10 @@ NOTEBOOK = HERE / "identify_a_duffing_oscillator.ipynb"
 def run(notebook: Path = NOTEBOOK) -> nbformat.NotebookNode:
     """The notebook executed in a fresh kernel, in its own folder."""
     document = nbformat.read(notebook, as_version=4)
-    NotebookClient(document, timeout=600, kernel_name="python3",
+    # nbclient waits 4 s for a cell's outputs after it ends, then drops them silently: on a
+    # busy machine a figure would be lost. Minutes, and an error rather than a lost output.
+    NotebookClient(document, timeout=600, iopub_timeout=600, raise_on_iopub_timeout=True,
+                   kernel_name="python3",
                    resources={"metadata": {"path": str(notebook.parent)}}).execute()
     return document
 

@@ -2,14 +2,34 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 import pytest
 from helpers import hamid_command
+from hypothesis import settings
+from scipy import stats
 
 import hamid
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# CI reruns give the same examples: a failure there is reproducible, not a lucky draw, and a
+# busy runner cannot fail a test on Hypothesis's time limit.
+settings.register_profile("ci", derandomize=True, deadline=None)
+if os.environ.get("CI"):
+    settings.load_profile("ci")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Child processes (`python -c` in temporary folders, the command line) import this
+    working tree, not whatever copy of hamid is installed: its root goes first on their
+    PYTHONPATH, before the test modules build their environments."""
+    paths = [str(ROOT), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    os.environ["PYTHONPATH"] = os.pathsep.join(paths)
 
 PENG = {
     "model": {"builtin": "peng-quadratic"},
@@ -86,6 +106,15 @@ def coverage(clean: pd.DataFrame, truth: dict[str, float], relative: float, n: i
         for p in result.parameters:
             hits[p.name] += p.ci_low <= truth[p.name] <= p.ci_high
     return {name: count / n for name, count in hits.items()}
+
+
+def spread_band(dof: int, tail: float) -> tuple[float, float]:
+    """Where the root mean square of `dof` standard normal values (or the standard deviation
+    of dof + 1 of them) falls, but for `tail` of the time on each side: the quantiles of
+    sqrt(chi2(dof) / dof). A Monte Carlo ratio of spread to reported error, when the errors
+    are right."""
+    low, high = np.sqrt(stats.chi2.ppf([tail, 1 - tail], dof) / dof)
+    return float(low), float(high)
 
 
 def truth_of(system: dict[str, Any]) -> dict[str, float]:

@@ -2,35 +2,63 @@
 
 from __future__ import annotations
 
-import time
-from pathlib import Path
+import os
+import select
+import sys
 
 
-def wait_until_integrating(process, timeout: float = 30.0) -> None:
-    """Wait until the process has loaded scipy's integrators, i.e. is past its imports."""
-    maps = Path(f"/proc/{process.pid}/maps")
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and process.poll() is None:
-        try:
-            loaded = "scipy/integrate" in maps.read_text()
-        except OSError:  # no /proc here: give the imports time
-            time.sleep(3.0)
-            return
-        if loaded:
-            time.sleep(0.5)
-            return
-        time.sleep(0.05)
+class Readiness:
+    """A pipe on which a child process says that the work a test waits for has begun.
+
+    The child runs `announcing(...)`'s code before hamid's command line, so the byte comes
+    from inside that work, after hamid installed its signal handlers: a signal sent then
+    meets them however busy the machine is, and no test guesses with a clock. Pass `fd` to
+    the child (`pass_fds`), then `wait()`.
+    """
+
+    def __init__(self) -> None:
+        self._read_end, self.fd = os.pipe()
+
+    def __enter__(self) -> Readiness:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for fd in (self._read_end, self.fd):
+            if fd >= 0:
+                os.close(fd)
+        self._read_end = self.fd = -1
+
+    def announcing(self, target: str, *, call: int = 1, hold: bool = False) -> str:
+        """Python code that wraps `target` ("module.function") to write the byte on its
+        `call`-th call, then, with `hold`, to sleep until a signal ends the process."""
+        module, name = target.rsplit(".", 1)
+        held = "        time.sleep(3600)\n" if hold else ""
+        return (f"import importlib, itertools, os, time\n"
+                f"_owner = importlib.import_module({module!r})\n"
+                f"_original, _calls = _owner.{name}, itertools.count(1)\n"
+                f"def _announced(*args, **kwargs):\n"
+                f"    if next(_calls) == {call}:\n"
+                f"        os.write({self.fd}, b'r')\n"
+                f"{held}"
+                f"    return _original(*args, **kwargs)\n"
+                f"_owner.{name} = _announced\n")
+
+    def wait(self, timeout: float = 600.0) -> None:
+        """Block until the child has announced; fail, never go on, if it ended first or
+        hangs (the timeout only bounds a hang)."""
+        os.close(self.fd)   # the child holds its copy: end of file now means it has gone
+        self.fd = -1
+        ready, _, _ = select.select([self._read_end], [], [], timeout)
+        assert ready, f"the process was not ready after {timeout:.0f} s"
+        assert os.read(self._read_end, 1) == b"r", "the process ended before it was ready"
 
 
-def hamid_command() -> list[str]:
-    """The command that runs hamid's CLI in a subprocess: the installed script, else the
-    module through this interpreter."""
-    import shutil
-    import sys
-
-    found = shutil.which("hamid")
-    return [found] if found is not None else [sys.executable, "-c",
-                                              "from hamid.cli.app import main; main()"]
+def hamid_command(before: str = "") -> list[str]:
+    """The command that runs hamid's CLI in a subprocess, after the Python code `before`:
+    this interpreter and the working tree (first on the children's PYTHONPATH,
+    tests/conftest.py), never a `hamid` script found on PATH, which may belong to another
+    copy."""
+    return [sys.executable, "-c", f"{before}from hamid.cli import main; main()"]
 
 
 def duffing_system(*, k: str = "1.0", k3: str = "0.5", x: str = "1.0", v: str = "0.0",

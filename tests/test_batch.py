@@ -12,6 +12,7 @@ import io
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -20,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from helpers import hamid_command
+from helpers import Readiness, hamid_command
 
 import hamid
 from hamid import executor
@@ -34,6 +35,15 @@ N_FILES = 20
 CORRUPT = 7    # the file of the 20 that holds no data
 SLOW = 0       # the file with ten times the samples: it ends after later ones
 SAME = 1e-12   # a batch's numbers against the loop of single fits
+
+
+@pytest.fixture(autouse=True)
+def _the_same_machine_everywhere(monkeypatch):
+    """Every test sees two cores and no Dask scheduler named by the environment, whatever
+    machine or CI runs it (a test that wants a scheduler there sets it)."""
+    monkeypatch.delenv(executor.SCHEDULER_VARIABLE, raising=False)
+    # (added where the system lacks it: hamid then asks it all the same)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
 
 
 def _system(x0: float, t_end: float) -> dict:
@@ -148,9 +158,11 @@ def test_worker_processes_run_blas_on_one_thread():
 
 
 def test_workers_are_chosen_from_jobs_scheduler_and_the_environment(monkeypatch):
-    monkeypatch.delenv(executor.SCHEDULER_VARIABLE, raising=False)
     assert executor.Workers.choose(None, None, 1) == executor.Workers(jobs=1)
-    assert executor.Workers.choose(None, None, 500).jobs == executor.available_cores()
+    # the cores this process may use, not the machine's
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 2, 5})
+    assert executor.Workers.choose(None, None, 500).jobs == 3
+    assert executor.Workers.choose(None, None, 2).jobs == 2
     assert executor.Workers.choose(8, None, 3) == executor.Workers(jobs=3)
     monkeypatch.setenv(executor.SCHEDULER_VARIABLE, "tcp://sched:8786")
     assert executor.Workers.choose(None, None, 5).scheduler == "tcp://sched:8786"
@@ -346,24 +358,29 @@ def test_strict_exits_3_when_a_fit_warns(sources):
 def test_ctrl_c_keeps_the_finished_fits_in_the_partial_file(runs, tmp_path):
     out = tmp_path / "results.jsonl"
     partial = tmp_path / "results.jsonl.partial"
-    process = subprocess.Popen([*hamid_command(), "fit", "--each", str(runs), "-o", str(out),
-                                "--jobs", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True)
-    deadline = time.monotonic() + 120
-    while not (partial.exists() and partial.stat().st_size) and process.poll() is None \
-            and time.monotonic() < deadline:
-        time.sleep(0.02)
-    process.send_signal(signal.SIGINT)
-    stdout, stderr = process.communicate(timeout=60)
+    # The child holds before writing its third record and says so: Ctrl-C comes with two
+    # fits written, whatever the machine's speed (as at a terminal: a test run in the
+    # background ignores SIGINT, and its children would inherit that).
+    with Readiness() as readiness:
+        command = hamid_command(before=readiness.announcing("hamid.report.comparison.record",
+                                                            call=3, hold=True))
+        process = subprocess.Popen(
+            [*command, "fit", "--each", str(runs), "-o", str(out), "--jobs", "2"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, pass_fds=(readiness.fd,),
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        try:
+            readiness.wait()
+            process.send_signal(signal.SIGINT)
+            stdout, stderr = process.communicate(timeout=600)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
     assert process.returncode == 130, stderr
     assert not out.exists() and stdout == ""
     lines = [json.loads(line) for line in partial.read_text().splitlines()]
-    assert 1 <= len(lines) < N_FILES
-    assert [line["source"] for line in lines] == [str(runs / f"run{k + 1}.csv")
-                                                  for k in range(len(lines))]
-    n = len(lines)
-    kept = "the finished fit is" if n == 1 else f"the {n} finished fits are"
-    assert stderr.strip().splitlines()[-1] == f"interrupted; {kept} in {partial}"
+    assert [line["source"] for line in lines] == [str(runs / "run1.csv"), str(runs / "run2.csv")]
+    assert stderr.strip().splitlines()[-1] == f"interrupted; the 2 finished fits are in {partial}"
 
 
 # --- Dask -----------------------------------------------------------------------------------
@@ -373,33 +390,54 @@ def test_ctrl_c_keeps_the_finished_fits_in_the_partial_file(runs, tmp_path):
 def cluster():
     distributed = pytest.importorskip(
         "distributed", reason="dask[distributed] is not installed (pip install 'hamid[dask]')")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as local:
+    import dask
+
+    # a busy machine starts processes slowly: minutes, which only bound a hang
+    with dask.config.set({"distributed.comm.timeouts.connect": "600s"}), \
+            distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                     dashboard_address=None, death_timeout=600) as local:
         yield local
 
 
+@pytest.fixture
+def scheduler(cluster, monkeypatch) -> str:
+    """The cluster's address, which hamid's client waits minutes for, not seconds."""
+    monkeypatch.setattr(executor, "_CONNECT_TIMEOUT", 600)
+    return cluster.scheduler_address
+
+
 @pytest.mark.parametrize("ship_data", [False, True])
-def test_a_dask_cluster_gives_the_local_results(cluster, sources, singles, ship_data):
-    fits = hamid.fit_each(sources[:10], scheduler=cluster.scheduler_address,
+def test_a_dask_cluster_gives_the_local_results(scheduler, sources, singles, ship_data):
+    fits = hamid.fit_each(sources[:10], scheduler=scheduler,
                           ship_data=ship_data)
     for batched, single in zip(fits, singles[:10], strict=True):
         _same_fit(batched, single)
     assert fits[2].provenance["inputs"][0]["path"] == sources[2]
 
 
-def test_fit_each_on_the_cluster_named_by_the_environment(cluster, sources, runs, monkeypatch):
-    monkeypatch.setenv(executor.SCHEDULER_VARIABLE, cluster.scheduler_address)
+def test_fit_each_on_the_cluster_named_by_the_environment(scheduler, sources, monkeypatch):
+    monkeypatch.setenv(executor.SCHEDULER_VARIABLE, scheduler)
     result = invoke(["fit", "--each", *sources[1:3], "--format", "csv"])
     assert result.exit_code == 0, result.stderr
     assert [r["source"] for r in csv.DictReader(io.StringIO(result.stdout))] == [
         sources[1], sources[1], sources[2], sources[2]]
 
 
-def test_an_unreachable_scheduler_is_one_line(runs, monkeypatch):
+@pytest.fixture
+def closed_port():
+    """A local port nothing listens on: bound (so that no one else takes it) and never
+    listening, so a connection is refused at once."""
+    with socket.socket() as bound:
+        bound.bind(("127.0.0.1", 0))
+        yield bound.getsockname()[1]
+
+
+def test_an_unreachable_scheduler_is_one_line(runs, monkeypatch, closed_port):
     pytest.importorskip("distributed", reason="dask[distributed] is not installed")
     monkeypatch.setattr(executor, "_CONNECT_TIMEOUT", 1)
-    _fails(invoke(["fit", "--each", runs, "--scheduler", "tcp://127.0.0.1:9"]), 1,
-           "--scheduler tcp://127.0.0.1:9: cannot connect")
+    address = f"tcp://127.0.0.1:{closed_port}"
+    _fails(invoke(["fit", "--each", runs, "--scheduler", address]), 1,
+           f"--scheduler {address}: cannot connect")
 
 
 # --- hamid report of several fits ------------------------------------------------------------

@@ -15,8 +15,8 @@ from hamid.errors import UsageError
 ROOT = Path(__file__).resolve().parent.parent
 PENDULUM_MODEL = ROOT / "sample_data" / "pendulum.toml"
 PENDULUM_PIECE = ROOT / "sample_data" / "pendulum_encoder.csv"
-PENDULUM_FULL = (ROOT.parent / "shared" / "data" / "real" / "kaheman_multiarm_single_pendulum"
-                 / "single_pendulum.csv")
+# the whole 55 s record at 100 Hz (tests/data/single_pendulum_100hz.SOURCE.md)
+PENDULUM_FULL = ROOT / "tests" / "data" / "single_pendulum_100hz.csv.gz"
 PUBLISHED_K = 64.22  # Kaheman et al. (2022): a1 g m1 / (m1 a1^2 + I1)
 
 FINE = {"t_end": 30.0, "dt": 0.02}
@@ -132,7 +132,6 @@ def test_constant_energy_fit_of_the_real_pendulum_is_flagged():
     assert any("drifts" in w and "--damping viscous" in w for w in result.warnings)
 
 
-@pytest.mark.skipif(not PENDULUM_FULL.exists(), reason="needs ../shared/data/real")
 @pytest.mark.parametrize("damping", ["viscous", "viscous,coulomb"])
 def test_whole_real_recording(damping):
     result = hamid.fit(PENDULUM_FULL, PENDULUM_MODEL, damping=damping)

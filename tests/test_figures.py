@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import re
 import subprocess
 import sys
@@ -273,7 +274,8 @@ def test_drawing_opens_no_window_and_imports_no_pyplot(tmp_path):
             f"r.plot().savefig({str(tmp_path / 'f.png')!r})\n"
             "print('matplotlib.pyplot' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True, env={"PATH": "/usr/bin:/bin", "DISPLAY": ""})
+                         check=True, env={"PATH": "/usr/bin:/bin", "DISPLAY": "",
+                              "PYTHONPATH": os.environ["PYTHONPATH"]})
     assert out.stdout.strip() == "False" and (tmp_path / "f.png").stat().st_size > 10_000
 
 

@@ -35,7 +35,7 @@ import pytest
 import rich.console  # noqa: F401
 import sympy
 from click.testing import CliRunner
-from helpers import duffing_system, hamid_command, wait_until_integrating
+from helpers import Readiness, duffing_system, hamid_command
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from sympy.parsing.sympy_parser import parse_expr, standard_transformations
@@ -361,7 +361,7 @@ def test_text_python_warns_about_is_refused_in_one_line(tmp_path, energy, names)
     model = tmp_path / "model.toml"
     model.write_text(EXPRESSION_MODEL.format(energy=energy))
     done = subprocess.run([*hamid_command(), "models", str(model)], capture_output=True,
-                          text=True, timeout=60)
+                          text=True, timeout=600)
     assert done.returncode == 1
     assert done.stdout == ""
     lines = done.stderr.strip().splitlines()
@@ -619,11 +619,15 @@ def test_tiny_time_steps_print_nothing_on_stdout(tmp_path):
     data = tmp_path / "data.csv"
     data.write_text("t,x,v\n" + "".join(f"{i}e-300,{i % 3 + 1},{i % 2}\n" for i in range(6)))
     done = subprocess.run([*hamid_command(), "fit", str(data), "--model", "duffing"],
-                          capture_output=True, text=True, timeout=60)
-    assert "DLASCL" not in done.stdout
+                          capture_output=True, text=True, timeout=600)
+    # Times 1e-300 apart are numbers like any other, and the energy rows the fit falls back
+    # to (too few samples for windows) never divide by them: the fit runs, and its report
+    # says how little these six samples tell. LAPACK's own complaint (DLASCL, printed on
+    # standard output) must not land among the report's lines.
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("hamid fit — duffing, method energy")
+    assert "DLASCL" not in done.stdout and "DLASCL" not in done.stderr
     assert "internal error" not in done.stderr
-    assert done.returncode in (0, 1)
-    assert done.returncode == 0 or done.stdout == ""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -782,21 +786,22 @@ def test_simulate_ctrl_c_part_way_leaves_the_file_byte_for_byte(tmp_path):
     out = folder / "out.csv"
     out.write_bytes(PRECIOUS)
     # Ctrl-C as at a terminal: a test run started in the background (a shell's `&`) ignores
-    # SIGINT, and its children would inherit that.
-    process = subprocess.Popen([*hamid_command(), "simulate", "--config", str(config), "-o",
-                                str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True,
-                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    try:
-        wait_until_integrating(process)
-        if process.poll() is not None:
-            pytest.skip("the run finished before the signal could be sent")
-        process.send_signal(signal.SIGINT)
-        stdout, stderr = process.communicate(timeout=60)
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
+    # SIGINT, and its children would inherit that. The signal comes once the child says it
+    # is integrating.
+    with Readiness() as readiness:
+        command = hamid_command(before=readiness.announcing("scipy.integrate.solve_ivp"))
+        process = subprocess.Popen(
+            [*command, "simulate", "--config", str(config), "-o", str(out)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, pass_fds=(readiness.fd,),
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        try:
+            readiness.wait()
+            process.send_signal(signal.SIGINT)
+            stdout, stderr = process.communicate(timeout=600)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
     assert process.returncode != 0
     assert process.returncode == 130, stderr
     assert stdout == ""
@@ -815,7 +820,7 @@ def test_internal_error_in_a_real_process_is_one_line(tmp_path):
             "sys.argv = ['hamid', 'simulate', '--config', sys.argv[1]]\n"
             "main()\n")
     done = subprocess.run([sys.executable, "-c", code, DUFFING_TOML], capture_output=True,
-                          text=True, timeout=60, cwd=tmp_path)
+                          text=True, timeout=600, cwd=tmp_path)
     assert done.returncode == 1
     assert done.stdout == ""
     lines = done.stderr.strip().splitlines()
@@ -832,7 +837,7 @@ def test_numpy_warnings_do_not_reach_the_user(tmp_path):
     data = tmp_path / "data.csv"
     data.write_text("x,v\n" + "".join(f"{(i % 5 + 1) * 1e200:g},{i % 3}\n" for i in range(10)))
     done = subprocess.run([*hamid_command(), "fit", str(data), "--model", "duffing"],
-                          capture_output=True, text=True, timeout=60)
+                          capture_output=True, text=True, timeout=600)
     assert done.returncode == 1
     assert done.stdout == ""
     assert done.stderr.startswith("Error: "), done.stderr

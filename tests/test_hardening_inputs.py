@@ -18,7 +18,7 @@ DUFFING = ROOT / "sample_data" / "duffing.csv"
 
 def _run(hamid_cli, *args, cwd) -> subprocess.CompletedProcess:
     return subprocess.run([*hamid_cli, *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd, timeout=120)
+                          cwd=cwd, timeout=600)
 
 
 def _one_line_error(done: subprocess.CompletedProcess, code: int, *words: str) -> None:

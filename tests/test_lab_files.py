@@ -160,8 +160,11 @@ def test_time_unit_and_scale_on_the_command_line(tmp_path, si, si_fit, hamid_cli
 
 def test_bad_time_unit_is_exit_2(hamid_cli):
     done = subprocess.run([*hamid_cli, "fit", SAMPLE, "--time-unit", "min"],
-                          capture_output=True, text=True, check=False)
+                          capture_output=True, text=True, check=False, timeout=600)
     assert done.returncode == 2
+    assert done.stdout == ""
+    assert done.stderr.strip().splitlines()[-1] == (
+        "Error: Invalid value for '--time-unit': 'min' is not one of 's', 'ms', 'us', 'ns'.")
 
 
 def test_metadata_units_convert_like_suffixes(si, si_fit):

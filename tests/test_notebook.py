@@ -63,3 +63,21 @@ def test_make_figures_saves_every_tagged_figure(script, notebook, tmp_path):
     for png in images.values():
         pixels = imread(io.BytesIO(png))[..., :3]
         assert pixels.shape[1] >= 1000 and pixels.std() > 0.1
+
+
+def test_a_slow_kernel_loses_no_output(script, monkeypatch):
+    """nbclient's default waits 4 s for a cell's outputs and then drops them silently; the
+    notebook is run with minutes, and a wait that runs out is an error."""
+    settings = {}
+
+    class Client:
+        def __init__(self, document, **kwargs):
+            settings.update(kwargs)
+
+        def execute(self):
+            pass
+
+    monkeypatch.setattr(script, "NotebookClient", Client)
+    script.run()
+    assert settings["timeout"] >= 600 and settings["iopub_timeout"] >= 600
+    assert settings["raise_on_iopub_timeout"] is True

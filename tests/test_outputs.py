@@ -33,7 +33,7 @@ SUFFIXES = {".json": "json", ".csv": "csv", ".md": "markdown", ".txt": "table"}
 
 def _run(hamid_cli, *args, cwd=None, stdin=subprocess.DEVNULL):
     return subprocess.run([*hamid_cli, *map(str, args)], cwd=cwd, stdin=stdin,
-                          capture_output=True, text=True, timeout=120)
+                          capture_output=True, text=True, timeout=600)
 
 
 def _usage_error(done, *names):
@@ -110,7 +110,7 @@ def test_standard_output_and_special_files_default_to_table(hamid_cli, saved, tm
     reader = subprocess.Popen(["cat", str(fifo)], stdout=subprocess.PIPE, text=True)
     try:
         done = _run(hamid_cli, *args, "-o", fifo)
-        text = reader.communicate(timeout=60)[0]
+        text = reader.communicate(timeout=600)[0]
     finally:
         reader.kill()
     assert done.returncode == 0, done.stderr
@@ -178,11 +178,13 @@ def test_residuals_in_a_file_with_the_report_on_standard_output(hamid_cli, tmp_p
 
 
 def test_residuals_and_report_to_standard_output_sent_to_dev_null(hamid_cli):
-    """/dev/null as standard output: nothing there can interleave."""
+    """/dev/null as standard output: nothing there can interleave (a pipe is refused, above),
+    and the fit runs as any other, without a message."""
     done = subprocess.run([*hamid_cli, "fit", str(DUFFING_CSV), *FAST, "--residuals",
                            "/dev/stdout"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                          text=True, timeout=120)
+                          text=True, timeout=600)
     assert done.returncode == 0, done.stderr
+    assert done.stderr == ""
 
 
 # --- the text layout of `fit` ----------------------------------------------------------------
@@ -366,7 +368,7 @@ def test_report_command_shows_time_and_scale(hamid_cli, daq_result, tmp_path):
 
 def test_the_command_line_is_in_the_report(hamid_cli, tmp_path):
     done = subprocess.run([*hamid_cli, "fit", str(DUFFING_CSV), "--method", "energy",
-                           "--format", "json"], capture_output=True, text=True, timeout=120)
+                           "--format", "json"], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     command = json.loads(done.stdout)["provenance"]["command"]
     assert command.startswith("hamid fit ") and "--method energy" in command

@@ -10,7 +10,7 @@ import re
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import DUFFING, PENG, with_noise
+from conftest import DUFFING, PENG, spread_band, with_noise
 from scipy.signal import savgol_coeffs, savgol_filter
 
 import hamid
@@ -454,15 +454,21 @@ def test_a_first_fit_stopped_far_off_is_within_the_noise_once_refitted():
 
 @pytest.mark.slow
 def test_chaotic_motion_errors_are_the_spread():
-    """20 noise realizations of the chaotic record: the errors in units of the standard
+    """100 noise realizations of the chaotic record: the errors in units of the standard
     errors have a root mean square near one (1e4 when tied whole)."""
+    n = 100
     clean = hamid.simulate(CHAOTIC)
     z = []
-    for seed in range(20):
+    for seed in range(n):
         fit = hamid.fit(with_noise(clean, 0.01, seed=100 + seed))
         z.append([(p.estimate - CHAOTIC["parameters"][p.name]) / p.stderr
                   for p in fit.parameters])
-    assert np.sqrt(np.mean(np.square(z), axis=0)) == pytest.approx(1.0, abs=0.35)
+    # Were the errors exact, the root mean square of n z-values would be
+    # sqrt(chi2(n) / n): 0.77 to 1.24 but for 0.05% on each side, a correct fit failing
+    # 0.4% of the time over four parameters (20 realizations allowed only 0.52 to 1.54).
+    low, high = spread_band(n, 0.0005)
+    rms = np.sqrt(np.mean(np.square(z), axis=0))
+    assert np.all((low < rms) & (rms < high)), rms
 
 
 def _not_lengthened(refinement, stopped):

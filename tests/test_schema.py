@@ -10,18 +10,18 @@ from __future__ import annotations
 import copy
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import jsonschema
 import pytest
+from helpers import hamid_command
 
 from hamid.errors import DataError
 from hamid.result import validation
 from hamid.result.fit_result import FitResult
 
 GOLDEN = sorted((Path(__file__).parent / "golden").glob("*.json"))
-HAMID = [sys.executable, "-c", "from hamid.cli.app import main; main()"]
+HAMID = hamid_command()
 
 
 def _load(name: str) -> dict:
@@ -175,7 +175,7 @@ def _report_error(path: Path, text: str) -> str:
     """The one line `hamid report` says of a file holding `text` (exit 1, no output)."""
     path.write_text(text)
     done = subprocess.run([*HAMID, "report", str(path)], capture_output=True, text=True,
-                          cwd=path.parent, timeout=60)
+                          cwd=path.parent, timeout=600)
     assert done.returncode == 1, done.stderr
     assert done.stdout == ""
     lines = done.stderr.splitlines()
@@ -190,7 +190,7 @@ def test_the_untampered_report_is_accepted(tmp_path, name, golden, key, words):
     path = tmp_path / "r.json"
     path.write_text(json.dumps(_load(golden)))
     done = subprocess.run([*HAMID, "report", str(path), "--format", "json"],
-                          capture_output=True, text=True, cwd=tmp_path, timeout=60)
+                          capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout) == _load(golden)
 

@@ -31,7 +31,7 @@ def test_a_wrong_model_is_flagged_on_the_command_line(hamid_cli):
     done = subprocess.run(
         [*hamid_cli, "fit", "sample_data/duffing.csv", "--model",
          "poly:1:2", "--columns", "q1=x,v1=v", "--format", "json"],
-        capture_output=True, text=True, cwd=ROOT, timeout=120)
+        capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert done.returncode == 0, done.stderr
     warnings = json.loads(done.stdout)["warnings"]
     assert _has(warnings, "the integrated model misses the recording", "physics the model "
