@@ -3,7 +3,9 @@
 The truth is the `[parameters]` table of each sample's system file (what `hamid simulate`
 made it from), not what the fit reads from the data's metadata. These data are clean:
 their errors are those of integrators (the record's own, and the weak rows' quadrature),
-which noise-free intervals must include (docs/method.md, "Covariances and intervals").
+which noise-free intervals must include (docs/method.md, "Covariances and intervals"):
+the weak rows' quadrature by its Richardson estimate, the record's own error in linear fits
+of energy rows, and the refinement's, by the bound of an error as large as the whole misfit.
 """
 
 from __future__ import annotations
@@ -17,32 +19,16 @@ from scipy import integrate
 
 import hamid
 from hamid.data.records import Records
-from hamid.linear import design
+from hamid.linear import design, uncertainty
 
 ROOT = Path(__file__).parent.parent
 SAMPLES = ("duffing.csv", "elastic_pendulum.csv", "elastic_pendulum.parquet",
            "henon_heiles.csv", "peng_quadratic.csv", "peng_quadratic.parquet")
 METHODS = ("auto", "joint", "weak", "energy")
-# Linear fits of clean records whose misses come from the record's own integration error
-# (its energy drifts by 6e-11), smooth over the whole record, which their `hac` errors do
-# not see: not the rows' discretization (the weak rows' Richardson term is a hundredth of
-# these misses). A tighter record does not help: integrated at rtol 1e-13 or 2.5e-14, its
-# errors and the fits' standard errors shrink alike and the misses stay (joint bounds on
-# k3 hold 7-30% of 30 clean duffing records at every tolerance,
-# tests/benchmarks/clean_records.py). Measured misses, in standard errors.
-RECORD_ERROR = {("duffing.csv", "joint"): "k3 by 3.8",
-                ("peng_quadratic.csv", "joint"): "a3 by 5.3, a6 by 2.4, a2 by 2.0",
-                ("peng_quadratic.parquet", "joint"): "a3 by 5.3, a6 by 2.4, a2 by 2.0",
-                ("peng_quadratic.csv", "energy"): "a1 by 2.2",
-                ("peng_quadratic.parquet", "energy"): "a1 by 2.2"}
 
 
 def _case(name: str, method: str, chunk_rows: int | None = None):
-    # `auto` on a file read in chunks is the joint fit, unrefined
-    missed = RECORD_ERROR.get((name, "joint" if method == "auto" and chunk_rows else method))
-    marks = [] if missed is None else [pytest.mark.xfail(
-        strict=True, reason=f"the record's own integration error: misses {missed}")]
-    return pytest.param(name, method, chunk_rows, marks=marks,
+    return pytest.param(name, method, chunk_rows,
                         id=f"{name}-{method}" + (f"-chunks{chunk_rows}" if chunk_rows else ""))
 
 
@@ -119,3 +105,52 @@ def test_energy_rows_and_the_refinement_have_no_rows_to_discretize():
     assert refined.method["refinement"]["applied"]
     assert refined.method["discretization"] is None
     assert "noise-free data" in refined.method["covariance_description"]
+
+
+@pytest.mark.parametrize("method", ["energy", "joint"])
+def test_linear_fits_of_clean_data_are_widened_by_their_whole_misfit(method):
+    """Clean records' energy and joint fits missed the truth by up to 5.3 standard errors
+    (the record's own smooth integration error): their bounds are now those of an error as
+    large as the whole misfit, the same for a file read in chunks, at the same estimates."""
+    path = ROOT / "sample_data" / "peng_quadratic.parquet"
+    whole = hamid.fit(path, method=method)
+    chunked = hamid.fit(path, method=method, chunk_rows=500)
+    for result in (whole, chunked):
+        assert "noise-free data (energy rows' residual rms" in \
+            result.method["covariance_description"]
+    assert [p.stderr for p in chunked.parameters] == pytest.approx(
+        [p.stderr for p in whole.parameters], rel=1e-6)
+    assert [p.estimate for p in chunked.parameters] == pytest.approx(
+        [p.estimate for p in whole.parameters], rel=1e-10)
+    truth = _truth("peng_quadratic.csv")
+    assert max(abs(p.estimate - truth[p.name]) / p.stderr for p in whole.parameters) < 0.5
+
+
+def _misfit(relative_noise: float) -> uncertainty.Misfit:
+    """The misfit of energy rows b = sin^2 t of two trajectories with residuals of
+    `relative_noise` of their spread, at unit weights."""
+    t = np.linspace(0.0, 20.0, 2001)
+    rng = np.random.default_rng(0)
+    misfit = uncertainty.Misfit(2)
+    for j in (0, 1):
+        b = (j + 1) * np.sin(t) ** 2
+        block = design.Block("energy", np.zeros((len(t), 1)), b, np.full(len(t), j), t,
+                             np.ones(len(t)), has_level=True)
+        misfit.add(block, relative_noise * b.std() * rng.standard_normal(len(t)),
+                   block.weight)
+    return misfit
+
+
+@pytest.mark.parametrize(("noise", "clean"), [(1e-11, True), (1e-10, True),
+                                              (1e-8, False), (1e-6, False)])
+def test_data_count_as_noise_free_below_a_billionth_of_their_spread(noise, clean):
+    misfit = _misfit(noise)
+    assert misfit.relative == pytest.approx(noise, rel=0.1, abs=0)
+    covariance, description = misfit.widened(np.eye(1) * 1e-30, "hac", np.eye(1))
+    assert bool(covariance[0, 0] == pytest.approx(misfit.weighted, rel=1e-9, abs=0)) is clean
+    assert ("noise-free" in description) is clean
+
+
+def test_noisy_linear_fits_keep_their_covariance():
+    result = hamid.fit(ROOT / "sample_data" / "henon_heiles.csv", method="energy")
+    assert "noise-free" not in result.method["covariance_description"]

@@ -77,20 +77,22 @@ def _energy(source: Chunked, energy_rows: Callable[[Records, int], Block], names
     solution = solve.solve_factor(factor.centred(), np.sqrt(factor.raw_squares),
                                   factor.n_rows, names, n_levels=J)
     scores = Scores(solution.theta, solution.inverse, *factor.level_means, factor.total_weight)
-    residuals = ResidualSums(scores.h)
+    residuals, misfit = ResidualSums(scores.h), uncertainty.Misfit(J)
 
     def score_pass(sums: uncertainty.ScoreSums) -> None:
         for records, row in source.rows("standard errors"):
             block = energy_rows(records, row)
-            if sums.bandwidth is None:   # the first pass (hac: the one finding the bandwidth)
+            first = sums.bandwidth is None   # the first pass (hac: the one finding the bandwidth)
+            if first:
                 residuals.add(block, block.A @ scores.theta - block.b - scores.h[block.group])
-            scores.feed(sums, [block], [1.0], None)
+            scores.feed(sums, [block], [1.0], None, misfit=misfit if first else None)
 
     sums, automatic = uncertainty.fed_sums(cov, p, J, score_pass)
     c = sums.covariance(factor.n_rows - p - J, automatic=automatic)
+    covariance, description = misfit.widened(c.theta, c.description, solution.inverse)
     stats = residuals.stats(source.labels)
     h_stderr = np.sqrt(np.clip(estimate.level_variance(c, factor.level_means[0]), 0, None))
-    return LinearFit(solution.theta, c.theta, c.description, c.df, scores.h, h_stderr, None,
+    return LinearFit(solution.theta, covariance, description, c.df, scores.h, h_stderr, None,
                      {"energy": {"n_rows": int(residuals.n.sum()), "rms": stats["rms"],
                                  "max_abs": stats["max_abs"]}},
                      solve.factor_conditioning(factor, names, source.labels), None,
@@ -301,8 +303,9 @@ def _fit_windows(store: _WindowRows, kind: str, names: list[str],
     each = ({block_kind: solve.factor_conditioning(factor, names, labels).condition_number
              for (block_kind, _, _), factor in zip(store.layout, factors, strict=True)}
             if len(factors) > 1 else None)
+    covariance, description = fit.misfit.widened(c.theta, c.description, solution.inverse)
     shift = quadrature.shift(solution.theta, solution.inverse, scales[-1])   # weak: last
-    covariance, description = estimate.with_discretization(c.theta, c.description, shift)
+    covariance, description = estimate.with_discretization(covariance, description, shift)
     return LinearFit(solution.theta, covariance, description, c.df, h, h_stderr,
                      block_variance, block_stats, cond, each, energy_means, sizes,
                      discretization=shift)
@@ -310,12 +313,13 @@ def _fit_windows(store: _WindowRows, kind: str, names: list[str],
 
 @dataclasses.dataclass(frozen=True)
 class _WindowFit:
-    """A covariance of the stored window rows' fit, its levels, and the number of rows,
-    sum of squared residuals and largest residual of each block."""
+    """A covariance of the stored window rows' fit, its levels, the number of rows,
+    sum of squared residuals and largest residual of each block, and its misfit."""
 
     covariance: uncertainty.Covariance
     h: np.ndarray
     residuals: list[tuple[int, float, float]]
+    misfit: uncertainty.Misfit
 
 
 def _window_fit(store: _WindowRows, joined: solve.Factor, solution: solve.Solution,
@@ -327,11 +331,15 @@ def _window_fit(store: _WindowRows, joined: solve.Factor, solution: solve.Soluti
                     joined.total_weight)
     by_window = cov == "hac"
     residuals: list[tuple[int, float, float]] = []   # rows, squares, largest of each block
+    misfit = uncertainty.Misfit(J)
 
     def scored(sums: uncertainty.ScoreSums) -> None:
+        nonlocal misfit
         residuals[:] = [(0, 0.0, 0.0)] * len(store.layout)
+        misfit = uncertainty.Misfit(J)
         for blocks, group in store.chunks():
-            stats = scores.feed(sums, blocks, scales, group if by_window else None)
+            stats = scores.feed(sums, blocks, scales, group if by_window else None,
+                                misfit=misfit)
             residuals[:] = [(n + m, square + more, max(largest, top)) for (n, square, largest),
                             (m, more, top) in zip(residuals, stats, strict=True)]
 
@@ -340,9 +348,10 @@ def _window_fit(store: _WindowRows, joined: solve.Factor, solution: solve.Soluti
     n_rows = sum(n for n, _, _ in residuals)
     if not by_window:
         return _WindowFit(sums.covariance(n_rows - fitted, automatic=automatic), scores.h,
-                          residuals)
+                          residuals, misfit)
     c = sums.covariance(store.n_windows - fitted, automatic=automatic)
-    return _WindowFit(estimate.windows_covariance(c, store.n_windows), scores.h, residuals)
+    return _WindowFit(estimate.windows_covariance(c, store.n_windows), scores.h, residuals,
+                      misfit)
 
 
 @dataclasses.dataclass

@@ -157,13 +157,14 @@ class Scores:
 
     def feed(self, sums: uncertainty.ScoreSums, blocks: list[Block], scales: list[float],
              window_group: npt.NDArray[np.int64] | None,
-             shares: list[npt.NDArray[np.float64]] | None = None
-             ) -> list[tuple[int, float, float]]:
+             shares: list[npt.NDArray[np.float64]] | None = None,
+             misfit: uncertainty.Misfit | None = None) -> list[tuple[int, float, float]]:
         """Feed one piece of rows: `blocks` over the same windows (weak and joint fits, in
         window order) or energy rows; `scales` multiply each block's weights.
         `window_group`, the trajectory of each window, asks for the windows' summed
         scores. `shares`, per block, each row's part of the noise-bias correction of
         adjusted least squares (`hamid.linear.adjust.Moments.shares`), which joins its score.
+        `misfit`, when given, is fed the rows' residuals.
         Returns each block's rows, sum of squared residuals and largest one."""
         p = len(self.theta)
         if window_group is not None:
@@ -177,6 +178,8 @@ class Scores:
             for start in range(0, max(block.n_rows, 1), step):
                 piece = block.slice(start, start + step)
                 z, r, w = self._scores(piece, scale)
+                if misfit is not None:
+                    misfit.add(piece, r, w)
                 n, squares = n + len(r), squares + float(r @ r)
                 largest = max(largest, float(np.max(np.abs(r), initial=0.0)))
                 offset = None if shares is None else np.column_stack(
@@ -453,6 +456,11 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
             theta_cov, text = _with_propagated_noise(theta_cov, text, fit, blocks, m, records,
                                                      sigma, unknowns, spans, damping)
         h_var = level_variance(c, fit.centred.level_means_A)
+    misfit = uncertainty.Misfit(J)
+    pieces = np.split(fit.residual, np.cumsum([b.n_rows for b in blocks])[:-1])
+    for block, residual in zip(blocks, pieces, strict=True):
+        misfit.add(block, residual, block.weight)
+    theta_cov, text = misfit.widened(theta_cov, text, fit.solution.inverse)
     shift = None
     if spans is not None:
         error = QuadratureError(len(names))
@@ -462,7 +470,6 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
         theta_cov, text = with_discretization(theta_cov, text, shift)
     means_A, means_b, _ = solve.level_means(energy, J)
     h, h_stderr = fitted_levels(plan.kind, fit.theta, fit.h, h_var, (means_A, means_b))
-    pieces = np.split(fit.residual, np.cumsum([b.n_rows for b in blocks])[:-1])
     block_stats = {b.kind: {"n_rows": len(r), "rms": float(np.sqrt(np.mean(r**2))),
                             "max_abs": float(np.max(np.abs(r)))}
                    for b, r in zip(blocks, pieces, strict=True)}
@@ -540,10 +547,7 @@ def _with_propagated_noise(theta_cov: Any, text: str, fit: Solved, blocks: list[
     G = fit.centred.influence(fit.solution.inverse)
     propagated = design.propagated_covariance(blocks, G, model, records,
                                               unknowns.full(fit.theta), sigma, spans, damping)
-    old = np.sqrt(np.clip(np.diag(theta_cov), 0, None))
-    new = np.sqrt(np.maximum(np.diag(theta_cov), np.diag(propagated)))
-    ratio = np.divide(new, old, out=np.ones_like(new), where=old > 0)
-    return (theta_cov * np.outer(ratio, ratio),
+    return (uncertainty.at_least(theta_cov, propagated),
             text + "; each variance at least the one propagated from the measurement noise")
 
 

@@ -36,7 +36,7 @@ SYSTEMS = ("duffing", "peng_quadratic")
 TOLERANCES = ((1e-11, 1e-12), (1e-13, 1e-15), (2.5e-14, 1e-17))
 
 
-def _system(document: dict, seed: int, rtol: float, atol: float) -> dict:
+def moved_system(document: dict, seed: int, rtol: float, atol: float) -> dict:
     """The system with each initial value moved by up to 20% and the given tolerances."""
     rng = np.random.default_rng(seed)
     initial = [{k: v * (1 + 0.2 * rng.uniform(-1, 1)) + 0.02 * rng.uniform(-1, 1)
@@ -62,7 +62,7 @@ def main() -> None:
             z = {method: {p: [] for p in truth} for method in args.methods}
             drift = 0.0
             for seed in range(args.realizations):
-                frame = hamid.simulate(_system(document, seed, rtol, atol))
+                frame = hamid.simulate(moved_system(document, seed, rtol, atol))
                 drift = max([drift] + [t["energy_drift"]
                                        for t in frame.attrs["hamid"]["trajectories"]])
                 for method in args.methods:
