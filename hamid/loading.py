@@ -34,8 +34,10 @@ from hamid.records import Records, runs
 __all__ = ["Chunked", "Loaded", "in_memory_name", "in_memory_table", "load", "open_chunks",
            "trajectory_label"]
 
-# Times beyond this overflow in the sums of squares the residual summary takes.
-_LARGEST_TIME = 1e150
+# Times beyond this overflow in the sums of squares the residual summary takes; time
+# steps below the smallest underflow in the weak form's integrals (1e-150 gave a division
+# by zero, 1e-300 an SVD that did not converge).
+_LARGEST_TIME, _SMALLEST_STEP = 1e150, 1e-100
 _IN_MEMORY = ("<DataFrame>", "<dict>", "<array>")   # `in_memory_name`
 
 
@@ -257,6 +259,13 @@ class Reader:
                     k = int(bad[0])
                     raise DataError(f"{self.source}: column {self.time!r}, row {row + k + 1}: "
                                     f"time does not increase ({before[k]:g} then {t[k]:g})")
+                tiny = np.flatnonzero(same & (t - before < _SMALLEST_STEP))
+                if tiny.size:
+                    k = int(tiny[0])
+                    raise DataError(f"{self.source}: column {self.time!r}, row {row + k + 1}: "
+                                    f"time step {t[k] - before[k]:g} is too small to compute "
+                                    f"with (at least {_SMALLEST_STEP:g}); is it the time "
+                                    "column?")
                 if self.chunked:
                     self._refuse_gaps(t - before, same, group, row)
                 last_t = float(t[-1])

@@ -1,0 +1,76 @@
+"""Hardening, round three (issue 33): numbers that broke the arithmetic, and work with no
+bound (replicates, realizations, parameters drawn), now give one line before the work, a
+correct result, or a bounded refusal."""
+
+from __future__ import annotations
+
+import subprocess
+
+import pandas as pd
+import pytest
+from helpers import duffing_system
+
+from hamid.errors import ModelError
+
+DUFFING_CSV = "sample_data/duffing.csv"
+
+
+def _run(hamid_cli, *args, cwd, env=None) -> subprocess.CompletedProcess:
+    return subprocess.run([*hamid_cli, *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, timeout=300, env=env)
+
+
+def _one_line_error(done: subprocess.CompletedProcess, code: int, *words: str) -> str:
+    assert done.returncode == code, done.stderr
+    assert done.stdout == ""
+    lines = done.stderr.splitlines()
+    assert len(lines) == 1, done.stderr
+    for word in words:
+        assert word in lines[0], lines[0]
+    assert "internal error" not in lines[0]
+    return lines[0]
+
+
+@pytest.fixture
+def duffing(tmp_path) -> pd.DataFrame:
+    from pathlib import Path
+
+    return pd.read_csv(Path(__file__).parent.parent / DUFFING_CSV, comment="#")
+
+
+@pytest.mark.parametrize("chunks", [[], ["--chunk-rows", "500"]])
+def test_time_steps_too_small_to_compute_with(hamid_cli, tmp_path, duffing, chunks):
+    """Times scaled by 1e-300 gave 'SVD did not converge' (1e-150: a division by zero)."""
+    duffing["t"] *= 1e-300
+    duffing.to_csv(tmp_path / "tiny.csv", index=False)
+    _one_line_error(_run(hamid_cli, "fit", "tiny.csv", "--model", "duffing", *chunks,
+                         cwd=tmp_path), 1,
+                    "tiny.csv: column 't', row 2: time step 5e-302 is too small")
+
+
+def test_time_steps_of_1e_minus_60_still_fit(tmp_path, duffing):
+    import hamid
+
+    duffing["t"] *= 1e-60
+    result = hamid.fit(duffing, model="duffing", method="energy")
+    assert result.estimates["k"] == pytest.approx(1.0, rel=1e-6)
+
+
+def test_forces_that_overflow_at_the_start_name_the_trajectory(hamid_cli, tmp_path):
+    """k3 = 1e300 at x = 1e3: AttributeError in simulation.realizations."""
+    (tmp_path / "sys.toml").write_text(duffing_system(k3="1e300", x="1e3"))
+    _one_line_error(_run(hamid_cli, "simulate", "--config", "sys.toml", "-o", "out.csv",
+                         cwd=tmp_path), 1, "not finite at the initial state of trajectory 1",
+                    "k3 = 1e+300")
+    assert not (tmp_path / "out.csv").exists()
+
+
+@pytest.mark.parametrize("x", ["1e-3", "3e2"])
+def test_forces_that_overflow_soon_after_the_start_are_an_escape(x):
+    import tomllib
+
+    import hamid
+
+    system = tomllib.loads(duffing_system(k3="1e300", x=x))
+    with pytest.raises(ModelError, match="trajectory 1 escapes"):
+        hamid.simulate(system)
