@@ -308,11 +308,21 @@ def realizations(system: System, count: int, *, seed: int | None = None,
         }
 
 
+# The files one `simulate --realizations` writes: each is held as a temporary until all
+# are written, and 100,000,000 of them took 3.6 GB of names before the first was written.
+MAX_REALIZATIONS = 10_000
+
+
 def numbered(output: str, count: int) -> list[str]:
     """The files of `count` realizations: OUT with -1, -2, ... (zero-padded to the width of
     `count`) before its extension."""
     if output == "-":
         raise UsageError("--realizations writes a file per realization: give -o FILE")
+    if count > MAX_REALIZATIONS:
+        raise UsageError(f"--realizations {count:,} would write {count:,} files, more than "
+                         f"the {MAX_REALIZATIONS:,} one run writes (all are held until the "
+                         "last is written); write them in parts, each with its own --seed "
+                         f"(S, S + {MAX_REALIZATIONS:,}, ...)")
     stem, suffix = os.path.splitext(output)
     return [f"{stem}-{k:0{len(str(count))}d}{suffix}" for k in range(1, count + 1)]
 
