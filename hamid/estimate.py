@@ -22,7 +22,7 @@ from hamid.dissipation import Dissipation
 from hamid.errors import DataError, FitError
 from hamid.loading import Loaded
 from hamid.model import Model
-from hamid.options import FitOptions
+from hamid.options import FitOptions, check_replicates
 from hamid.plan import FitPlan
 from hamid.records import Records, runs
 from hamid.unknowns import Unknowns
@@ -460,6 +460,7 @@ def _bootstrap_covariance(blocks: list[Block], names: list[str], J: int, kind: s
         fit = least_squares(sample, names, J)
         return np.concatenate([fit.theta, fit.h])
 
+    check_replicates("--bootstrap", n_boot, len(group))
     # Resample within the trajectories present (one too short for a window has no units).
     dense = np.unique(unit_group, return_inverse=True)[1]
     cov, _, description = uncertainty.bootstrap(refit, dense, n_boot=n_boot, seed=seed)

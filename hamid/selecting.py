@@ -22,7 +22,7 @@ from hamid.dissipation import Dissipation
 from hamid.errors import DataError, FitError, UsageError
 from hamid.library import Library
 from hamid.model import Model, parse_poly_name, poly_model_over
-from hamid.options import FitOptions
+from hamid.options import FitOptions, check_replicates
 from hamid.result import FitResult, plain_data
 from hamid.unknowns import Unknowns
 
@@ -61,6 +61,7 @@ class SelectOptions:
         if self.stability and self.stability < MIN_REPLICATES:
             raise UsageError(f"--stability needs at least {MIN_REPLICATES} replicates, "
                              f"found {self.stability}")
+        check_replicates("--stability", self.stability)
         if self.stability and self.criterion == "cv":
             raise UsageError("--stability cannot be combined with --criterion cv (copies of "
                              "a resampled window would sit in training and test folds); use "
@@ -260,6 +261,7 @@ def choose(data: Any, options: SelectOptions, *, columns: Mapping[str, str] | No
     ranking = selection.search(grid, forced, free, options.criterion)
     shares = None
     if options.stability:
+        check_replicates("--stability", options.stability, len(grid.unit))
         probability = selection.inclusion(grid, forced, free, options.criterion,
                                           options.stability, options.seed, progress)
         shares = {columns_of[c]: float(p) for c, p in zip(free, probability, strict=True)}

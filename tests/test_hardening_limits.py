@@ -5,6 +5,7 @@ correct result, or a bounded refusal."""
 from __future__ import annotations
 
 import subprocess
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -12,6 +13,7 @@ from helpers import duffing_system
 
 from hamid.errors import ModelError
 
+ROOT = Path(__file__).parent.parent
 DUFFING_CSV = "sample_data/duffing.csv"
 
 
@@ -33,9 +35,7 @@ def _one_line_error(done: subprocess.CompletedProcess, code: int, *words: str) -
 
 @pytest.fixture
 def duffing(tmp_path) -> pd.DataFrame:
-    from pathlib import Path
-
-    return pd.read_csv(Path(__file__).parent.parent / DUFFING_CSV, comment="#")
+    return pd.read_csv(ROOT / DUFFING_CSV, comment="#")
 
 
 @pytest.mark.parametrize("chunks", [[], ["--chunk-rows", "500"]])
@@ -84,3 +84,31 @@ def test_too_many_realizations_are_refused_before_any_work(hamid_cli, tmp_path):
                     "--realizations 100,000,000 would write 100,000,000 files",
                     "more than the 10,000")
     assert list(tmp_path.iterdir()) == [tmp_path / "sys.toml"]
+
+
+@pytest.mark.parametrize(("args", "words"), [
+    (["fit", DUFFING_CSV, "--model", "duffing", "--cov", "bootstrap", "--bootstrap",
+      "99999999999999999999"], "--bootstrap 99,999,999,999,999,999,999: more replicates"),
+    (["fit", DUFFING_CSV, "--model", "duffing", "--cov", "bootstrap", "--bootstrap",
+      "1000000000"], "--bootstrap 1,000,000,000: more replicates than the 100,000"),
+    (["select", DUFFING_CSV, "--stability", "1000000"],
+     "--stability 1,000,000: more replicates than the 100,000"),
+], ids=["1e20 replicates", "1e9 replicates", "select 1e6 replicates"])
+def test_bootstrap_replicates_without_end_are_refused(hamid_cli, args, words):
+    """--bootstrap 1000000000 and 99999999999999999999 ran until killed."""
+    _one_line_error(_run(hamid_cli, *args, cwd=ROOT), 2, words)
+
+
+@pytest.mark.parametrize("cov", ["fit", "select"])
+def test_bootstrap_rows_refitted_have_a_budget(monkeypatch, duffing, cov):
+    import hamid
+    from hamid import options
+    from hamid.errors import UsageError
+
+    monkeypatch.setattr(options, "REPLICATE_ROWS", 1000)
+    with pytest.raises(UsageError, match=r"replicates of [\d,]+ rows would refit [\d,]+ rows, "
+                                         r"more than 1,000; use at most \d+ replicates"):
+        if cov == "fit":
+            hamid.fit(duffing, model="duffing", cov="bootstrap", bootstrap=10)
+        else:
+            hamid.select(ROOT / DUFFING_CSV, stability=10)
