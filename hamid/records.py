@@ -8,7 +8,7 @@ from functools import cached_property
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["Records", "runs"]
+__all__ = ["Records", "medians_by", "runs"]
 
 
 @dataclass(frozen=True)
@@ -59,3 +59,18 @@ def runs(group: npt.NDArray[np.int64]) -> list[tuple[int, int, int]]:
     edges = (np.flatnonzero(np.diff(group)) + 1).tolist()
     return [(int(group[start]), start, stop)
             for start, stop in zip([0, *edges], [*edges, len(group)], strict=True)]
+
+
+def medians_by(values: npt.NDArray[np.float64], ids: npt.NDArray[np.int64],
+               count: int) -> npt.NDArray[np.float64]:
+    """The median of the values of each id 0..count-1 (NaN for an id without values), as
+    `numpy.median` gives it, from one sort: a call per trajectory took 0.3 s for 5,000."""
+    ordered = values[np.lexsort((values, ids))]
+    lengths = np.bincount(ids, minlength=count)
+    first = np.cumsum(lengths) - lengths
+    medians = np.full(count, np.nan)
+    has = lengths > 0
+    low = ordered[(first + (lengths - 1) // 2)[has]]
+    high = ordered[(first + lengths // 2)[has]]
+    medians[has] = np.where(lengths[has] % 2 == 1, low, (low + high) / 2)
+    return medians
