@@ -76,6 +76,7 @@ def savgol_velocities(Q: npt.NDArray[np.float64], t: npt.NDArray[np.float64],
     if window % 2 == 0 or window <= order:
         raise UsageError(f"--window must be odd and larger than --order ({order}), "
                          f"found {window}")
+    _check_edge_fit(window, order)
     V = np.empty_like(Q)
     gain = 0.0
     for a, b in bounds:
@@ -94,6 +95,24 @@ def savgol_velocities(Q: npt.NDArray[np.float64], t: npt.NDArray[np.float64],
         gain = max(gain, float(np.linalg.norm(savgol_coeffs(window, order, deriv=1,
                                                             delta=dt))))
     return V, gain
+
+
+def _check_edge_fit(window: int, order: int) -> None:
+    """Refuse an order whose polynomial the filter's edge fit cannot determine in floating
+    point (from about 18 on): scipy then printed numpy's RankWarning, with its source
+    lines, once per coordinate and edge, and the edges were not to be trusted."""
+    import warnings
+
+    from scipy.signal import savgol_filter
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", np.exceptions.RankWarning)
+        try:
+            savgol_filter(np.zeros(window), window, order, deriv=1, mode="interp")
+        except np.exceptions.RankWarning:
+            raise UsageError(f"--order {order}: a polynomial of that degree over the "
+                             f"Savitzky-Golay window of {window} samples is too poorly "
+                             "conditioned to fit; use a lower --order (below 18)") from None
 
 
 def default_savgol_window(period_samples: float | None, order: int) -> int:

@@ -112,3 +112,18 @@ def test_bootstrap_rows_refitted_have_a_budget(monkeypatch, duffing, cov):
             hamid.fit(duffing, model="duffing", cov="bootstrap", bootstrap=10)
         else:
             hamid.select(ROOT / DUFFING_CSV, stability=10)
+
+
+def test_a_savgol_order_too_high_to_fit_is_refused(hamid_cli):
+    """--order 99 printed numpy's RankWarning four times, with scipy's source lines."""
+    line = _one_line_error(_run(hamid_cli, "fit", DUFFING_CSV, "--model", "duffing",
+                                "--velocity", "savgol", "--order", "99", cwd=ROOT), 2,
+                           "--order 99", "window of 101 samples", "too poorly conditioned")
+    assert "RankWarning" not in line
+
+
+def test_the_highest_savgol_order_that_fits_prints_no_warning(hamid_cli):
+    done = _run(hamid_cli, "fit", DUFFING_CSV, "--model", "duffing", "--velocity", "savgol",
+                "--order", "17", "--format", "json", cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    assert "Warning" not in done.stderr and "site-packages" not in done.stderr
