@@ -127,3 +127,36 @@ def test_the_highest_savgol_order_that_fits_prints_no_warning(hamid_cli):
                 "--order", "17", "--format", "json", cwd=ROOT)
     assert done.returncode == 0, done.stderr
     assert "Warning" not in done.stderr and "site-packages" not in done.stderr
+
+
+@pytest.mark.parametrize(("args", "environment", "words"), [
+    (["--scheduler", "notaurl"], {}, "--scheduler: 'notaurl' is not a Dask scheduler"),
+    ([], {"DASK_SCHEDULER_ADDRESS": "garbage"},
+     "DASK_SCHEDULER_ADDRESS: 'garbage' is not a Dask scheduler"),
+], ids=["option", "environment"])
+def test_a_scheduler_address_that_is_not_one_is_refused_before_a_client(
+        hamid_cli, args, environment, words):
+    """The right line came, then 20 s later 'Exception ignored in Client.__del__' and a
+    traceback of the half-made client."""
+    import os
+
+    done = _run(hamid_cli, "fit", "--each", DUFFING_CSV, "--model", "duffing", *args,
+                cwd=ROOT, env={**os.environ, **environment})
+    _one_line_error(done, 2, words)
+
+
+@pytest.mark.parametrize(("address", "good"), [
+    ("tcp://127.0.0.1:8786", True), ("127.0.0.1:8786", True), ("[::1]:8786", True),
+    ("tls://sched.example:443", True), ("notaurl", False), ("tcp://", False),
+    ("tcp://host:port", False), ("http://host:80", False), ("tcp://host:0", False),
+    ("tcp://host:70000", False), ("tcp://:8786", False), ("tcp://host:8786/path", False),
+])
+def test_scheduler_addresses(address, good):
+    from hamid.errors import UsageError
+    from hamid.executor import check_address
+
+    if good:
+        check_address(address, "--scheduler")
+    else:
+        with pytest.raises(UsageError, match="is not a Dask scheduler address"):
+            check_address(address, "--scheduler")
