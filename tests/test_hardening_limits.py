@@ -160,3 +160,101 @@ def test_scheduler_addresses(address, good):
     else:
         with pytest.raises(UsageError, match="is not a Dask scheduler address"):
             check_address(address, "--scheduler")
+
+
+@pytest.fixture(scope="module")
+def report() -> dict:
+    import hamid
+
+    return hamid.fit(str(ROOT / DUFFING_CSV), "duffing", method="energy").to_dict()
+
+
+def _edited(report: dict, tmp_path, **changes) -> str:
+    import copy
+    import json
+
+    edited = copy.deepcopy(report)
+    edited["parameters"][0].update(changes)
+    if "name" in changes:
+        edited["covariance"]["names"][0] = changes["name"]
+    (tmp_path / "r.json").write_text(json.dumps(edited))
+    return "r.json"
+
+
+@pytest.mark.parametrize(("changes", "words"), [
+    ({"estimate": 1e308, "ci_low": 1e308, "ci_high": 1e308},
+     "parameter k: estimate 1e+308 and its interval are too large to draw"),
+    ({"estimate": 2.0}, "parameter k: estimate 2 lies outside its interval"),
+], ids=["estimate 1e308", "estimate outside its interval"])
+def test_a_parameter_that_cannot_be_drawn_is_one_line(hamid_cli, tmp_path, report, changes,
+                                                       words):
+    """matplotlib's 'Axis limits cannot be NaN or Inf' and "'xerr' must not contain negative
+    values" came out as internal errors."""
+    name = _edited(report, tmp_path, **changes)
+    _one_line_error(_run(hamid_cli, "plot", name, "-o", "f.png", cwd=tmp_path), 1, words)
+    assert not list(tmp_path.glob("f*.png"))
+
+
+@pytest.mark.parametrize("name", ["$" + "{" * 3000 + "}" * 3000 + "$", "$x^$", "{" * 3000],
+                         ids=["3000 braces in dollars", "bad mathtext", "3000 braces"])
+def test_parameter_names_are_drawn_as_plain_text(tmp_path, report, name):
+    """A name of nested braces overflowed mathtext's parser (RecursionError)."""
+    import json
+
+    from hamid import figures
+
+    edited = json.loads((tmp_path / _edited(report, tmp_path, name=name)).read_text())
+    drawn, _ = figures.pages(edited, None, "parameters,correlation")
+    for _, figure in drawn:
+        figure.savefig(tmp_path / "f.png")   # the text is parsed when drawn
+    title = drawn[0][1].axes[0].get_title(loc="left")
+    assert title.startswith(name[:figures._LONGEST_NAME - 1].replace("$", r"\$") + "…"
+                            if len(name) >= figures._LONGEST_NAME else
+                            name.replace("$", r"\$"))
+
+
+def _many(report: dict, n: int) -> dict:
+    import copy
+
+    many = copy.deepcopy(report)
+    many["parameters"] = [dict(report["parameters"][0], name=f"p{k}") for k in range(n)]
+    many["covariance"] = {"names": [f"p{k}" for k in range(n)],
+                          "matrix": [[float(i == j) for j in range(n)] for i in range(n)]}
+    return many
+
+
+def test_a_report_of_3002_parameters_is_refused_before_drawing(hamid_cli, tmp_path, report):
+    """3,002 parameters ran past 180 s (the schema's check of 9 million covariance entries
+    took most of it, then 3,002 rows of panel 5)."""
+    import json
+
+    (tmp_path / "r.json").write_text(json.dumps(_many(report, 3002)))
+    line = _one_line_error(_run(hamid_cli, "plot", "r.json", "-o", "f.png", cwd=tmp_path),
+                           2, "no panel to draw", "at most 40 parameters to show (the "
+                           "report has 3,002)", "at most 200 parameters")
+    assert "panel 6 correlation" in line
+    _one_line_error(_run(hamid_cli, "plot", "r.json", "-o", "f.png", "--panels", "5",
+                         cwd=tmp_path), 2, "panel 5 (parameters) needs at most 40")
+    assert not list(tmp_path.glob("f*.png"))
+
+
+def test_panels_within_the_limits_are_drawn_and_the_others_left_out(tmp_path, report):
+    from hamid import figures
+
+    names, notes = figures.choose(_many(report, 41), None)
+    assert names == ("correlation",)
+    assert "left out panel 5 parameters: it needs at most 40 parameters" in notes[-1]
+    assert figures.choose(_many(report, 40), None)[0] == ("parameters", "correlation")
+
+
+def test_a_bad_entry_among_millions_of_covariance_entries_is_named(report):
+    """The matrix is checked in a loop of its own, not by the schema's validator."""
+    from hamid.errors import DataError
+    from hamid.validation import check_result
+
+    many = _many(report, 3002)
+    check_result(many)
+    many["covariance"]["matrix"][2999][7] = "x"
+    with pytest.raises(DataError, match=r"'covariance.matrix\[2999\]\[7\]' is 'x', expected "
+                                        "a number or null"):
+        check_result(many, source="r.json")
