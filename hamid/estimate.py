@@ -556,17 +556,29 @@ class ResidualSums:
         self.end = np.zeros(J)   # last t, from the first
 
     def add(self, block: Block, residual: Any) -> None:
-        for j, start, stop in runs(block.group):
-            t, b, r = block.time[start:stop], block.b[start:stop], residual[start:stop]
-            if self.n[j] == 0:
-                self.origin[j] = t[0], b[0]
-            t, b = t - self.origin[j, 0], b - self.origin[j, 1]
-            lagged = self.last[j] * r[0] + r[1:] @ r[:-1] if self.n[j] else r[1:] @ r[:-1]
-            self.sums[j] += [t.sum(), t @ t, r.sum(), r @ r, t @ r, b.sum(), b @ b, lagged]
-            self.n[j] += len(r)
-            self.last[j] = r[-1]
-            self.end[j] = t[-1]
-            self.max_abs = max(self.max_abs, float(np.max(np.abs(r))))
+        """Rows of any trajectories, each one's after its earlier rows: the runs' sums at
+        once (a call per trajectory took a fifth of a fit of 5,000 short ones)."""
+        if not block.n_rows:
+            return
+        spans = runs(block.group)
+        j = np.array([k for k, _, _ in spans])
+        starts = np.array([start for _, start, _ in spans])
+        ends = np.array([stop for _, _, stop in spans]) - 1
+        fresh = self.n[j] == 0
+        self.origin[j[fresh]] = np.column_stack([block.time[starts[fresh]],
+                                                 block.b[starts[fresh]]])
+        t = block.time - self.origin[block.group, 0]
+        b = block.b - self.origin[block.group, 1]
+        r = residual
+        # r_k r_k+1 within each run, then across from each one's earlier rows
+        pairs = np.concatenate([[0.0], r[1:] * r[:-1]])
+        pairs[starts] = np.where(fresh, 0.0, self.last[j] * r[starts])
+        columns = np.column_stack([t, t * t, r, r * r, t * r, b, b * b, pairs])
+        self.sums[j] += np.add.reduceat(columns, starts, axis=0)
+        self.n[j] += ends + 1 - starts
+        self.last[j] = r[ends]
+        self.end[j] = t[ends]
+        self.max_abs = max(self.max_abs, float(np.max(np.abs(r))))
 
     def stats(self, labels: tuple[str | int, ...]) -> dict[str, Any]:
         n = self.n
