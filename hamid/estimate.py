@@ -181,9 +181,7 @@ class Scores:
                 if window_group is not None:
                     window_scores += score.reshape(len(window_group), -1, p + 1).sum(axis=1)
                 else:
-                    for j, first, stop in runs(piece.group):
-                        sums.add(j, z[first:stop], r[first:stop], w[first:stop],
-                                 None if offset is None else offset[first:stop])
+                    sums.add_runs(piece.group, z, r, w, offset)
             stats.append((n, squares, largest))
         if window_group is not None:
             for j, start, stop in runs(window_group):

@@ -267,6 +267,55 @@ class ScoreSums:
         else:
             self._add_boxes(j, s)
 
+    def add_runs(self, group: npt.NDArray[np.int64], z: FloatArray, r: FloatArray,
+                 w: FloatArray, offset: FloatArray | None = None) -> None:
+        """`add` for each run of rows of one trajectory in `group`; the rows of
+        trajectories seen here first, of one length, all at once (5,000 trajectories of
+        20 rows took a call each, a third of their fit)."""
+        if len(r) == 0:
+            return
+        edges = np.flatnonzero(np.diff(group)) + 1
+        starts, stops = np.r_[0, edges], np.r_[edges, len(group)]
+        fresh = self.sizes[group[starts]] == 0
+        batched: dict[int, list[int]] = {}
+        for k, (start, stop) in enumerate(zip(starts.tolist(), stops.tolist(), strict=True)):
+            if fresh[k]:
+                batched.setdefault(stop - start, []).append(start)
+            else:
+                self.add(int(group[start]), z[start:stop], r[start:stop], w[start:stop],
+                         None if offset is None else offset[start:stop])
+        for length, first in batched.items():
+            rows = np.array(first)[:, None] + np.arange(length)
+            self._add_fresh(group[rows[:, 0]], z[rows], r[rows], w[rows],
+                            None if offset is None else offset[rows])
+
+    def _add_fresh(self, js: npt.NDArray[np.int64], z: FloatArray, r: FloatArray,
+                   w: FloatArray, offset: FloatArray | None) -> None:
+        """`add` of the first rows of trajectories `js`, of one length: z of shape
+        (m, n, p + 1), r and w of shape (m, n)."""
+        self.sizes[js] += r.shape[1]
+        self.weighted_squares += float(np.sum(w * r**2))
+        if self.kind == "classical":
+            self.meat[js] += np.einsum("mni,mnj->mij", z / w[:, :, None], z)
+            return
+        s = z * r[:, :, None] if offset is None else z * r[:, :, None] + offset
+        if self.kind == "hc":
+            self.meat[js] += np.einsum("mni,mnj->mij", s, s)
+        elif self.needs_bandwidth:
+            self._lagged += np.einsum("mni,mni->i", s[:, 1:], s[:, :-1])
+            self._square += np.einsum("mni,mni->i", s[:, :-1], s[:, :-1])
+            for j, last in zip(js.tolist(), s[:, -1].copy(), strict=True):
+                self._last[j] = last
+        else:   # `_add_boxes` of each
+            L, n = int(self.bandwidth or 0), s.shape[1]
+            cum = np.concatenate([np.zeros((len(js), 1, s.shape[2])), np.cumsum(s, axis=1)],
+                                 axis=1)
+            end = np.arange(1, n + 1)
+            box = cum[:, end] - cum[:, np.maximum(end - L - 1, 0)]
+            self.meat[js] += np.einsum("mni,mnj->mij", box, box) / (L + 1)
+            for j, tail in zip(js.tolist(), cum[:, max(n - L, 0):].copy(), strict=True):
+                self._tail[j] = tail
+
     def _add_boxes(self, j: int, s: FloatArray) -> None:
         """Bartlett meat: sum_{t,u} (1 - |t-u|/(L+1))_+ s_t s_u^T of each trajectory.
 
