@@ -571,8 +571,8 @@ class ResidualSums:
         # r_k r_k+1 within each run, then across from each one's earlier rows
         pairs = np.concatenate([[0.0], r[1:] * r[:-1]])
         pairs[starts] = np.where(fresh, 0.0, self.last[j] * r[starts])
-        columns = np.column_stack([t, t * t, r, r * r, t * r, b, b * b, pairs])
-        self.sums[j] += np.add.reduceat(columns, starts, axis=0)
+        self.sums[j] += np.stack([np.add.reduceat(column, starts) for column in
+                                  (t, t * t, r, r * r, t * r, b, b * b, pairs)], axis=1)
         self.n[j] += ends + 1 - starts
         self.last[j] = r[ends]
         self.end[j] = t[ends]

@@ -285,9 +285,15 @@ class ScoreSums:
                 self.add(int(group[start]), z[start:stop], r[start:stop], w[start:stop],
                          None if offset is None else offset[start:stop])
         for length, first in batched.items():
-            rows = np.array(first)[:, None] + np.arange(length)
-            self._add_fresh(group[rows[:, 0]], z[rows], r[rows], w[rows],
-                            None if offset is None else offset[rows])
+            a, m = first[0], len(first)
+            if first[-1] == a + (m - 1) * length:   # runs side by side: views, no copies
+                rows: slice | npt.NDArray[np.intp] = slice(a, a + m * length)
+            else:
+                rows = (np.array(first)[:, None] + np.arange(length)).ravel()
+            self._add_fresh(group[first], *(x[rows].reshape(m, length, *x.shape[1:])
+                                            for x in (z, r, w)),
+                            None if offset is None else
+                            offset[rows].reshape(m, length, offset.shape[1]))
 
     def _add_fresh(self, js: npt.NDArray[np.int64], z: FloatArray, r: FloatArray,
                    w: FloatArray, offset: FloatArray | None) -> None:
@@ -296,11 +302,11 @@ class ScoreSums:
         self.sizes[js] += r.shape[1]
         self.weighted_squares += float(np.sum(w * r**2))
         if self.kind == "classical":
-            self.meat[js] += np.einsum("mni,mnj->mij", z / w[:, :, None], z)
+            self.meat[js] += _gram(z / w[:, :, None], z)
             return
         s = z * r[:, :, None] if offset is None else z * r[:, :, None] + offset
         if self.kind == "hc":
-            self.meat[js] += np.einsum("mni,mnj->mij", s, s)
+            self.meat[js] += _gram(s, s)
         elif self.needs_bandwidth:
             self._lagged += np.einsum("mni,mni->i", s[:, 1:], s[:, :-1])
             self._square += np.einsum("mni,mni->i", s[:, :-1], s[:, :-1])
@@ -312,7 +318,7 @@ class ScoreSums:
                                  axis=1)
             end = np.arange(1, n + 1)
             box = cum[:, end] - cum[:, np.maximum(end - L - 1, 0)]
-            self.meat[js] += np.einsum("mni,mnj->mij", box, box) / (L + 1)
+            self.meat[js] += _gram(box, box) / (L + 1)
             for j, tail in zip(js.tolist(), cum[:, max(n - L, 0):].copy(), strict=True):
                 self._tail[j] = tail
 
@@ -378,6 +384,11 @@ class ScoreSums:
         description = DESCRIPTIONS["hac"].format(bandwidth=self.bandwidth,
                                                  how=", automatic" if automatic else "")
         return n / df_resid * self.meat, description, df_resid
+
+
+def _gram(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Helper: a_m^T b_m of each of a stack of matrices (BLAS, where einsum is slower)."""
+    return np.matmul(a.transpose(0, 2, 1), b)
 
 
 def _feed(sums: ScoreSums, prob: _Problem) -> ScoreSums:

@@ -247,7 +247,7 @@ def test_bootstrap_with_a_trajectory_too_short_for_any_window(clean_records):
     assert all(p.stderr is not None and p.stderr > 0 for p in result.parameters)
 
 
-@given(st.lists(st.lists(st.floats(-1e6, 1e6), max_size=9), min_size=1, max_size=8))
+@given(st.lists(st.lists(st.floats(-1e6, 1e6), max_size=200), min_size=1, max_size=8))
 @settings(max_examples=200, deadline=None)
 def test_medians_by_id_are_numpys(groups):
     from hamid.records import medians_by
