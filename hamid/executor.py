@@ -23,7 +23,7 @@ from typing import Any, TypeVar
 from hamid.errors import HamidError, UsageError
 
 __all__ = ["DASK_EXTRA", "SCHEDULER_VARIABLE", "Pool", "Workers", "available_cores",
-           "one_blas_thread", "ordered_map", "started"]
+           "check_address", "one_blas_thread", "ordered_map", "started"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -69,8 +69,8 @@ class Workers:
     def __post_init__(self) -> None:
         if self.jobs < 1:
             raise UsageError(f"--jobs must be at least 1, found {self.jobs}")
-        if self.scheduler is not None and not self.scheduler.strip():
-            raise UsageError("--scheduler: empty address; expected tcp://HOST:PORT")
+        if self.scheduler is not None:
+            check_address(self.scheduler, "--scheduler")
 
     @classmethod
     def choose(cls, jobs: int | None, scheduler: str | None, n_items: int) -> Workers:
@@ -82,9 +82,29 @@ class Workers:
                              "processes, a cluster has its own workers")
         if jobs is None and scheduler is None:
             scheduler = os.environ.get(SCHEDULER_VARIABLE) or None
+            if scheduler is not None:
+                check_address(scheduler, SCHEDULER_VARIABLE)
         if scheduler is not None:
             return cls(scheduler=scheduler)
         return cls(jobs=max(1, min(jobs or available_cores(), n_items)))
+
+
+# The schemes of Dask's addresses that reach another process (distributed.comm).
+_SCHEMES = ("tcp", "tls", "ws", "wss", "ucx")
+
+
+def check_address(address: str, where: str) -> None:
+    """Refuse what cannot be a Dask scheduler's address, [SCHEME://]HOST:PORT, before a
+    client is made: distributed refused 'notaurl' inside the Client, whose half-made
+    object then printed a traceback 20 s later as it was collected."""
+    scheme, separator, location = address.strip().partition("://")
+    if not separator:
+        scheme, location = "tcp", address.strip()
+    host, colon, port = location.rpartition(":")
+    if scheme not in _SCHEMES or not colon or not host.strip("[]") or not port.isdigit() \
+            or not 0 < int(port) < 65536:
+        raise UsageError(f"{where}: {address!r} is not a Dask scheduler address; expected "
+                         f"tcp://HOST:PORT ({', '.join(_SCHEMES)})")
 
 
 def ordered_map(function: Callable[[T], R], items: Iterable[T],

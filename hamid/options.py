@@ -124,6 +124,25 @@ DAMPING_KINDS = ("viscous", "coulomb", "quadratic")
 SELECTION_CRITERIA = ("bic", "aic", "cv")   # of `hamid select` (hamid.selection.best_subsets)
 SAVGOL_ORDER = 5
 
+# Bootstrap replicates (fit's --bootstrap, select's --stability) each refit every row:
+# at most this many, and at most this many rows refitted in all (a few minutes), checked
+# before the first; --bootstrap 1000000000 ran until killed.
+MAX_REPLICATES = 100_000
+REPLICATE_ROWS = 1_000_000_000
+
+
+def check_replicates(option: str, replicates: int, rows: int | None = None) -> None:
+    """Refuse more bootstrap replicates than `MAX_REPLICATES`, or, given the rows each
+    refits, more rows refitted in all than `REPLICATE_ROWS`."""
+    if replicates > MAX_REPLICATES:
+        raise UsageError(f"{option} {replicates:,}: more replicates than the "
+                         f"{MAX_REPLICATES:,} allowed")
+    if rows is not None and replicates * rows > REPLICATE_ROWS:
+        raise UsageError(f"{option} {replicates:,} replicates of {rows:,} rows would refit "
+                         f"{replicates * rows:,} rows, more than {REPLICATE_ROWS:,}; use at "
+                         f"most {REPLICATE_ROWS // rows:,} replicates")
+
+
 # Files that take more than this once decoded (8 bytes a cell, `hamid.data.input_size`) are read in
 # chunks when the options allow it: the chunked fit is the fit in memory, faster and in a
 # third of the memory.
@@ -197,6 +216,7 @@ class FitOptions:
                              "refits would not be corrected); use --cov hac")
         if self.cov == "bootstrap" and self.bootstrap < 10:
             raise UsageError(f"bootstrap needs at least 10 replicates, found {self.bootstrap}")
+        check_replicates("--bootstrap", self.bootstrap)
         if self.weak_window is not None and not 0 < self.weak_window < float("inf"):
             raise UsageError(f"--weak-window must be a positive number of seconds, "
                              f"found {self.weak_window!r}")

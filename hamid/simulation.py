@@ -260,6 +260,7 @@ def realizations(system: System, count: int, *, seed: int | None = None,
     start = np.zeros((n_traj, motion.rows))
     start[:, :2 * n] = [[s[v] for v in model.variables] for s in system.initial]
     _check_mass(motion, start[:, :2 * n].T, "initial state of trajectory")
+    _check_finite_start(motion, start, system)
 
     def escape(t: float, y: np.ndarray) -> float:
         if progress is not None:
@@ -274,8 +275,9 @@ def realizations(system: System, count: int, *, seed: int | None = None,
                              rtol=system.rtol, atol=system.atol, events=escape)
     # states[i, j, k]: row i of the state (Motion) of trajectory j at times[k]. solve_ivp
     # stores its samples time by time; one copy puts them in the order of the output rows.
-    states = np.ascontiguousarray(solution.y.reshape(motion.rows, n_traj,
-                                                     len(solution.t)))
+    # (solve_ivp leaves y an empty list when it kept no sample)
+    states = np.ascontiguousarray(np.reshape(solution.y, (motion.rows, n_traj,
+                                                          len(solution.t))))
     if solution.status != 0 or len(solution.t) < len(times) or not np.all(np.isfinite(states)):
         # the joint run failed before the sample after the last one it kept
         t_stop = float(times[min(len(solution.t) + 1, len(times) - 1)])
@@ -342,11 +344,21 @@ def realizations(system: System, count: int, *, seed: int | None = None,
         }
 
 
+# The files one `simulate --realizations` writes: each is held as a temporary until all
+# are written, and 100,000,000 of them took 3.6 GB of names before the first was written.
+MAX_REALIZATIONS = 10_000
+
+
 def numbered(output: str, count: int) -> list[str]:
     """The files of `count` realizations: OUT with -1, -2, ... (zero-padded to the width of
     `count`) before its extension."""
     if output == "-":
         raise UsageError("--realizations writes a file per realization: give -o FILE")
+    if count > MAX_REALIZATIONS:
+        raise UsageError(f"--realizations {count:,} would write {count:,} files, more than "
+                         f"the {MAX_REALIZATIONS:,} one run writes (all are held until the "
+                         "last is written); write them in parts, each with its own --seed "
+                         f"(S, S + {MAX_REALIZATIONS:,}, ...)")
     stem, suffix = os.path.splitext(output)
     return [f"{stem}-{k:0{len(str(count))}d}{suffix}" for k in range(1, count + 1)]
 
@@ -431,6 +443,20 @@ def _check_memory(values: float, n: int, samples: float) -> None:
                          f"{samples:,.0f} samples of {2 * n} states), more than the "
                          f"{available / 2**20:,.1f} MiB of memory free; simulate fewer or "
                          "shorter trajectories, or with a larger dt")
+
+
+def _check_finite_start(motion: Motion, start: np.ndarray, system: System) -> None:
+    """The equations of motion must be finite where the run starts: a force that
+    overflows there (k3 = 1e300 at x = 1e3) leaves the integrator nothing to step from."""
+    with np.errstate(all="ignore"):
+        rates = motion(0.0, start.T.ravel()).reshape(motion.rows, len(start))
+    bad = np.flatnonzero(~np.all(np.isfinite(rates), axis=0))
+    if bad.size:
+        largest = max(system.theta, key=lambda p: abs(system.theta[p]))
+        raise ModelError(f"the equations of motion are not finite at the initial state of "
+                         f"trajectory {bad[0] + 1} (the forces overflow); no output was "
+                         f"written. Check its initial state and the parameters (largest: "
+                         f"{largest} = {system.theta[largest]:g})")
 
 
 def _check_mass(motion: Motion, Xt: np.ndarray, label: str) -> None:

@@ -19,7 +19,7 @@ from scipy import integrate
 
 import hamid
 from hamid.data.records import Records
-from hamid.linear import design, uncertainty
+from hamid.linear import design, noise_free
 
 ROOT = Path(__file__).parent.parent
 SAMPLES = ("duffing.csv", "elastic_pendulum.csv", "elastic_pendulum.parquet",
@@ -126,12 +126,12 @@ def test_linear_fits_of_clean_data_are_widened_by_their_whole_misfit(method):
     assert max(abs(p.estimate - truth[p.name]) / p.stderr for p in whole.parameters) < 0.5
 
 
-def _misfit(relative_noise: float) -> uncertainty.Misfit:
+def _misfit(relative_noise: float) -> noise_free.Misfit:
     """The misfit of energy rows b = sin^2 t of two trajectories with residuals of
     `relative_noise` of their spread, at unit weights."""
     t = np.linspace(0.0, 20.0, 2001)
     rng = np.random.default_rng(0)
-    misfit = uncertainty.Misfit(2)
+    misfit = noise_free.Misfit(2)
     for j in (0, 1):
         b = (j + 1) * np.sin(t) ** 2
         block = design.Block("energy", np.zeros((len(t), 1)), b, np.full(len(t), j), t,

@@ -109,10 +109,9 @@ def test_a_high_order_takes_a_default_window_it_can_be_computed_over(tmp_path):
      "Error: --velocity savgol: a filter of order 9 over 101 samples cannot be computed "
      "accurately (scipy's coefficients lose their precision); give a shorter --window or a "
      "lower --order"),
-    (["--velocity", "savgol", "--order", "25"],
-     "Error: --velocity savgol: a filter of order 25 over 27 samples cannot be computed "
-     "accurately (scipy's coefficients lose their precision); give a shorter --window or a "
-     "lower --order"),
+    (["--velocity", "savgol", "--order", "25"],   # refused first by its edge fit
+     "Error: --order 25: a polynomial of that degree over the Savitzky-Golay window of 27 "
+     "samples is too poorly conditioned to fit; use a lower --order (below 18)"),
 ])
 def test_order_errors_are_one_line(duffing_csv, tmp_path, args, message):
     out = tmp_path / "r.json"

@@ -561,3 +561,36 @@ def test_score_sums_keep_none_of_the_rows_they_were_fed(bandwidth):
     finally:
         tracemalloc.stop()
     assert kept < 1_000_000
+
+
+@pytest.mark.parametrize("kind", ["classical", "hc", "hac-bandwidth", "hac"])
+@pytest.mark.parametrize("with_offset", [False, True])
+def test_runs_fed_at_once_sum_as_fed_one_by_one(kind, with_offset):
+    """`add_runs` (trajectories of one length seen first taken together) gives the sums of
+    `add` run by run, over pieces that cut trajectories and lengths that differ."""
+    from hamid.linear.uncertainty import ScoreSums
+
+    rng = np.random.default_rng(5)
+    lengths = [20, 1, 20, 7, 20, 33, 2, 20]
+    group = np.repeat(np.arange(len(lengths)), lengths)
+    n, p = len(group), 2
+    z, r = rng.standard_normal((n, p + 1)), rng.standard_normal(n)
+    w = rng.uniform(0.5, 2.0, n)
+    offset = rng.standard_normal((n, p + 1)) if with_offset else None
+    name, bandwidth = ("hac", None) if kind == "hac-bandwidth" else (kind, 3)
+    at_once, one_by_one = (ScoreSums(name, p, len(lengths), bandwidth) for _ in range(2))
+    for lo, hi in [(0, 45), (45, 90), (90, n)]:   # pieces that cut trajectories
+        at_once.add_runs(group[lo:hi], z[lo:hi], r[lo:hi], w[lo:hi],
+                         None if offset is None else offset[lo:hi])
+        edges = [lo, *(lo + 1 + np.flatnonzero(np.diff(group[lo:hi]))), hi]
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            one_by_one.add(int(group[a]), z[a:b], r[a:b], w[a:b],
+                           None if offset is None else offset[a:b])
+    if kind == "hac-bandwidth":
+        assert at_once.andrews_bandwidth() == one_by_one.andrews_bandwidth() > 0
+        np.testing.assert_array_equal(at_once.sizes, one_by_one.sizes)
+    else:
+        found, _, _ = at_once.estimate(n - p)
+        expected, _, _ = one_by_one.estimate(n - p)
+        np.testing.assert_allclose(found, expected, rtol=1e-12, atol=1e-14)
+        assert np.all(found != 0)

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 import pytest
 from conftest import DUFFING, PENG, SYSTEMS, coverage, finite_difference_fit, with_noise
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import integrate
 
 import hamid
@@ -241,3 +245,36 @@ def test_bootstrap_with_a_trajectory_too_short_for_any_window(clean_records):
     frame.attrs = dict(long.attrs)
     result = hamid.fit(frame, method="weak", cov="bootstrap", bootstrap=20, seed=1)
     assert all(p.stderr is not None and p.stderr > 0 for p in result.parameters)
+
+
+@given(st.lists(st.lists(st.floats(-1e6, 1e6), max_size=200), min_size=1, max_size=8))
+@settings(max_examples=200, deadline=None)
+def test_medians_by_id_are_numpys(groups):
+    from hamid.data.records import medians_by
+
+    values = np.array([v for g in groups for v in g])
+    ids = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
+    found = medians_by(values, ids, len(groups))
+    expected = [np.median(g) if g else np.nan for g in groups]
+    np.testing.assert_array_equal(found, expected)
+
+
+def test_scales_of_many_trajectories_are_each_ones_alone():
+    """Trajectories of one length are taken together; each gets the period and step it
+    gets alone, and a sine of period 2 pi shows as one."""
+    rng = np.random.default_rng(3)
+    lengths = [20, 1, 20, 2, 400, 7, 8, 20, 400]
+    pieces = []
+    for j, n in enumerate(lengths):
+        t = np.cumsum(rng.uniform(0.04, 0.06, n))
+        q = np.column_stack([np.sin(t + j), 0.3 * np.cos(2 * t)])
+        pieces.append(Records(np.column_stack([q, np.cos(t + j), -np.sin(2 * t)]), t,
+                              np.full(n, j), ()))
+    whole = Records(np.vstack([r.X for r in pieces]), np.concatenate([r.t for r in pieces]),
+                    np.concatenate([r.group for r in pieces]), ())
+    scales = design.trajectory_scales(whole, 2)
+    assert scales == [design.trajectory_scales(dataclasses.replace(r, group=0 * r.group), 2)[0]
+                      for r in pieces]
+    assert [s[0] is None for s in scales] == [n < 8 for n in lengths]
+    assert scales[4][0] == pytest.approx(2 * np.pi, rel=0.05)
+    assert scales[1][1] == np.inf and scales[3][1] == pieces[3].t[1] - pieces[3].t[0]

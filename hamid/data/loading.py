@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from hamid.data import column_roles, input_size, measurement, readers
-from hamid.data.records import Records, runs
+from hamid.data.records import Records, medians_by, runs
 from hamid.errors import DataError, UsageError
 from hamid.linear import design
 from hamid.model.dissipation import shorthand_names
@@ -36,8 +36,10 @@ from hamid.options import FitOptions
 __all__ = ["Chunked", "Loaded", "in_memory_name", "in_memory_table", "load", "open_chunks",
            "trajectory_label"]
 
-# Times beyond this overflow in the sums of squares the residual summary takes.
-_LARGEST_TIME = 1e150
+# Times beyond this overflow in the sums of squares the residual summary takes; time
+# steps below the smallest underflow in the weak form's integrals (1e-150 gave a division
+# by zero, 1e-300 an SVD that did not converge).
+_LARGEST_TIME, _SMALLEST_STEP = 1e150, 1e-100
 _IN_MEMORY = ("<DataFrame>", "<dict>", "<array>")   # `in_memory_name`
 
 
@@ -260,6 +262,13 @@ class Reader:
                     k = int(bad[0])
                     raise DataError(f"{self.source}: column {self.time!r}, row {row + k + 1}: "
                                     f"time does not increase ({before[k]:g} then {t[k]:g})")
+                tiny = np.flatnonzero(same & (t - before < _SMALLEST_STEP))
+                if tiny.size:
+                    k = int(tiny[0])
+                    raise DataError(f"{self.source}: column {self.time!r}, row {row + k + 1}: "
+                                    f"time step {t[k] - before[k]:g} is too small to compute "
+                                    f"with (at least {_SMALLEST_STEP:g}); is it the time "
+                                    "column?")
                 if self.chunked:
                     self._refuse_gaps(t - before, same, group, row)
                 last_t = float(t[-1])
@@ -618,13 +627,10 @@ def _split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int],
         steps = np.diff(tk)
         same = gk[1:] == gk[:-1]
         adjacent = same if whole else same & (kept[1:] - kept[:-1] == 1)
-        limit = np.full(len(steps), np.inf)
-        # each trajectory's steps are contiguous: one slice each (a mask per trajectory
-        # made this quadratic in their number, 15 s for 5,000)
-        for _, start, stop in runs(gk[1:]):
-            mine = steps[start:stop][adjacent[start:stop]]
-            if mine.size:
-                limit[start:stop] = GAP_STEPS * float(np.median(mine))
+        # the steps of a trajectory (gk[1:] is contiguous) and its median step
+        trajectory = np.concatenate([[0], np.cumsum(gk[2:] != gk[1:-1])])
+        median = medians_by(steps[adjacent], trajectory[adjacent], int(trajectory[-1]) + 1)
+        limit = np.where(np.isnan(median), np.inf, GAP_STEPS * median)[trajectory]
         back = np.flatnonzero(same & ~(steps > 0))
         if back.size:
             source, row = _locate(row_sources, int(kept[back[0] + 1]))
@@ -760,7 +766,10 @@ def in_memory_table(data: Any) -> tuple[str, Mapping[str, Any], Any] | None:
     None for files."""
     name = in_memory_name(data)
     if name == "<DataFrame>":
-        return name, data, data.attrs.get("hamid")
+        # the columns of a frame without its attrs: pandas deep-copies them on every column
+        # taken, and a simulated record's provenance lists every trajectory (5,000
+        # trajectories: a second of copies)
+        return name, type(data)(data, copy=False), data.attrs.get("hamid")
     if name == "<array>":
         return name, {field: data[field] for field in data.dtype.names}, None
     if name is None:

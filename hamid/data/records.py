@@ -12,7 +12,7 @@ import numpy.typing as npt
 if TYPE_CHECKING:
     from hamid.model.models import Model
 
-__all__ = ["Recording", "Records", "runs"]
+__all__ = ["Recording", "Records", "medians_by", "runs"]
 
 
 @dataclass(frozen=True)
@@ -63,6 +63,30 @@ def runs(group: npt.NDArray[np.int64]) -> list[tuple[int, int, int]]:
     edges = (np.flatnonzero(np.diff(group)) + 1).tolist()
     return [(int(group[start]), start, stop)
             for start, stop in zip([0, *edges], [*edges, len(group)], strict=True)]
+
+
+# Values per group above which `medians_by` takes a median per group.
+_LONG_GROUPS = 64
+
+
+def medians_by(values: npt.NDArray[np.float64], ids: npt.NDArray[np.int64],
+               count: int) -> npt.NDArray[np.float64]:
+    """The median of the values of each id 0..count-1 (NaN for an id without values), as
+    `numpy.median` gives it; `ids` ascending (the values grouped by id). Many short
+    groups take one sort (a call each took 0.3 s for 5,000 trajectories), a few long
+    ones a call each (in linear time, where a sort of millions would take seconds)."""
+    lengths = np.bincount(ids, minlength=count)
+    first = np.cumsum(lengths) - lengths
+    if len(values) > _LONG_GROUPS * count:
+        return np.array([np.median(values[a:a + n]) if n else np.nan
+                         for a, n in zip(first.tolist(), lengths.tolist(), strict=True)])
+    ordered = values[np.lexsort((values, ids))]
+    medians = np.full(count, np.nan)
+    has = lengths > 0
+    low = ordered[(first + (lengths - 1) // 2)[has]]
+    high = ordered[(first + lengths // 2)[has]]
+    medians[has] = np.where(lengths[has] % 2 == 1, low, (low + high) / 2)
+    return medians
 
 
 @dataclass(frozen=True)

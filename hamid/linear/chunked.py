@@ -30,7 +30,7 @@ from hamid.data import readers
 from hamid.data.loading import Chunked
 from hamid.data.records import Records, runs
 from hamid.errors import DataError
-from hamid.linear import design, estimate, solve, uncertainty
+from hamid.linear import design, estimate, noise_free, solve, uncertainty
 from hamid.linear.design import Block
 from hamid.linear.estimate import LinearFit, ResidualSums, Scores
 from hamid.linear.plan import FitPlan
@@ -77,7 +77,7 @@ def _energy(source: Chunked, energy_rows: Callable[[Records, int], Block], names
     solution = solve.solve_factor(factor.centred(), np.sqrt(factor.raw_squares),
                                   factor.n_rows, names, n_levels=J)
     scores = Scores(solution.theta, solution.inverse, *factor.level_means, factor.total_weight)
-    residuals, misfit = ResidualSums(scores.h), uncertainty.Misfit(J)
+    residuals, misfit = ResidualSums(scores.h), noise_free.Misfit(J)
 
     def score_pass(sums: uncertainty.ScoreSums) -> None:
         for records, row in source.rows("standard errors"):
@@ -319,7 +319,7 @@ class _WindowFit:
     covariance: uncertainty.Covariance
     h: np.ndarray
     residuals: list[tuple[int, float, float]]
-    misfit: uncertainty.Misfit
+    misfit: noise_free.Misfit
 
 
 def _window_fit(store: _WindowRows, joined: solve.Factor, solution: solve.Solution,
@@ -331,12 +331,12 @@ def _window_fit(store: _WindowRows, joined: solve.Factor, solution: solve.Soluti
                     joined.total_weight)
     by_window = cov == "hac"
     residuals: list[tuple[int, float, float]] = []   # rows, squares, largest of each block
-    misfit = uncertainty.Misfit(J)
+    misfit = noise_free.Misfit(J)
 
     def scored(sums: uncertainty.ScoreSums) -> None:
         nonlocal misfit
         residuals[:] = [(0, 0.0, 0.0)] * len(store.layout)
-        misfit = uncertainty.Misfit(J)
+        misfit = noise_free.Misfit(J)
         for blocks, group in store.chunks():
             stats = scores.feed(sums, blocks, scales, group if by_window else None,
                                 misfit=misfit)

@@ -19,13 +19,13 @@ import numpy.typing as npt
 from hamid.data.loading import Loaded
 from hamid.data.records import Records, runs
 from hamid.errors import DataError, FitError
-from hamid.linear import design, solve, uncertainty
+from hamid.linear import design, noise_free, solve, uncertainty
 from hamid.linear.design import Block, Windows
 from hamid.linear.plan import FitPlan
 from hamid.linear.unknowns import Unknowns
 from hamid.model.dissipation import Dissipation
 from hamid.model.models import Model
-from hamid.options import FitOptions
+from hamid.options import FitOptions, check_replicates
 
 __all__ = ["LinearFit", "QuadratureError", "ResidualSums", "Rows", "Scores", "balance",
            "fit_rows", "fitted_levels", "resampling_units", "residual_sums", "rows_of",
@@ -158,7 +158,7 @@ class Scores:
     def feed(self, sums: uncertainty.ScoreSums, blocks: list[Block], scales: list[float],
              window_group: npt.NDArray[np.int64] | None,
              shares: list[npt.NDArray[np.float64]] | None = None,
-             misfit: uncertainty.Misfit | None = None) -> list[tuple[int, float, float]]:
+             misfit: noise_free.Misfit | None = None) -> list[tuple[int, float, float]]:
         """Feed one piece of rows: `blocks` over the same windows (weak and joint fits, in
         window order) or energy rows; `scales` multiply each block's weights.
         `window_group`, the trajectory of each window, asks for the windows' summed
@@ -188,9 +188,7 @@ class Scores:
                 if window_group is not None:
                     window_scores += score.reshape(len(window_group), -1, p + 1).sum(axis=1)
                 else:
-                    for j, first, stop in runs(piece.group):
-                        sums.add(j, z[first:stop], r[first:stop], w[first:stop],
-                                 None if offset is None else offset[first:stop])
+                    sums.add_runs(piece.group, z, r, w, offset)
             stats.append((n, squares, largest))
         if window_group is not None:
             for j, start, stop in runs(window_group):
@@ -456,7 +454,7 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
             theta_cov, text = _with_propagated_noise(theta_cov, text, fit, blocks, m, records,
                                                      sigma, unknowns, spans, damping)
         h_var = level_variance(c, fit.centred.level_means_A)
-    misfit = uncertainty.Misfit(J)
+    misfit = noise_free.Misfit(J)
     pieces = np.split(fit.residual, np.cumsum([b.n_rows for b in blocks])[:-1])
     for block, residual in zip(blocks, pieces, strict=True):
         misfit.add(block, residual, block.weight)
@@ -524,6 +522,7 @@ def _bootstrap_covariance(blocks: list[Block], names: list[str], J: int, kind: s
         fit = least_squares(sample, names, J)
         return np.concatenate([fit.theta, fit.h])
 
+    check_replicates("--bootstrap", n_boot, len(group))
     # Resample within the trajectories present (one too short for a window has no units).
     dense = np.unique(unit_group, return_inverse=True)[1]
     cov, _, description = uncertainty.bootstrap(refit, dense, n_boot=n_boot, seed=seed)
@@ -547,7 +546,7 @@ def _with_propagated_noise(theta_cov: Any, text: str, fit: Solved, blocks: list[
     G = fit.centred.influence(fit.solution.inverse)
     propagated = design.propagated_covariance(blocks, G, model, records,
                                               unknowns.full(fit.theta), sigma, spans, damping)
-    return (uncertainty.at_least(theta_cov, propagated),
+    return (noise_free.at_least(theta_cov, propagated),
             text + "; each variance at least the one propagated from the measurement noise")
 
 
@@ -616,17 +615,29 @@ class ResidualSums:
         self.end = np.zeros(J)   # last t, from the first
 
     def add(self, block: Block, residual: Any) -> None:
-        for j, start, stop in runs(block.group):
-            t, b, r = block.time[start:stop], block.b[start:stop], residual[start:stop]
-            if self.n[j] == 0:
-                self.origin[j] = t[0], b[0]
-            t, b = t - self.origin[j, 0], b - self.origin[j, 1]
-            lagged = self.last[j] * r[0] + r[1:] @ r[:-1] if self.n[j] else r[1:] @ r[:-1]
-            self.sums[j] += [t.sum(), t @ t, r.sum(), r @ r, t @ r, b.sum(), b @ b, lagged]
-            self.n[j] += len(r)
-            self.last[j] = r[-1]
-            self.end[j] = t[-1]
-            self.max_abs = max(self.max_abs, float(np.max(np.abs(r))))
+        """Rows of any trajectories, each one's after its earlier rows: the runs' sums at
+        once (a call per trajectory took a fifth of a fit of 5,000 short ones)."""
+        if not block.n_rows:
+            return
+        spans = runs(block.group)
+        j = np.array([k for k, _, _ in spans])
+        starts = np.array([start for _, start, _ in spans])
+        ends = np.array([stop for _, _, stop in spans]) - 1
+        fresh = self.n[j] == 0
+        self.origin[j[fresh]] = np.column_stack([block.time[starts[fresh]],
+                                                 block.b[starts[fresh]]])
+        t = block.time - self.origin[block.group, 0]
+        b = block.b - self.origin[block.group, 1]
+        r = residual
+        # r_k r_k+1 within each run, then across from each one's earlier rows
+        pairs = np.concatenate([[0.0], r[1:] * r[:-1]])
+        pairs[starts] = np.where(fresh, 0.0, self.last[j] * r[starts])
+        self.sums[j] += np.stack([np.add.reduceat(column, starts) for column in
+                                  (t, t * t, r, r * r, t * r, b, b * b, pairs)], axis=1)
+        self.n[j] += ends + 1 - starts
+        self.last[j] = r[ends]
+        self.end[j] = t[ends]
+        self.max_abs = max(self.max_abs, float(np.max(np.abs(r))))
 
     def stats(self, labels: tuple[str | int, ...]) -> dict[str, Any]:
         n = self.n

@@ -162,13 +162,24 @@ class Factor:
         if not block.has_level:
             self.free = _stack_qr(self.free, rows)
             return
+        rows = np.column_stack([sw, rows])
+        fresh: dict[int, list[tuple[int, int]]] = {}   # length -> (trajectory, start)
         for j, start, stop in runs(block.group):
             w = block.weight[start:stop]
             self.total_weight[j] += w.sum()
             self.weighted_A[j] += w @ block.A[start:stop]
             self.weighted_b[j] += w @ block.b[start:stop]
-            self.level[j] = _stack_qr(self.level[j],
-                                      np.column_stack([sw[start:stop], rows[start:stop]]))
+            if self.level[j] is None:
+                fresh.setdefault(stop - start, []).append((j, start))
+            else:
+                self.level[j] = _stack_qr(self.level[j], rows[start:stop])
+        # the first rows of trajectories of one length in one call: a call each took
+        # most of the time of 5,000 short trajectories
+        for length, first in fresh.items():
+            starts = np.array([start for _, start in first])
+            factors = np.linalg.qr(rows[starts[:, None] + np.arange(length)], mode="r")
+            for (j, _), R in zip(first, factors, strict=True):
+                self.level[j] = R
 
     def scaled(self, scale: float) -> Factor:
         """The factor of the same rows with every weight multiplied by `scale`."""

@@ -19,6 +19,7 @@ ever opens and no backend is chosen: headless wherever it runs.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -29,7 +30,7 @@ import numpy as np
 
 from hamid.data import column_roles
 from hamid.data.records import Recording
-from hamid.errors import HamidError, UsageError
+from hamid.errors import DataError, HamidError, UsageError
 from hamid.plot import fitted
 
 if TYPE_CHECKING:
@@ -50,6 +51,10 @@ _RESIDUAL_MAP = "berlin"     # diverging, dark at zero: visible on white, colour
 _CORRELATION_MAP = "RdBu_r"  # ColorBrewer's diverging map, colour-blind safe
 MAX_SHOWN = 6                # trajectories drawn one by one; later ones are left out
 MAX_POINTS = 20_000          # samples drawn per series; longer ones are thinned evenly
+# Parameters a panel shows: a row each in panel 5 (302 rows took 103 s and 461 MB), a row
+# and a column of panel 6's matrix.
+MAX_PARAMETERS = {"parameters": 40, "correlation": 200}
+_LONGEST_NAME = 40           # characters of a name from the report shown in a figure
 _WIDTH = 10.0                # inches
 _DPI = 120
 
@@ -96,7 +101,44 @@ def _obstacle(panel: str, report: Mapping[str, Any],
     covariance = report.get("covariance") or {}
     if panel == "correlation" and len(covariance.get("names", [])) < 2:
         return "the covariance of at least two free parameters"
+    shown = {"parameters": len(report["parameters"]),
+             "correlation": len(covariance.get("names", []))}.get(panel, 0)
+    if shown > MAX_PARAMETERS.get(panel, shown):
+        return (f"at most {MAX_PARAMETERS[panel]} parameters to show (the report has "
+                f"{shown:,})")
     return None
+
+
+def _check_parameters(report: Mapping[str, Any]) -> None:
+    """Each estimate inside its interval and its axis within the doubles, before drawing:
+    a report edited by hand gave matplotlib's "'xerr' must not contain negative values"
+    and "Axis limits cannot be NaN or Inf"."""
+    for p in report["parameters"]:
+        name, estimate, low, high = _plain(p["name"]), p["estimate"], p["ci_low"], p["ci_high"]
+        if low is not None and high is not None and not low <= estimate <= high:
+            raise DataError(f"parameter {name}: estimate {estimate:.6g} lies outside its "
+                            f"interval [{low:.6g}, {high:.6g}]; was the report edited?")
+        reach = _reach(estimate, low, high, p["truth"])
+        if not math.isfinite(estimate - reach) or not math.isfinite(estimate + reach):
+            raise DataError(f"parameter {name}: estimate {estimate:.6g} and its interval "
+                            "are too large to draw (the axis would pass the largest double)")
+
+
+def _reach(estimate: float, *around: float | None) -> float:
+    """Half a parameter's axis: the estimate in the middle, the values `around` it in
+    view."""
+    known = [abs(x - estimate) for x in around if x is not None]
+    return 1.3 * max(known, default=0.0) or 0.1 * abs(estimate) or 1.0
+
+
+def _plain(name: Any) -> str:
+    """A name from the report as plain text in a figure: cut to `_LONGEST_NAME`
+    characters, its dollar signs escaped (mathtext parsed an edited report's "$x^$", and
+    3,000 nested braces overflowed its parser's recursion)."""
+    text = str(name)
+    if len(text) > _LONGEST_NAME:
+        text = text[:_LONGEST_NAME - 1] + "…"
+    return text.replace("$", r"\$")
 
 
 def choose(report: Mapping[str, Any], recording: Recording | None,
@@ -116,9 +158,13 @@ def choose(report: Mapping[str, Any], recording: Recording | None,
             raise UsageError(f"panel {k} ({panel}) needs {obstacle}")
         else:
             left_out.setdefault(obstacle, []).append(f"{k} {panel}")
+    if "parameters" in drawn:
+        _check_parameters(report)
     notes = [f"left out panel{'s' if len(names) > 1 else ''} {', '.join(names)}: "
              f"{'they need' if len(names) > 1 else 'it needs'} {obstacle}"
              for obstacle, names in left_out.items()]
+    if not drawn:
+        raise UsageError("no panel to draw: " + "; ".join(notes))
     return tuple(drawn), notes
 
 
@@ -135,8 +181,8 @@ class _Context:
         return fitted.energies(self.report, self.recording)
 
     @property
-    def labels(self) -> list[Any]:
-        return [level["trajectory"] for level in self.report["energy_levels"]]
+    def labels(self) -> list[str]:
+        return [_plain(level["trajectory"]) for level in self.report["energy_levels"]]
 
     @property
     def shown(self) -> range:
@@ -174,13 +220,13 @@ class _Context:
     def title(self, panel: str) -> str:
         """The panel's title: what it shows, the files and the method."""
         report = self.report
-        sources = [os.path.basename(s).strip("<>") for s in report["data"]["sources"]]
+        sources = [_plain(os.path.basename(s).strip("<>")) for s in report["data"]["sources"]]
         files = ", ".join(sources[:2]) + (f" and {len(sources) - 2} more"
                                           if len(sources) > 2 else "")
         method = report["method"]
         refined = (method.get("refinement") or {}).get("applied")
         return (f"{PANELS.index(panel) + 1}. {_TITLES[panel]}: {files or 'data'} — "
-                f"{report['model']['name']}, method {method['kind']}"
+                f"{_plain(report['model']['name'])}, method {method['kind']}"
                 f"{' + trajectory refinement' if refined else ''}")
 
 
@@ -379,7 +425,7 @@ def _draw_parameters(fig: Figure | SubFigure, ctx: _Context) -> str:
     axes = fig.subplots(len(parameters), 1, squeeze=False)[:, 0]
     for ax, p in zip(axes, parameters, strict=True):
         estimate, low, high, truth = p["estimate"], p["ci_low"], p["ci_high"], p["truth"]
-        text = f"{p['name']} = {estimate:.6g}"
+        text = f"{_plain(p['name'])} = {estimate:.6g}"
         if low is not None and high is not None:
             ax.errorbar([estimate], [0], xerr=[[estimate - low], [high - estimate]],
                         fmt="o", color=OKABE_ITO[0], capsize=4, markersize=5)
@@ -388,9 +434,7 @@ def _draw_parameters(fig: Figure | SubFigure, ctx: _Context) -> str:
             ax.plot([estimate], [0], marker="D" if p["fixed"] else "o", color=OKABE_ITO[0])
             text += " (fixed)" if p["fixed"] else " (no standard error)"
         # the interval in the middle, the truth in view
-        reach = max(abs(x - estimate) for x in (low, high, truth) if x is not None) \
-            if any(x is not None for x in (low, high, truth)) else 0.0
-        reach = 1.3 * reach or 0.1 * abs(estimate) or 1.0
+        reach = _reach(estimate, low, high, truth)
         ax.set_xlim(estimate - reach, estimate + reach)
         if truth is not None:
             ax.axvline(truth, color=OKABE_ITO[3], linestyle="--", linewidth=1.3)
@@ -411,7 +455,7 @@ def _draw_parameters(fig: Figure | SubFigure, ctx: _Context) -> str:
 
 def _draw_correlation(fig: Figure | SubFigure, ctx: _Context) -> str:
     covariance = ctx.report["covariance"]
-    names = covariance["names"]
+    names = [_plain(name) for name in covariance["names"]]
     matrix = np.array([[np.nan if x is None else x for x in row]
                        for row in covariance["matrix"]], dtype=float)
     sd = np.sqrt(np.diag(matrix))

@@ -24,7 +24,7 @@ from hamid.linear import estimate, plan, solve
 from hamid.linear.unknowns import Unknowns
 from hamid.model.dissipation import Dissipation
 from hamid.model.models import Model, parse_poly_name, poly_model_over
-from hamid.options import READING_OPTIONS, FitOptions
+from hamid.options import READING_OPTIONS, FitOptions, check_replicates
 from hamid.result.fit_result import FitResult, plain_data
 from hamid.selection import best_subsets
 from hamid.selection.library import Library
@@ -64,6 +64,7 @@ class SelectOptions:
         if self.stability and self.stability < MIN_REPLICATES:
             raise UsageError(f"--stability needs at least {MIN_REPLICATES} replicates, "
                              f"found {self.stability}")
+        check_replicates("--stability", self.stability)
         if self.stability and self.criterion == "cv":
             raise UsageError("--stability cannot be combined with --criterion cv (copies of "
                              "a resampled window would sit in training and test folds); use "
@@ -264,6 +265,7 @@ def choose(data: Any, options: SelectOptions, *, reading: Mapping[str, Any] | No
     ranking = best_subsets.search(grid, forced, free, options.criterion)
     shares = None
     if options.stability:
+        check_replicates("--stability", options.stability, len(grid.unit))
         probability = best_subsets.inclusion(grid, forced, free, options.criterion,
                                           options.stability, options.seed, progress)
         shares = {columns_of[c]: float(p) for c, p in zip(free, probability, strict=True)}

@@ -4,9 +4,9 @@
 
 Each sample system (sample_data/*.toml, simulated without noise) with Gaussian noise of
 each level times every variable's spread added, fitted with the energy and joint methods:
-per level, the fitted energy rows' residual rms over their spread (`uncertainty.Misfit.relative`:
+per level, the fitted energy rows' residual rms over their spread (`noise_free.Misfit.relative`:
 every sample's rows, or the window means of a joint fit), read from the covariance's
-description with the threshold lifted, and whether it is below `uncertainty.CLEAN_RELATIVE`,
+description with the threshold lifted, and whether it is below `noise_free.CLEAN_RELATIVE`,
 where the covariance is widened as for noise-free data.
 """
 
@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parent.parent.parent
 sys.path.insert(0, str(ROOT))
 
 import hamid
-from hamid.linear import uncertainty
+from hamid.linear import noise_free
 
 SYSTEMS = ("duffing", "peng_quadratic", "elastic_pendulum", "henon_heiles")
 LEVELS = (0.0, 1e-12, 1e-11, 1e-10, 1e-9, 1e-8, 1e-7, 1e-6)
@@ -39,7 +39,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--levels", nargs="+", type=float, default=LEVELS)
     args = parser.parse_args()
-    threshold, uncertainty.CLEAN_RELATIVE = uncertainty.CLEAN_RELATIVE, np.inf   # always described
+    threshold, noise_free.CLEAN_RELATIVE = noise_free.CLEAN_RELATIVE, np.inf   # always described
     for name in SYSTEMS:
         document = tomllib.loads((ROOT / "sample_data" / f"{name}.toml").read_text())
         document.pop("noise", None)

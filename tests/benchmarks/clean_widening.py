@@ -5,7 +5,7 @@
 The sample systems sample_data/duffing.toml and peng_quadratic.toml, with white noise of a
 fraction of each column's spread on the states (`with_noise`, seeds 0..R-1; without noise,
 each initial state moved by up to 20% instead, as in clean_records.py), fitted with
---method energy and joint: once with the widening left out (`uncertainty.CLEAN_RELATIVE`
+--method energy and joint: once with the widening left out (`noise_free.CLEAN_RELATIVE`
 zero, the fit before it) and once as reported. Per parameter: the share of bounds that
 hold the truth, without -> with, the mean standard error with over without, and the share
 of fits widened. Noisy records must come out unchanged (ratio 1, none widened).
@@ -33,19 +33,19 @@ from benchmarks.clean_records import TOLERANCES, moved_system
 from conftest import with_noise
 
 import hamid
-from hamid.linear import uncertainty
+from hamid.linear import noise_free
 
 SYSTEMS = ("duffing", "peng_quadratic")
 
 
 def _fits(frame, method: str, truth: dict[str, float], leave_out: bool):
     """Whether each parameter's bounds hold the truth, and its standard error."""
-    threshold = uncertainty.CLEAN_RELATIVE
-    uncertainty.CLEAN_RELATIVE = 0.0 if leave_out else threshold
+    threshold = noise_free.CLEAN_RELATIVE
+    noise_free.CLEAN_RELATIVE = 0.0 if leave_out else threshold
     try:
         result = hamid.fit(frame, method=method)
     finally:
-        uncertainty.CLEAN_RELATIVE = threshold
+        noise_free.CLEAN_RELATIVE = threshold
     return {p.name: (p.ci_low <= truth[p.name] <= p.ci_high, p.stderr)
             for p in result.parameters}
 
