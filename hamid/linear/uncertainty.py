@@ -211,6 +211,10 @@ def _problem(
     return _Problem(G, lam, r, w, labels, starts, stops, int(df_resid))
 
 
+# Rows of trajectories of one length whose scores `ScoreSums.add_runs` takes at once.
+_BATCH_ROWS = 1 << 14
+
+
 class ScoreSums:
     """The per-trajectory sums an estimator needs, fed with rows piece by piece.
 
@@ -284,16 +288,19 @@ class ScoreSums:
             else:
                 self.add(int(group[start]), z[start:stop], r[start:stop], w[start:stop],
                          None if offset is None else offset[start:stop])
-        for length, first in batched.items():
-            a, m = first[0], len(first)
-            if first[-1] == a + (m - 1) * length:   # runs side by side: views, no copies
-                rows: slice | npt.NDArray[np.intp] = slice(a, a + m * length)
-            else:
-                rows = (np.array(first)[:, None] + np.arange(length)).ravel()
-            self._add_fresh(group[first], *(x[rows].reshape(m, length, *x.shape[1:])
-                                            for x in (z, r, w)),
-                            None if offset is None else
-                            offset[rows].reshape(m, length, offset.shape[1]))
+        for length, firsts in batched.items():
+            step = max(1, _BATCH_ROWS // length)   # the scores' copies stay bounded
+            for k in range(0, len(firsts), step):
+                first = firsts[k:k + step]
+                a, m = first[0], len(first)
+                if first[-1] == a + (m - 1) * length:   # runs side by side: views
+                    rows: slice | npt.NDArray[np.intp] = slice(a, a + m * length)
+                else:
+                    rows = (np.array(first)[:, None] + np.arange(length)).ravel()
+                self._add_fresh(group[first], *(x[rows].reshape(m, length, *x.shape[1:])
+                                                for x in (z, r, w)),
+                                None if offset is None else
+                                offset[rows].reshape(m, length, offset.shape[1]))
 
     def _add_fresh(self, js: npt.NDArray[np.int64], z: FloatArray, r: FloatArray,
                    w: FloatArray, offset: FloatArray | None) -> None:
