@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import select
 import sys
+from pathlib import Path
 
 
 class Readiness:
@@ -66,3 +67,39 @@ def duffing_system(*, k: str = "1.0", k3: str = "0.5", x: str = "1.0", v: str = 
     """A one-trajectory Duffing system file, each value written as given."""
     return (f'[model]\nbuiltin = "duffing"\n\n[parameters]\nk = {k}\nk3 = {k3}\n\n'
             f'[[initial]]\nx = {x}\nv = {v}\n\n[simulate]\nt_end = {t_end}\ndt = {dt}\n')
+
+
+def one_line_error(done, code: int, *words: str) -> str:
+    """A clean failure of a subprocess or a CliRunner result, its stderr in bytes or text:
+    the exit status `code`, nothing on standard output (where captured), and one line on
+    standard error, no traceback or internal error, naming every one of `words`."""
+    exit_code = getattr(done, "returncode", getattr(done, "exit_code", None))
+    stderr = done.stderr.decode() if isinstance(done.stderr, bytes) else done.stderr
+    stdout = done.stdout.decode() if isinstance(done.stdout, bytes) else done.stdout
+    assert exit_code == code, (exit_code, stderr)
+    assert stdout in (None, ""), stdout
+    assert "Traceback" not in stderr and "internal error" not in stderr, stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith("Error: "), stderr
+    for word in words:
+        assert word in lines[0], (word, stderr)
+    return lines[0]
+
+
+def snapshot(folder) -> dict:
+    """Every entry of a folder: symlinks with their targets, files with their bytes, and
+    the kind of anything else; what a refused command must leave as it was."""
+    import stat
+
+    entries = {}
+    for entry in sorted(os.listdir(folder)):
+        path = Path(folder) / entry
+        mode = os.lstat(path).st_mode
+        if stat.S_ISLNK(mode):
+            entries[entry] = ("link", os.readlink(path))
+        elif stat.S_ISREG(mode):
+            entries[entry] = ("file", path.read_bytes())
+        else:
+            entries[entry] = ("other", stat.S_IFMT(mode))
+    return entries

@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from click.testing import CliRunner
+from helpers import one_line_error
 
 import hamid
 from hamid import read_limits
@@ -36,19 +37,6 @@ DUFFING_LINES = DUFFING.read_bytes().count(b"\n")
 def _run(hamid_cli, *args, cwd, stdin=None) -> subprocess.CompletedProcess:
     return subprocess.run([*hamid_cli, *map(str, args)], capture_output=True, text=True,
                           cwd=cwd, timeout=300, stdin=stdin)
-
-
-def _one_line(done, code: int, *words: str) -> str:
-    """The one line of a failure (a subprocess's or a CliRunner's), checked for `words`."""
-    exit_code = getattr(done, "returncode", getattr(done, "exit_code", None))
-    assert exit_code == code, done.stderr
-    assert done.stdout == ""
-    lines = done.stderr.splitlines()
-    assert len(lines) == 1, done.stderr
-    for word in words:
-        assert word in lines[0], (word, lines[0])
-    assert "internal error" not in lines[0]
-    return lines[0]
 
 
 def _energy(nesting: int) -> str:
@@ -92,14 +80,14 @@ def test_an_unreadable_file_is_one_line(monkeypatch, tmp_path):
     with pytest.raises(DataError, match=r"secret.csv: cannot read: Permission denied$"):
         input_size.decoded_bytes(data)
     done = CliRunner().invoke(cli, ["fit", str(data), "--model", "duffing"])
-    _one_line(done, 1, "secret.csv: cannot read: Permission denied")
+    one_line_error(done, 1, "secret.csv: cannot read: Permission denied")
 
 
 def test_a_bzip2_bomb_is_refused_from_its_first_mib(hamid_cli, tmp_path):
     """17 MiB of zeros in 50 bytes of bzip2: an internal IndexError in the sampling, then
     all of it decompressed; now refused from the first MiB, which holds no line."""
     (tmp_path / "zeros.csv.bz2").write_bytes(bz2.compress(bytes(17 << 20)))
-    _one_line(_run(hamid_cli, "fit", "zeros.csv.bz2", "--model", "duffing", cwd=tmp_path),
+    one_line_error(_run(hamid_cli, "fit", "zeros.csv.bz2", "--model", "duffing", cwd=tmp_path),
               1, "zeros.csv.bz2: its first line is longer than 1,048,576 bytes")
 
 
@@ -108,7 +96,7 @@ def test_a_header_of_many_columns_is_refused(hamid_cli, tmp_path, chunks):
     """A header line of 300,000 columns (2 MiB) is refused before any of it is parsed."""
     header = ",".join(f"c{i}" for i in range(300_000)).encode()
     (tmp_path / "wide.csv.gz").write_bytes(gzip.compress(header + b"\n1\n", 1))
-    line = _one_line(_run(hamid_cli, "fit", "wide.csv.gz", "--model", "duffing", *chunks,
+    line = one_line_error(_run(hamid_cli, "fit", "wide.csv.gz", "--model", "duffing", *chunks,
                           cwd=tmp_path), 1, "wide.csv.gz: ")
     assert ("line 1 is longer than 1 MiB" if chunks else "first line is longer") in line
 
@@ -117,7 +105,7 @@ def test_nul_bytes_after_the_rows_are_refused_in_chunks(hamid_cli, tmp_path):
     """Rows, then 64 MiB of NUL bytes without a line break: one row longer than a block."""
     rows = b"t,x,v\n" + b"".join(b"%d,1,0\n" % i for i in range(1000))
     _gzip_rows(tmp_path / "nul.csv.gz", rows, 64 << 20)
-    _one_line(_run(hamid_cli, "fit", "nul.csv.gz", "--model", "duffing", "--chunk-rows",
+    one_line_error(_run(hamid_cli, "fit", "nul.csv.gz", "--model", "duffing", "--chunk-rows",
                    "100000", cwd=tmp_path), 1,
               "nul.csv.gz: a row is longer than 6,400,000 bytes, the text read at a time")
 
@@ -137,7 +125,7 @@ def test_the_read_ahead_thread_is_stopped_before_the_error(hamid_cli, tmp_path):
     the reader now reads without calling back into Python and is closed on the error."""
     _gzip_rows(tmp_path / "restart.csv.gz", b"t,x,v\n" + b"0,1,0\n" * 1000, 16 << 20)
     for _ in range(3):
-        _one_line(_run(hamid_cli, "fit", "restart.csv.gz", "--model", "duffing",
+        one_line_error(_run(hamid_cli, "fit", "restart.csv.gz", "--model", "duffing",
                        "--chunk-rows", "262144", cwd=tmp_path), 1,
                   "restart.csv.gz: column 't', row 2: time does not increase")
 
@@ -145,7 +133,7 @@ def test_the_read_ahead_thread_is_stopped_before_the_error(hamid_cli, tmp_path):
 @pytest.mark.parametrize("chunks", [[], ["--chunk-rows", "100"]], ids=["whole", "chunks"])
 def test_skip_rows_past_the_end_is_refused(hamid_cli, chunks):
     """--skip-rows 10000000000 on a 1,200-line file never returned."""
-    _one_line(_run(hamid_cli, "fit", DUFFING, "--skip-rows", "10000000000", *chunks,
+    one_line_error(_run(hamid_cli, "fit", DUFFING, "--skip-rows", "10000000000", *chunks,
                    cwd=ROOT), 1, f"duffing.csv: --skip-rows 10,000,000,000 reaches the end "
               f"of the text ({DUFFING_LINES:,} lines)")
 
@@ -157,13 +145,14 @@ def test_a_device_is_read_up_to_a_bound(monkeypatch, args):
     """/dev/zero as data, report or system file reached 3.7 GB."""
     monkeypatch.setattr(read_limits, "READ_BYTES", 1 << 20)
     done = CliRunner().invoke(cli, args)
-    _one_line(done, 1, "/dev/zero: more than 1 MiB from a device or pipe", "save it to a file")
+    one_line_error(done, 1, "/dev/zero: more than 1 MiB from a device or pipe",
+                   "save it to a file")
 
 
 def test_standard_input_and_a_fifo_are_read_up_to_a_bound(monkeypatch, tmp_path):
     monkeypatch.setattr(read_limits, "READ_BYTES", 1 << 20)
     done = CliRunner().invoke(cli, ["report", "-"], input=b" " * (2 << 20))
-    _one_line(done, 1, "<stdin>: more than 1 MiB from standard input")
+    one_line_error(done, 1, "<stdin>: more than 1 MiB from standard input")
     fifo = tmp_path / "data.fifo"
     os.mkfifo(fifo)
 
@@ -176,7 +165,7 @@ def test_standard_input_and_a_fifo_are_read_up_to_a_bound(monkeypatch, tmp_path)
     writer.start()
     done = CliRunner().invoke(cli, ["fit", str(fifo), "--model", "duffing"])
     writer.join(timeout=300)
-    _one_line(done, 1, "data.fifo: more than 1 MiB from a device or pipe")
+    one_line_error(done, 1, "data.fifo: more than 1 MiB from a device or pipe")
 
 
 def test_a_full_temporary_folder_is_one_line(monkeypatch):
@@ -253,7 +242,7 @@ def test_coordinates_given_as_a_string_are_named(hamid_cli, tmp_path):
     frame = pd.DataFrame({"t": t, "theta": np.cos(t), "v": -np.sin(t)})
     (tmp_path / "p.csv").write_text(f"# hamid: {json.dumps(meta)}\n" +
                                     frame.to_csv(index=False))
-    _one_line(_run(hamid_cli, "fit", "p.csv", cwd=tmp_path), 1,
+    one_line_error(_run(hamid_cli, "fit", "p.csv", cwd=tmp_path), 1,
               "p.csv: metadata model: 'coordinates' must be a list of names, not the string "
               "'theta'")
     _model_file(tmp_path / "m.toml", "v**2/2 + k*x**2/2", coordinates='"x"')
@@ -269,9 +258,9 @@ def test_toml_nested_too_deeply_is_one_line(hamid_cli, tmp_path, value):
     """A system file nested 50,000 deep: RecursionError from tomllib."""
     (tmp_path / "deep.toml").write_text(f'[model]\nbuiltin = "duffing"\nx = {value}\n')
     words = "deep.toml: not readable TOML: arrays or inline tables nested too deeply"
-    _one_line(_run(hamid_cli, "simulate", "--config", "deep.toml", "-o", "o.csv",
+    one_line_error(_run(hamid_cli, "simulate", "--config", "deep.toml", "-o", "o.csv",
                    cwd=tmp_path), 1, words)
-    _one_line(_run(hamid_cli, "fit", DUFFING, "--model", "deep.toml", cwd=tmp_path), 1, words)
+    one_line_error(_run(hamid_cli, "fit", DUFFING, "--model", "deep.toml", cwd=tmp_path), 1, words)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -301,12 +290,12 @@ def test_nesting_is_bounded_where_sympy_can_take_it(hamid_cli, tmp_path):
     panels = sorted(tmp_path.glob("r-*.png"))
     assert len(panels) == 6 and all(panel.stat().st_size > 0 for panel in panels)
     _model_file(tmp_path / "over.toml", _energy(most + 1))
-    _one_line(_run(hamid_cli, "fit", DUFFING, "--model", "over.toml", cwd=tmp_path), 1,
+    one_line_error(_run(hamid_cli, "fit", DUFFING, "--model", "over.toml", cwd=tmp_path), 1,
               f"nested {expressions.MAX_NESTING + 1} levels deep")
 
 
 def test_a_comment_sign_in_an_energy_is_refused(hamid_cli, tmp_path):
     """'#' made Python drop the rest of the energy silently (k3*x**4/4 here)."""
     _model_file(tmp_path / "m.toml", "v**2/2 + k*x**2/2 #+ k3*x**4/4")
-    _one_line(_run(hamid_cli, "fit", DUFFING, "--model", "m.toml", cwd=tmp_path), 1,
+    one_line_error(_run(hamid_cli, "fit", DUFFING, "--model", "m.toml", cwd=tmp_path), 1,
               "m.toml: [model]: energy: '#' (character 19) is not allowed in an expression")

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from helpers import duffing_system
+from helpers import duffing_system, one_line_error
 
 ROOT = Path(__file__).parent.parent
 DUFFING = ROOT / "sample_data" / "duffing.csv"
@@ -19,16 +19,6 @@ DUFFING = ROOT / "sample_data" / "duffing.csv"
 def _run(hamid_cli, *args, cwd) -> subprocess.CompletedProcess:
     return subprocess.run([*hamid_cli, *map(str, args)], capture_output=True, text=True,
                           cwd=cwd, timeout=600)
-
-
-def _one_line_error(done: subprocess.CompletedProcess, code: int, *words: str) -> None:
-    assert done.returncode == code, done.stderr
-    assert done.stdout == ""
-    lines = done.stderr.splitlines()
-    assert len(lines) == 1, done.stderr
-    for word in words:
-        assert word in lines[0]
-    assert "internal error" not in lines[0]
 
 
 def _duffing_frame() -> pd.DataFrame:
@@ -41,7 +31,7 @@ def test_times_too_large_to_compute_with(hamid_cli, tmp_path):
     frame = pd.DataFrame({"t": np.linspace(0, 1e308, n), "x": np.cos(0.1 * np.arange(n)),
                           "v": -np.sin(0.1 * np.arange(n))})
     frame.to_csv(tmp_path / "big.csv", index=False)
-    _one_line_error(_run(hamid_cli, "fit", "big.csv", "--model", "duffing", cwd=tmp_path), 1,
+    one_line_error(_run(hamid_cli, "fit", "big.csv", "--model", "duffing", cwd=tmp_path), 1,
                     "big.csv: column 't', row 2", "too large to compute with")
 
 
@@ -51,7 +41,7 @@ def test_a_file_that_does_not_begin_as_parquet_is_refused(hamid_cli, tmp_path):
     data[:4] = b"XXXX"
     (tmp_path / "damaged.parquet").write_bytes(bytes(data))
     for extra in ([], ["--chunk-rows", "500"]):
-        _one_line_error(_run(hamid_cli, "fit", "damaged.parquet", *extra, cwd=tmp_path), 1,
+        one_line_error(_run(hamid_cli, "fit", "damaged.parquet", *extra, cwd=tmp_path), 1,
                         "damaged.parquet: is not a valid Parquet file", "magic bytes")
 
 
@@ -75,7 +65,7 @@ def test_numbers_stored_as_text_in_parquet_are_read_with_a_note(hamid_cli, tmp_p
 
 def test_a_noise_larger_than_the_column_names_the_cause(hamid_cli):
     """--noise x=1e308 said the terms 'do not vary along any trajectory'."""
-    _one_line_error(_run(hamid_cli, "fit", DUFFING, "--noise", "x=1e308", cwd=ROOT), 2,
+    one_line_error(_run(hamid_cli, "fit", DUFFING, "--noise", "x=1e308", cwd=ROOT), 2,
                     "--noise: x=1e+308", "more than twice the spread")
 
 
@@ -93,7 +83,7 @@ def test_chunk_rows_beyond_what_pyarrow_takes(hamid_cli):
 
 @pytest.mark.parametrize("command", [["fit", DUFFING, "--model"], ["models"]])
 def test_a_folder_as_model_says_it_is_a_folder(hamid_cli, tmp_path, command):
-    _one_line_error(_run(hamid_cli, *command, tmp_path, cwd=ROOT), 1,
+    one_line_error(_run(hamid_cli, *command, tmp_path, cwd=ROOT), 1,
                     f"{tmp_path}: is a folder, not a file")
 
 
@@ -109,7 +99,7 @@ def test_names_that_are_not_ascii_are_refused(hamid_cli, tmp_path, field, text):
         f'[model]\nname = "m"\ncoordinates = ["x"]\nvelocities = ["v"]\n'
         f'energy = "{energy}"\nparameters = {parameters}\n', encoding="utf-8")
     done = _run(hamid_cli, "fit", DUFFING, "--model", "m.toml", cwd=tmp_path)
-    _one_line_error(done, 1, "m.toml")
+    one_line_error(done, 1, "m.toml")
     assert "ASCII" in done.stderr or "cannot be used as a name" in done.stderr
 
 
@@ -119,7 +109,7 @@ def test_names_that_are_not_ascii_are_refused(hamid_cli, tmp_path, field, text):
     ("poly:20:2", "210 terms")])
 def test_a_polynomial_too_large_is_refused_before_it_is_built(hamid_cli, name, count):
     """These ran for minutes, or were killed, before."""
-    _one_line_error(_run(hamid_cli, "models", name, cwd=ROOT), 1, name, count, "at most 200")
+    one_line_error(_run(hamid_cli, "models", name, cwd=ROOT), 1, name, count, "at most 200")
 
 
 def test_ten_thousand_coordinates_without_a_model(hamid_cli, tmp_path):
@@ -128,7 +118,7 @@ def test_ten_thousand_coordinates_without_a_model(hamid_cli, tmp_path):
     for i in range(10_000):
         columns[f"x{i}"], columns[f"vx{i}"] = np.zeros(3), np.ones(3)
     pd.DataFrame(columns).to_csv(tmp_path / "wide.csv", index=False)
-    _one_line_error(_run(hamid_cli, "fit", "wide.csv", cwd=tmp_path), 1,
+    one_line_error(_run(hamid_cli, "fit", "wide.csv", cwd=tmp_path), 1,
                     "poly:10000:3 has 166,766,675,000 terms")
 
 
@@ -183,7 +173,7 @@ HUGE = "1" + "0" * 400
 def test_integers_beyond_a_double_in_a_system_file(hamid_cli, tmp_path, where):
     """k = 10**400 written out gave an OverflowError."""
     (tmp_path / "sys.toml").write_text(_system(**{where: HUGE}))
-    _one_line_error(_run(hamid_cli, "simulate", "--config", "sys.toml", "-o", "out.csv",
+    one_line_error(_run(hamid_cli, "simulate", "--config", "sys.toml", "-o", "out.csv",
                          cwd=tmp_path), 1, "sys.toml", "an integer of 401 digits")
     assert not (tmp_path / "out.csv").exists()
 
@@ -199,7 +189,7 @@ def test_integers_beyond_a_double_in_a_system_file(hamid_cli, tmp_path, where):
         "unbounded negative stiffness"])
 def test_impossible_runs_are_refused_before_they_start(hamid_cli, tmp_path, changes, words):
     (tmp_path / "sys.toml").write_text(_system(**changes))
-    _one_line_error(_run(hamid_cli, "simulate", "--config", "sys.toml", "-o", "out.csv",
+    one_line_error(_run(hamid_cli, "simulate", "--config", "sys.toml", "-o", "out.csv",
                          cwd=tmp_path), 1, *words)
     assert not (tmp_path / "out.csv").exists()
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from helpers import duffing_system
+from helpers import duffing_system, one_line_error
 
 from hamid.errors import ModelError
 
@@ -22,17 +22,6 @@ def _run(hamid_cli, *args, cwd, env=None) -> subprocess.CompletedProcess:
                           cwd=cwd, timeout=300, env=env)
 
 
-def _one_line_error(done: subprocess.CompletedProcess, code: int, *words: str) -> str:
-    assert done.returncode == code, done.stderr
-    assert done.stdout == ""
-    lines = done.stderr.splitlines()
-    assert len(lines) == 1, done.stderr
-    for word in words:
-        assert word in lines[0], lines[0]
-    assert "internal error" not in lines[0]
-    return lines[0]
-
-
 @pytest.fixture
 def duffing(tmp_path) -> pd.DataFrame:
     return pd.read_csv(ROOT / DUFFING_CSV, comment="#")
@@ -43,7 +32,7 @@ def test_time_steps_too_small_to_compute_with(hamid_cli, tmp_path, duffing, chun
     """Times scaled by 1e-300 gave 'SVD did not converge' (1e-150: a division by zero)."""
     duffing["t"] *= 1e-300
     duffing.to_csv(tmp_path / "tiny.csv", index=False)
-    _one_line_error(_run(hamid_cli, "fit", "tiny.csv", "--model", "duffing", *chunks,
+    one_line_error(_run(hamid_cli, "fit", "tiny.csv", "--model", "duffing", *chunks,
                          cwd=tmp_path), 1,
                     "tiny.csv: column 't', row 2: time step 5e-302 is too small")
 
@@ -59,7 +48,7 @@ def test_time_steps_of_1e_minus_60_still_fit(tmp_path, duffing):
 def test_forces_that_overflow_at_the_start_name_the_trajectory(hamid_cli, tmp_path):
     """k3 = 1e300 at x = 1e3: AttributeError in simulation.realizations."""
     (tmp_path / "sys.toml").write_text(duffing_system(k3="1e300", x="1e3"))
-    _one_line_error(_run(hamid_cli, "simulate", "--config", "sys.toml", "-o", "out.csv",
+    one_line_error(_run(hamid_cli, "simulate", "--config", "sys.toml", "-o", "out.csv",
                          cwd=tmp_path), 1, "not finite at the initial state of trajectory 1",
                     "k3 = 1e+300")
     assert not (tmp_path / "out.csv").exists()
@@ -79,7 +68,7 @@ def test_forces_that_overflow_soon_after_the_start_are_an_escape(x):
 def test_too_many_realizations_are_refused_before_any_work(hamid_cli, tmp_path):
     """--realizations 100000000 took 3.6 GB of file names in 23 s before writing a file."""
     (tmp_path / "sys.toml").write_text(duffing_system() + "\n[noise]\nrelative = 0.01\n")
-    _one_line_error(_run(hamid_cli, "simulate", "--config", "sys.toml", "-o", "r.csv",
+    one_line_error(_run(hamid_cli, "simulate", "--config", "sys.toml", "-o", "r.csv",
                          "--realizations", "100000000", cwd=tmp_path), 2,
                     "--realizations 100,000,000 would write 100,000,000 files",
                     "more than the 10,000")
@@ -96,7 +85,7 @@ def test_too_many_realizations_are_refused_before_any_work(hamid_cli, tmp_path):
 ], ids=["1e20 replicates", "1e9 replicates", "select 1e6 replicates"])
 def test_bootstrap_replicates_without_end_are_refused(hamid_cli, args, words):
     """--bootstrap 1000000000 and 99999999999999999999 ran until killed."""
-    _one_line_error(_run(hamid_cli, *args, cwd=ROOT), 2, words)
+    one_line_error(_run(hamid_cli, *args, cwd=ROOT), 2, words)
 
 
 @pytest.mark.parametrize("cov", ["fit", "select"])
@@ -116,7 +105,7 @@ def test_bootstrap_rows_refitted_have_a_budget(monkeypatch, duffing, cov):
 
 def test_a_savgol_order_too_high_to_fit_is_refused(hamid_cli):
     """--order 99 printed numpy's RankWarning four times, with scipy's source lines."""
-    line = _one_line_error(_run(hamid_cli, "fit", DUFFING_CSV, "--model", "duffing",
+    line = one_line_error(_run(hamid_cli, "fit", DUFFING_CSV, "--model", "duffing",
                                 "--velocity", "savgol", "--order", "99", cwd=ROOT), 2,
                            "--order 99", "window of 101 samples", "too poorly conditioned")
     assert "RankWarning" not in line
@@ -148,7 +137,7 @@ def test_a_scheduler_address_that_is_not_one_is_refused_before_a_client(
 
     done = _run(hamid_cli, "fit", "--each", DUFFING_CSV, "--model", "duffing", *args,
                 cwd=ROOT, env={**os.environ, **environment})
-    _one_line_error(done, 2, words)
+    one_line_error(done, 2, words)
 
 
 @pytest.mark.parametrize(("address", "good"), [
@@ -197,7 +186,7 @@ def test_a_parameter_that_cannot_be_drawn_is_one_line(hamid_cli, tmp_path, repor
     """matplotlib's 'Axis limits cannot be NaN or Inf' and "'xerr' must not contain negative
     values" came out as internal errors."""
     name = _edited(report, tmp_path, **changes)
-    _one_line_error(_run(hamid_cli, "plot", name, "-o", "f.png", cwd=tmp_path), 1, words)
+    one_line_error(_run(hamid_cli, "plot", name, "-o", "f.png", cwd=tmp_path), 1, words)
     assert not list(tmp_path.glob("f*.png"))
 
 
@@ -235,11 +224,11 @@ def test_a_report_of_3002_parameters_is_refused_before_drawing(hamid_cli, tmp_pa
     import json
 
     (tmp_path / "r.json").write_text(json.dumps(_many(report, 3002)))
-    line = _one_line_error(_run(hamid_cli, "plot", "r.json", "-o", "f.png", cwd=tmp_path),
+    line = one_line_error(_run(hamid_cli, "plot", "r.json", "-o", "f.png", cwd=tmp_path),
                            2, "no panel to draw", "at most 40 parameters to show (the "
                            "report has 3,002)", "at most 200 parameters")
     assert "panel 6 correlation" in line
-    _one_line_error(_run(hamid_cli, "plot", "r.json", "-o", "f.png", "--panels", "5",
+    one_line_error(_run(hamid_cli, "plot", "r.json", "-o", "f.png", "--panels", "5",
                          cwd=tmp_path), 2, "panel 5 (parameters) needs at most 40")
     assert not list(tmp_path.glob("f*.png"))
 

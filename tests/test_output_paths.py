@@ -20,7 +20,6 @@ import json
 import os
 import re
 import shutil
-import stat
 import subprocess
 import sys
 import textwrap
@@ -28,7 +27,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
-from helpers import hamid_command
+from helpers import hamid_command, one_line_error, snapshot
 
 from hamid.batch import many_files
 from hamid.cli.app import cli
@@ -53,34 +52,6 @@ def run(args, *, cwd, command=None):
     return subprocess.run([*(command or hamid_command()), *map(str, args)], cwd=cwd,
                           stdin=subprocess.DEVNULL, capture_output=True, timeout=MINUTES,
                           env=env)
-
-
-def refused(done, code, *names):
-    """One line on standard error naming `names`, nothing on standard output."""
-    stderr = done.stderr.decode()
-    assert done.returncode == code, (done.returncode, stderr)
-    assert done.stdout == b""
-    lines = stderr.strip().splitlines()
-    assert len(lines) == 1, stderr
-    assert lines[0].startswith("Error: ") and "internal error" not in lines[0], stderr
-    for name in names:
-        assert name in lines[0], (name, stderr)
-    return lines[0]
-
-
-def snapshot(folder):
-    """Every entry of a folder: symlinks with their targets, files with their bytes."""
-    entries = {}
-    for entry in sorted(os.listdir(folder)):
-        path = Path(folder) / entry
-        mode = os.lstat(path).st_mode
-        if stat.S_ISLNK(mode):
-            entries[entry] = ("link", os.readlink(path))
-        elif stat.S_ISREG(mode):
-            entries[entry] = ("file", path.read_bytes())
-        else:
-            entries[entry] = ("other", stat.S_IFMT(mode))
-    return entries
 
 
 @pytest.fixture(scope="module")
@@ -140,7 +111,7 @@ def test_a_derived_name_that_leads_to_an_input_is_refused(work, args, label, der
     else:
         os.link(work / source, work / derived)
     before = snapshot(work)
-    line = refused(run(args, cwd=work), 2)
+    line = one_line_error(run(args, cwd=work), 2)
     assert line == (f"Error: {label} {derived!r} is the input file {source!r}; writing it "
                     "would destroy the input: choose another output")
     assert snapshot(work) == before
@@ -181,7 +152,7 @@ def test_two_outputs_of_one_command_that_are_one_file_are_refused(work, args, wo
     os.link(work / "fig-5-parameters.png", work / "fig-6-correlation.png")
     before = snapshot(work)
     args = [arg.format(folder=work.name) for arg in args]
-    refused(run(args, cwd=work), 2, *words)
+    one_line_error(run(args, cwd=work), 2, *words)
     assert snapshot(work) == before
 
 

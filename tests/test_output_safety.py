@@ -34,7 +34,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
-from helpers import Readiness, duffing_system
+from helpers import Readiness, duffing_system, one_line_error, snapshot
 
 from hamid.cli.app import cli
 from hamid.data import readers, writing
@@ -114,36 +114,6 @@ def run(args, *, cwd=None, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, lim
     env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1", "NO_COLOR": "1"}
     return subprocess.run(command(args, **spec), cwd=cwd, stdin=stdin, stdout=stdout,
                           stderr=subprocess.PIPE, preexec_fn=prepare, timeout=timeout, env=env)
-
-
-def assert_one_line_error(done, code, *names):
-    stderr = done.stderr.decode()
-    assert done.returncode == code, (done.returncode, stderr)
-    if done.stdout is not None:
-        assert done.stdout == b""
-    assert "Traceback" not in stderr
-    assert "internal error" not in stderr, stderr
-    lines = stderr.strip().splitlines()
-    assert len(lines) == 1, stderr
-    assert lines[0].startswith("Error: "), stderr
-    for name in names:
-        assert name in lines[0], (name, stderr)
-    return lines[0]
-
-
-def snapshot(folder):
-    """Every entry of a folder: its kind, and the bytes of regular files."""
-    entries = {}
-    for entry in sorted(os.listdir(folder)):
-        path = Path(folder) / entry
-        mode = os.lstat(path).st_mode
-        if stat.S_ISLNK(mode):
-            entries[entry] = ("link", os.readlink(path))
-        elif stat.S_ISREG(mode):
-            entries[entry] = ("file", path.read_bytes())
-        else:
-            entries[entry] = ("special", stat.S_IFMT(mode))
-    return entries
 
 
 @pytest.fixture(scope="module")
@@ -240,7 +210,7 @@ def test_an_output_that_is_an_input_is_refused(work, args, stdin, option, source
     before = snapshot(work)
     with open(work / stdin if stdin else os.devnull, "rb") as stream:
         done = run(args, cwd=work, stdin=stream)
-    line = assert_one_line_error(done, 2, option, source)
+    line = one_line_error(done, 2, option, source)
     assert "destroy the input" in line
     assert snapshot(work) == before
 
@@ -250,7 +220,7 @@ def test_residuals_and_report_naming_one_file_through_a_symlink_are_refused(work
     (work / "alias.csv").symlink_to("out.csv")
     before = snapshot(work)
     done = run(["fit", "data.csv", "-o", "out.csv", "--residuals", "alias.csv"], cwd=work)
-    assert_one_line_error(done, 2, "-o and --residuals", "out.csv")
+    one_line_error(done, 2, "-o and --residuals", "out.csv")
     assert snapshot(work) == before
 
 
@@ -413,7 +383,7 @@ def test_a_stream_that_fails_leaves_the_files_of_the_same_run_alone(work):
     before = snapshot(work)
     done = run(["fit", "data.csv", "--method", "energy", "-o", "full.json", "--residuals",
                 "res.csv"], cwd=work)
-    assert_one_line_error(done, 1, "full.json", "No space left on device")
+    one_line_error(done, 1, "full.json", "No space left on device")
     assert snapshot(work) == before
 
 
@@ -428,7 +398,7 @@ def test_a_file_that_fails_sends_nothing_to_the_stream_of_the_same_run(work):
     # hamid has exited: if it never opened the FIFO, this lets cat's open return
     os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
     received = _received(reader)
-    assert_one_line_error(done, 1, "out.json", "File too large")
+    one_line_error(done, 1, "out.json", "File too large")
     assert received == b""
     assert sorted(os.listdir(work)) == sorted([*SAMPLE_FILES, "pipe"])
 
@@ -458,7 +428,7 @@ def test_a_read_only_output_is_refused_before_the_work(shared, saved_result, arg
     (shared / output).chmod(0o644 if IS_ROOT else 0o444)
     before = snapshot(shared)
     done = run(args, cwd=shared, stub=stub, nobody=IS_ROOT)
-    assert_one_line_error(done, 1, output, "read-only")
+    one_line_error(done, 1, output, "read-only")
     assert snapshot(shared) == before
 
 
@@ -478,7 +448,7 @@ def test_an_unwritable_folder_is_noticed_before_the_work(shared, saved_result, a
     (shared / "locked").chmod(0o755 if IS_ROOT else 0o555)
     try:
         done = run(args, cwd=shared, stub=stub, nobody=IS_ROOT)
-        assert_one_line_error(done, 1, "locked", "Permission denied")
+        one_line_error(done, 1, "locked", "Permission denied")
         assert os.listdir(shared / "locked") == []
     finally:
         (shared / "locked").chmod(0o755)
@@ -487,7 +457,7 @@ def test_an_unwritable_folder_is_noticed_before_the_work(shared, saved_result, a
 def test_proc_version_is_refused_with_a_true_reason(tmp_path):
     done = run(["fit", DUFFING_CSV, "--method", "energy", "-o", "/proc/version"],
                cwd=tmp_path, stub=["fit"])
-    line = assert_one_line_error(done, 1, "/proc/version")
+    line = one_line_error(done, 1, "/proc/version")
     assert "does not exist" not in line
     assert "does not accept new files" in line or "read-only" in line
 
@@ -630,7 +600,7 @@ def test_a_full_disk_while_writing_a_file(work, args, limit, outputs, existing):
             (work / output).write_bytes(PRECIOUS)
     before = snapshot(work)
     done = run(args, cwd=work, limits=[(resource.RLIMIT_FSIZE, limit)])
-    assert_one_line_error(done, 1, "cannot write", "File too large")
+    one_line_error(done, 1, "cannot write", "File too large")
     assert snapshot(work) == before
 
 
@@ -644,7 +614,7 @@ def test_a_full_disk_while_writing_standard_output(work, args):
     far as it got; the command says why in one line."""
     with open(work / "redirected.csv", "wb") as stream:
         done = run(args, cwd=work, stdout=stream, limits=[(resource.RLIMIT_FSIZE, 1_000)])
-    assert_one_line_error(done, 1, "<stdout>: cannot write", "File too large")
+    one_line_error(done, 1, "<stdout>: cannot write", "File too large")
     assert not [name for name in os.listdir(work) if name.endswith(".tmp")]
 
 
@@ -670,5 +640,5 @@ def test_a_name_too_long_is_refused_before_the_work(work, args, stub):
     name = "o" * 252
     before = snapshot(work)
     done = run([a.replace("{name}", name) for a in args], cwd=work, stub=stub)
-    assert_one_line_error(done, 1, "File name too long")
+    one_line_error(done, 1, "File name too long")
     assert snapshot(work) == before
