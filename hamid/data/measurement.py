@@ -172,11 +172,11 @@ LAG_DAMPING_RATIO = 5e-4
 LAG_SIGNIFICANCE = 4.0   # standard errors: a lag the noise could fake is not said
 
 
-def _velocity_spans(bounds: npt.NDArray[np.intp]) -> dict[int, npt.NDArray[np.intp]]:
-    """The spans of `velocity_check` in trajectories of `bounds` (start, stop): `VELOCITY_SPAN`
-    samples, or all of a shorter trajectory's; for each length, the first sample of every
-    span that has it, trajectories at once (a loop over them took a sixth of a fit of 5,000
-    short ones)."""
+def _velocity_spans(records: Records) -> dict[int, npt.NDArray[np.intp]]:
+    """The spans of `velocity_check`: `VELOCITY_SPAN` samples, or all of a shorter
+    trajectory's; for each length, the first sample of every span that has it, all
+    trajectories at once (a loop over them took a sixth of a fit of 5,000 short ones)."""
+    bounds = np.array(records.bounds(), dtype=np.intp).reshape(-1, 2)
     lengths = np.minimum(VELOCITY_SPAN, bounds[:, 1] - bounds[:, 0] - 1)
     spans = {}
     for length in np.unique(lengths[lengths >= 1]):
@@ -185,38 +185,6 @@ def _velocity_spans(bounds: npt.NDArray[np.intp]) -> dict[int, npt.NDArray[np.in
         offsets = np.cumsum(count) - count
         spans[int(length)] = np.repeat(mine[:, 0] - offsets, count) + np.arange(count.sum())
     return spans
-
-
-# Rows of whole trajectories `velocity_check` takes together: many short ones at once, and
-# its temporaries a few times this, whatever the record's length.
-_CHECK_ROWS = 1 << 16
-
-
-def _span_sums(records: Records, k: int, N: int
-               ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], float, int]:
-    """The normal equations of `velocity_check`'s regression for coordinate k (and the sum
-    of squares and count of the changes), summed over blocks of whole trajectories."""
-    assert records.t is not None
-    normal, right, squares, count = np.zeros((2, 2)), np.zeros(2), 0.0, 0
-    bounds = np.array(records.bounds(), dtype=np.intp).reshape(-1, 2)
-    # the trajectories that start in each stretch of `_CHECK_ROWS` rows
-    firsts = np.unique(bounds[:, 0] // _CHECK_ROWS, return_index=True)[1].tolist()
-    for first, last in zip(firsts, [*firsts[1:], len(bounds)], strict=True):
-        a, b = int(bounds[first, 0]), int(bounds[last - 1, 1])
-        t, x, rate = records.t[a:b], records.X[a:b, k], records.X[a:b, N + k]
-        # the integral of the velocity from each trajectory's start (the trapezoids after
-        # its last sample, into the next one, are left out)
-        pieces = np.diff(t) * (rate[1:] + rate[:-1]) / 2
-        pieces[np.diff(records.group[a:b]) != 0] = 0.0
-        integral = np.concatenate([[0.0], np.cumsum(pieces)])
-        for length, start in _velocity_spans(bounds[first:last] - a).items():
-            change = x[start + length] - x[start]
-            B = np.column_stack([integral[start + length] - integral[start],
-                                 rate[start + length] - rate[start]])
-            normal += B.T @ B
-            right += B.T @ change
-            squares, count = squares + float(change @ change), count + len(change)
-    return normal, right, squares, count
 
 
 def velocity_check(records: Records, coordinates: Sequence[str], velocities: Sequence[str],
@@ -236,10 +204,23 @@ def velocity_check(records: Records, coordinates: Sequence[str], velocities: Seq
     assert records.t is not None
     N = len(coordinates)
     warnings = []
-    lengths = [stop - start - 1 for start, stop in records.bounds()]
-    span = min(VELOCITY_SPAN, max(lengths, default=0))
+    spans = _velocity_spans(records)
+    span = max(spans, default=0)
     for k, (q, v) in enumerate(zip(coordinates, velocities, strict=True)):
-        normal, right, squares, count = _span_sums(records, k, N)
+        normal, right, squares, count = np.zeros((2, 2)), np.zeros(2), 0.0, 0
+        x, rate = records.X[:, k], records.X[:, N + k]
+        # the integral of the velocity from each trajectory's start (the trapezoids after
+        # its last sample, into the next one, are left out)
+        pieces = np.diff(records.t) * (rate[1:] + rate[:-1]) / 2
+        pieces[np.diff(records.group) != 0] = 0.0
+        integral = np.concatenate([[0.0], np.cumsum(pieces)])
+        for length, first in spans.items():
+            a = x[first + length] - x[first]
+            B = np.column_stack([integral[first + length] - integral[first],
+                                 rate[first + length] - rate[first]])
+            normal += B.T @ B
+            right += B.T @ a
+            squares, count = squares + float(a @ a), count + len(a)
         if normal[0, 0] <= 0 or not np.all(np.isfinite(normal)):
             continue
         with np.errstate(all="ignore"):

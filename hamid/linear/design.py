@@ -129,8 +129,6 @@ def median_period(scales: list[tuple[float | None, float]]) -> float | None:
 # unless one spans over 50,000 samples (windows of 25,000 samples, far finer sampling
 # than the weak form needs).
 SCALE_SAMPLES = 1 << 18
-# Steps per trajectory, on average, from which their medians are taken one at a time.
-_LONG_TRAJECTORY = 64
 
 
 def trajectory_scales(records: Records, n_coordinates: int) -> list[tuple[float | None, float]]:
@@ -147,7 +145,11 @@ def trajectory_scales(records: Records, n_coordinates: int) -> list[tuple[float 
     starts = bounds[:, 0]
     lengths = np.minimum(bounds[:, 1], starts + SCALE_SAMPLES) - starts
     n_steps = lengths - 1
-    step = _median_steps(records.t, starts, n_steps)
+    first = np.repeat(starts - (np.cumsum(n_steps) - n_steps), n_steps) + np.arange(
+        n_steps.sum())
+    steps = records.t[first + 1] - records.t[first]
+    step = medians_by(steps, np.repeat(np.arange(len(starts)), n_steps), len(starts))
+    step[n_steps == 0] = np.inf
     period = np.full(len(starts), np.nan)
     for length in np.unique(lengths[lengths >= 8]):
         same = np.flatnonzero(lengths == length)
@@ -159,21 +161,6 @@ def trajectory_scales(records: Records, n_coordinates: int) -> list[tuple[float 
             period[part] = _periods(records.t[rows], records.X[rows, :n_coordinates])
     return [(None if np.isnan(p) else float(p), float(s))
             for p, s in zip(period, step, strict=True)]
-
-
-def _median_steps(t: npt.NDArray[np.float64], starts: npt.NDArray[np.intp],
-                  n_steps: npt.NDArray[np.intp]) -> npt.NDArray[np.float64]:
-    """Each trajectory's median time step (inf with none): many short trajectories in one
-    sort (`medians_by`), a few long ones one at a time, with no copy of every step."""
-    if n_steps.sum() > _LONG_TRAJECTORY * len(starts):
-        return np.array([float(np.median(np.diff(t[a:a + m + 1]))) if m else np.inf
-                         for a, m in zip(starts.tolist(), n_steps.tolist(), strict=True)])
-    first = np.repeat(starts - (np.cumsum(n_steps) - n_steps), n_steps) + np.arange(
-        n_steps.sum())
-    step = medians_by(t[first + 1] - t[first], np.repeat(np.arange(len(starts)), n_steps),
-                      len(starts))
-    step[n_steps == 0] = np.inf
-    return step
 
 
 def _padded(length: int) -> int:
