@@ -14,7 +14,7 @@ from scipy import integrate
 
 import hamid
 import hamid.model.models
-from hamid.data.records import Records
+from hamid.data.records import Records, ranges
 from hamid.errors import DataError, FitError, UsageError
 from hamid.linear import design
 from hamid.model.models import model_from_spec
@@ -278,3 +278,11 @@ def test_scales_of_many_trajectories_are_each_ones_alone():
     assert [s[0] is None for s in scales] == [n < 8 for n in lengths]
     assert scales[4][0] == pytest.approx(2 * np.pi, rel=0.05)
     assert scales[1][1] == np.inf and scales[3][1] == pieces[3].t[1] - pieces[3].t[0]
+
+
+@given(st.lists(st.tuples(st.integers(0, 1000), st.integers(0, 20)), max_size=10))
+def test_ranges_are_the_aranges_one_after_another(pieces):
+    starts = np.array([s for s, _ in pieces], dtype=np.intp)
+    counts = np.array([c for _, c in pieces], dtype=np.intp)
+    expected = [i for s, c in pieces for i in range(s, s + c)]
+    assert ranges(starts, counts).tolist() == expected

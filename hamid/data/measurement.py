@@ -8,7 +8,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from hamid.data.records import Records
+from hamid.data.records import Records, ranges
 from hamid.errors import DataError, UsageError
 
 __all__ = ["DIFFERENCE_ORDER", "estimate_noise", "savgol_velocities", "velocity_check"]
@@ -181,9 +181,8 @@ def _velocity_spans(records: Records) -> dict[int, npt.NDArray[np.intp]]:
     spans = {}
     for length in np.unique(lengths[lengths >= 1]):
         mine = bounds[lengths == length]
-        count = mine[:, 1] - mine[:, 0] - length   # spans in each trajectory
-        offsets = np.cumsum(count) - count
-        spans[int(length)] = np.repeat(mine[:, 0] - offsets, count) + np.arange(count.sum())
+        # the spans in each trajectory
+        spans[int(length)] = ranges(mine[:, 0], mine[:, 1] - mine[:, 0] - length)
     return spans
 
 

@@ -12,7 +12,7 @@ import numpy.typing as npt
 if TYPE_CHECKING:
     from hamid.model.models import Model
 
-__all__ = ["Recording", "Records", "medians_by", "runs"]
+__all__ = ["Recording", "Records", "medians_by", "ranges", "runs"]
 
 
 @dataclass(frozen=True)
@@ -63,6 +63,13 @@ def runs(group: npt.NDArray[np.int64]) -> list[tuple[int, int, int]]:
     edges = (np.flatnonzero(np.diff(group)) + 1).tolist()
     return [(int(group[start]), start, stop)
             for start, stop in zip([0, *edges], [*edges, len(group)], strict=True)]
+
+
+def ranges(starts: npt.NDArray[np.intp], counts: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
+    """The indices starts[i], ..., starts[i] + counts[i] - 1 of every i, one after another:
+    rows of many trajectories gathered with one index and no loop over them."""
+    offsets = np.cumsum(counts) - counts
+    return np.repeat(starts - offsets, counts) + np.arange(counts.sum())
 
 
 # Values per group above which `medians_by` takes a median per group.

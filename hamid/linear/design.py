@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from hamid.data.records import Records, medians_by
+from hamid.data.records import Records, medians_by, ranges
 from hamid.errors import DataError
 from hamid.linear import quadrature
 from hamid.model.dissipation import Dissipation
@@ -145,8 +145,7 @@ def trajectory_scales(records: Records, n_coordinates: int) -> list[tuple[float 
     starts = bounds[:, 0]
     lengths = np.minimum(bounds[:, 1], starts + SCALE_SAMPLES) - starts
     n_steps = lengths - 1
-    first = np.repeat(starts - (np.cumsum(n_steps) - n_steps), n_steps) + np.arange(
-        n_steps.sum())
+    first = ranges(starts, n_steps)
     steps = records.t[first + 1] - records.t[first]
     step = medians_by(steps, np.repeat(np.arange(len(starts)), n_steps), len(starts))
     step[n_steps == 0] = np.inf
