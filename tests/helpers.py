@@ -54,6 +54,31 @@ class Readiness:
         assert os.read(self._read_end, 1) == b"r", "the process ended before it was ready"
 
 
+def interrupted(args: list[str], target: str, *, call: int = 1,
+                hold: bool = False) -> tuple[int, str, str]:
+    """Run hamid with `args` and press Ctrl-C (SIGINT) once the child announces `target`
+    (`Readiness.announcing`), as at a terminal: SIGINT at its default even when the test
+    runs in the background, which ignores it. The exit status, stdout and stderr."""
+    import signal
+    import subprocess
+
+    with Readiness() as readiness:
+        command = hamid_command(before=readiness.announcing(target, call=call, hold=hold))
+        process = subprocess.Popen(
+            [*command, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            pass_fds=(readiness.fd,),
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        try:
+            readiness.wait()
+            process.send_signal(signal.SIGINT)
+            stdout, stderr = process.communicate(timeout=600)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+    return process.returncode, stdout, stderr
+
+
 def hamid_command(before: str = "") -> list[str]:
     """The command that runs hamid's CLI in a subprocess, after the Python code `before`:
     this interpreter and the working tree (first on the children's PYTHONPATH,

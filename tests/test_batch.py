@@ -11,9 +11,7 @@ import csv
 import io
 import json
 import os
-import signal
 import socket
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -21,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from helpers import Readiness, hamid_command
+from helpers import interrupted
 
 import hamid
 from hamid import executor
@@ -361,22 +359,10 @@ def test_ctrl_c_keeps_the_finished_fits_in_the_partial_file(runs, tmp_path):
     # The child holds before writing its third record and says so: Ctrl-C comes with two
     # fits written, whatever the machine's speed (as at a terminal: a test run in the
     # background ignores SIGINT, and its children would inherit that).
-    with Readiness() as readiness:
-        command = hamid_command(before=readiness.announcing("hamid.report.comparison.record",
-                                                            call=3, hold=True))
-        process = subprocess.Popen(
-            [*command, "fit", "--each", str(runs), "-o", str(out), "--jobs", "2"],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, pass_fds=(readiness.fd,),
-            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-        try:
-            readiness.wait()
-            process.send_signal(signal.SIGINT)
-            stdout, stderr = process.communicate(timeout=600)
-        finally:
-            if process.poll() is None:
-                process.kill()
-                process.communicate()
-    assert process.returncode == 130, stderr
+    returncode, stdout, stderr = interrupted(
+        ["fit", "--each", str(runs), "-o", str(out), "--jobs", "2"],
+        "hamid.report.comparison.record", call=3, hold=True)
+    assert returncode == 130, stderr
     assert not out.exists() and stdout == ""
     lines = [json.loads(line) for line in partial.read_text().splitlines()]
     assert [line["source"] for line in lines] == [str(runs / "run1.csv"), str(runs / "run2.csv")]

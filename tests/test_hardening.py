@@ -35,7 +35,7 @@ import pytest
 import rich.console  # noqa: F401
 import sympy
 from click.testing import CliRunner
-from helpers import Readiness, duffing_system, hamid_command, one_line_error
+from helpers import duffing_system, hamid_command, interrupted, one_line_error
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from sympy.parsing.sympy_parser import parse_expr, standard_transformations
@@ -785,22 +785,9 @@ def test_simulate_ctrl_c_part_way_leaves_the_file_byte_for_byte(tmp_path):
     # Ctrl-C as at a terminal: a test run started in the background (a shell's `&`) ignores
     # SIGINT, and its children would inherit that. The signal comes once the child says it
     # is integrating.
-    with Readiness() as readiness:
-        command = hamid_command(before=readiness.announcing("scipy.integrate.solve_ivp"))
-        process = subprocess.Popen(
-            [*command, "simulate", "--config", str(config), "-o", str(out)],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, pass_fds=(readiness.fd,),
-            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-        try:
-            readiness.wait()
-            process.send_signal(signal.SIGINT)
-            stdout, stderr = process.communicate(timeout=600)
-        finally:
-            if process.poll() is None:
-                process.kill()
-                process.communicate()
-    assert process.returncode != 0
-    assert process.returncode == 130, stderr
+    returncode, stdout, stderr = interrupted(
+        ["simulate", "--config", str(config), "-o", str(out)], "scipy.integrate.solve_ivp")
+    assert returncode == 130, stderr
     assert stdout == ""
     assert "interrupted" in stderr
     assert "Traceback" not in stderr
