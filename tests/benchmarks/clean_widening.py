@@ -22,14 +22,15 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse
 import sys
 import tomllib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
-
-import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 from benchmarks.clean_records import TOLERANCES, moved_system
+from benchmarks.discretization import coverage, print_coverage
 from conftest import with_noise
 
 import hamid
@@ -38,16 +39,15 @@ from hamid.linear import noise_free
 SYSTEMS = ("duffing", "peng_quadratic")
 
 
-def _fits(frame, method: str, truth: dict[str, float], leave_out: bool):
-    """Whether each parameter's bounds hold the truth, and its standard error."""
+@contextmanager
+def _without_the_widening() -> Iterator[None]:
+    """Fits made inside leave the noise-free widening out (the fit before it)."""
     threshold = noise_free.CLEAN_RELATIVE
-    noise_free.CLEAN_RELATIVE = 0.0 if leave_out else threshold
+    noise_free.CLEAN_RELATIVE = 0.0
     try:
-        result = hamid.fit(frame, method=method)
+        yield
     finally:
         noise_free.CLEAN_RELATIVE = threshold
-    return {p.name: (p.ci_low <= truth[p.name] <= p.ci_high, p.stderr)
-            for p in result.parameters}
 
 
 def main() -> None:
@@ -63,20 +63,9 @@ def main() -> None:
                       else hamid.simulate(moved_system(document, seed, *TOLERANCES[0]))
                       for seed in range(args.realizations)]
             for method in ("energy", "joint"):
-                rows = {name: [] for name in truth}
-                for frame in frames:
-                    before = _fits(frame, method, truth, leave_out=True)
-                    after = _fits(frame, method, truth, leave_out=False)
-                    for name in truth:
-                        rows[name].append((before[name][0], after[name][0],
-                                           after[name][1] / before[name][1]))
-                print(f"{system} {method} noise {relative:g}, {args.realizations} "
-                      "realizations: coverage without -> with, stderr with/without, widened")
-                for name, found in rows.items():
-                    b, a, ratio = (np.array(column, dtype=float) for column in zip(*found,
-                                                                                   strict=True))
-                    print(f"  {name:5s} {b.mean():6.1%} -> {a.mean():6.1%}  "
-                          f"x{ratio.mean():.4g}  {np.mean(ratio > 1):6.1%}", flush=True)
+                print_coverage(f"{system} {method} noise {relative:g}, {args.realizations} "
+                               "realizations", coverage(frames, method, truth,
+                                                        _without_the_widening))
 
 
 if __name__ == "__main__":
