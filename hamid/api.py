@@ -24,20 +24,27 @@ __all__ = ["fit", "load_model"]
 
 
 def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
+        # reading
         columns: Mapping[str, str] | None = None, time: str | None = None,
-        trajectory: str | None = None, velocity: str = "measured",
-        window: int | None = None, order: int = SAVGOL_ORDER,
-        noise: str | Mapping[str, float] | None = None, bias_correct: bool = False,
-        fix: Mapping[str, float] | None = None, method: str = "auto",
-        weak_window: float | None = None, damping: str | Sequence[str] = "none",
-        cov: str = "hac", level: float = 0.95, bootstrap: int = 200,
-        seed: int | None = None, format: str | None = None,
-        chunk_rows: int | None = None, in_memory: bool = False,
-        progress: Callable[[str], None] | None = None, time_unit: str | None = None,
+        time_unit: str | None = None, trajectory: str | None = None,
         scale: Mapping[str, float] | None = None, gaps: str = "split",
-        delimiter: str | None = None, decimal: str | None = None, skip_rows: int = 0,
-        units_row: bool | None = None, jobs: int | None = None) -> FitResult:
+        format: str | None = None, delimiter: str | None = None, decimal: str | None = None,
+        skip_rows: int = 0, units_row: bool | None = None,
+        # velocities
+        velocity: str = "measured", window: int | None = None, order: int = SAVGOL_ORDER,
+        # method
+        method: str = "auto", weak_window: float | None = None,
+        damping: str | Sequence[str] = "none", fix: Mapping[str, float] | None = None,
+        noise: str | Mapping[str, float] | None = None, bias_correct: bool = False,
+        # covariance
+        cov: str = "hac", level: float = 0.95, bootstrap: int = 200, seed: int | None = None,
+        # run
+        jobs: int | None = None, chunk_rows: int | None = None, in_memory: bool = False,
+        progress: Callable[[str], None] | None = None) -> FitResult:
     """Fit the energy of recorded free oscillations.
+
+    The keywords come in the groups of `hamid.options.OPTION_GROUPS`: how the data are read,
+    where the velocities come from, the method, the covariance, and how the fit runs.
 
     Parameters
     ----------
@@ -61,6 +68,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     gaps : {"split", "error"}
         At a missing value or a time step over 5 times the median, cut the trajectory into
         separate trajectories, each with its own level (said in a warning), or refuse.
+    format : str, optional
+        Input format when it cannot be told from the file name.
     delimiter, decimal, skip_rows, units_row : optional
         How delimited text is laid out: the cell delimiter and decimal mark (detected:
         ';' files with decimal commas are), lines to skip before the header, and whether
@@ -70,14 +79,6 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         Take the velocities from the file, or derive them from the positions by
         Savitzky-Golay differentiation with an odd `window` (samples; default about a tenth
         of the dominant period) and polynomial `order`.
-    noise : None, "auto" or dict
-        Measurement noise std per column (model or file name): rows are then weighted by
-        the inverse of the variance the noise puts into them. "auto" estimates it.
-    bias_correct : bool
-        Remove the bias that the noise puts into least squares (adjusted least squares;
-        polynomial energies with measured velocities; needs `noise`).
-    fix : dict, optional
-        Parameters held at known values.
     method : {"auto", "joint", "weak", "energy"}
         Which rows to fit: energy rows, weak-form equations of motion, or both; ``auto``
         takes ``joint`` when the data allow it, refined by fitting the model's integrated
@@ -87,14 +88,23 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     damping : str or list of str
         Dissipative forces to fit: "none", or any of "viscous", "coulomb", "quadratic"
         (a comma list or a list), one coefficient per coordinate and kind.
+    fix : dict, optional
+        Parameters held at known values.
+    noise : None, "auto" or dict
+        Measurement noise std per column (model or file name): rows are then weighted by
+        the inverse of the variance the noise puts into them. "auto" estimates it.
+    bias_correct : bool
+        Remove the bias that the noise puts into least squares (adjusted least squares;
+        polynomial energies with measured velocities; needs `noise`).
     cov : {"hac", "classical", "hc", "bootstrap"}
         How standard errors are computed.
     level : float
         Confidence level of the bounds.
     bootstrap, seed : int
         Replicates and seed of the block bootstrap (``cov="bootstrap"``).
-    format : str, optional
-        Input format when it cannot be told from the file name.
+    jobs : int, optional
+        Processes the trajectory refinement of a long record integrates in (default: one
+        per core; a short record stays in this one, whose results are the same).
     chunk_rows : int, optional
         Read the file in chunks of this many rows, in memory that does not grow with the
         file's length (`hamid.linear.chunked`); ``auto`` then skips its trajectory refinement.
@@ -106,9 +116,6 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     in_memory : bool
         Read the data into memory whatever the file's size: ``result.samples`` then holds
         the per-sample residuals.
-    jobs : int, optional
-        Processes the trajectory refinement of a long record integrates in (default: one
-        per core; a short record stays in this one, whose results are the same).
     progress : callable, optional
         Called with a line of text at each step of a long fit (every chunk of a pass over
         a file read in chunks, every batch of the trajectory refinement), e.g. for a
@@ -124,13 +131,16 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     >>> result.estimates
     {'k': 1.0..., 'k3': 0.5...}
     """
-    opts = FitOptions(columns=columns, time=time, trajectory=trajectory, velocity=velocity,
-                      window=window, order=order, noise=noise, bias_correct=bias_correct,
-                      fix=fix or {}, method=method, weak_window=weak_window, damping=damping,
-                      cov=cov, level=level, bootstrap=bootstrap, seed=seed, format=format,
-                      chunk_rows=chunk_rows, in_memory=in_memory, time_unit=time_unit,
-                      scale=scale, gaps=gaps, delimiter=delimiter, decimal=decimal,
-                      skip_rows=skip_rows, units_row=units_row, jobs=jobs)
+    # every keyword but `progress`, in the groups of `options.OPTION_GROUPS`
+    # (tests/test_option_spec.py checks that each arrives as given)
+    opts = FitOptions(columns=columns, time=time, time_unit=time_unit, trajectory=trajectory,
+                      scale=scale, gaps=gaps, format=format, delimiter=delimiter,
+                      decimal=decimal, skip_rows=skip_rows, units_row=units_row,
+                      velocity=velocity, window=window, order=order,
+                      method=method, weak_window=weak_window, damping=damping, fix=fix or {},
+                      noise=noise, bias_correct=bias_correct,
+                      cov=cov, level=level, bootstrap=bootstrap, seed=seed,
+                      jobs=jobs, chunk_rows=chunk_rows, in_memory=in_memory)
     if isinstance(data, list | tuple) and len(data) == 1:
         data = data[0]
     with input_size.spooled(data) as readable, one_blas_thread():   # stdin spooled to a file

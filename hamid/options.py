@@ -1,4 +1,5 @@
-"""The fit's options: the choices the user types, their checks, and option values.
+"""The fit's options: their specification in groups (`OPTION_GROUPS`), the choices the user
+types, their checks, and option values (`FitOptions`).
 
 No numpy, pandas or pyarrow at import: the CLI takes its choice lists from here.
 """
@@ -10,6 +11,7 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from decimal import Decimal
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 from hamid.errors import UsageError
@@ -153,48 +155,78 @@ CHUNK_ROWS = 1 << 18
 REFINEMENT_BYTES = 1 << 30
 
 
-# How a data file is read: every command that reads data takes these (`hamid.cli.reading_options`),
-# and a report records those given (`data.reading`) for `plot` to read the data again.
-READING_OPTIONS = ("columns", "time", "time_unit", "trajectory", "scale", "gaps", "format",
-                   "delimiter", "decimal", "skip_rows", "units_row")
+# The option specification: every keyword of `hamid.fit` in one group, each group what one
+# part of the fit is asked. FitOptions' fields are these names but `progress` (a callback,
+# not part of what the fit answers); the command line declares each group's options once
+# (`hamid.cli.option_groups`), by these names, and tests/test_option_spec.py checks
+# FitOptions, fit's keywords and the commands' options against this table.
+OPTION_GROUPS: Mapping[str, tuple[str, ...]] = MappingProxyType({
+    # How a data file is read: every command that reads data takes these, and a report
+    # records those given (`data.reading`) for `plot` to read the data again.
+    "reading": ("columns", "time", "time_unit", "trajectory", "scale", "gaps", "format",
+                "delimiter", "decimal", "skip_rows", "units_row"),
+    # Where the velocities come from: the file, or the positions differentiated by a
+    # Savitzky-Golay filter of this window and order.
+    "velocities": ("velocity", "window", "order"),
+    # How the parameters are estimated: which rows (method, weak_window), which forces
+    # besides the energy's (damping), which parameters are known (fix), and the measurement
+    # noise: rows weighted by the variance it puts into them (noise), its bias removed
+    # (bias_correct). The noise is here, not with the velocities, because it weighs the
+    # rows of every column, positions too.
+    "method": ("method", "weak_window", "damping", "fix", "noise", "bias_correct"),
+    # How the estimates' uncertainty is computed: the estimator, the bounds' level, the
+    # bootstrap's replicates and seed.
+    "covariance": ("cov", "level", "bootstrap", "seed"),
+    # How the fit runs, in processes, chunks or memory, and what it says while it runs:
+    # the estimates stay the same (but chunks leave out `auto`'s refinement).
+    "run": ("jobs", "chunk_rows", "in_memory", "progress"),
+})
+READING_OPTIONS = OPTION_GROUPS["reading"]
+FIT_KEYWORDS = tuple(name for names in OPTION_GROUPS.values() for name in names)
 
 
 @dataclass(frozen=True)
 class FitOptions:
     """Everything `hamid.fit` is asked to do besides the data and the model, checked once.
 
-    The fields are `hamid.fit`'s keyword arguments (see there); `damping` is parsed into
-    its kinds and `fix` into floats. Building one raises a UsageError for any value or
-    combination that makes no sense, before any data are read.
+    The fields are `hamid.fit`'s keyword arguments (see there) but `progress`, in the
+    groups of `OPTION_GROUPS`; `damping` is parsed into its kinds and `fix` into floats.
+    Building one raises a UsageError for any value or combination that makes no sense,
+    before any data are read.
     """
 
+    # reading
     columns: Mapping[str, str] | None = None
     time: str | None = None
-    trajectory: str | None = None
-    velocity: str = "measured"
-    window: int | None = None
-    order: int = SAVGOL_ORDER
-    noise: str | Mapping[str, float] | None = None
-    bias_correct: bool = False
-    fix: Mapping[str, float] = field(default_factory=dict)
-    method: str = "auto"
-    weak_window: float | None = None
-    damping: tuple[str, ...] = ()
-    cov: str = "hac"
-    level: float = 0.95
-    bootstrap: int = 200
-    seed: int | None = None
-    format: str | None = None
-    chunk_rows: int | None = None
-    in_memory: bool = False
     time_unit: str | None = None
+    trajectory: str | None = None
     scale: Mapping[str, float] | None = None
     gaps: str = "split"
+    format: str | None = None
     delimiter: str | None = None
     decimal: str | None = None
     skip_rows: int = 0
     units_row: bool | None = None
+    # velocities
+    velocity: str = "measured"
+    window: int | None = None
+    order: int = SAVGOL_ORDER
+    # method
+    method: str = "auto"
+    weak_window: float | None = None
+    damping: tuple[str, ...] = ()
+    fix: Mapping[str, float] = field(default_factory=dict)
+    noise: str | Mapping[str, float] | None = None
+    bias_correct: bool = False
+    # covariance
+    cov: str = "hac"
+    level: float = 0.95
+    bootstrap: int = 200
+    seed: int | None = None
+    # run
     jobs: int | None = None
+    chunk_rows: int | None = None
+    in_memory: bool = False
 
     def __post_init__(self) -> None:
         _ = self.text   # building it checks the text-layout options
@@ -298,9 +330,14 @@ def _check_choice(value: str, choices: tuple[str, ...], option: str) -> None:
 
 
 def parse_damping(damping: str | Sequence[str]) -> tuple[str, ...]:
-    """Damping kinds from "none", "viscous,coulomb" or a list; unknown kinds are errors."""
+    """Damping kinds from "none", "viscous,coulomb" or a list; unknown kinds are errors.
+
+    An empty list is no damping (FitOptions' default, and what it parses "none" into); an
+    empty text is a mistake on the command line."""
     items = damping.split(",") if isinstance(damping, str) else list(damping)
     kinds = [item.strip() for item in items if item.strip()]
+    if not kinds and not isinstance(damping, str) and not items:
+        return ()
     if not kinds:
         raise UsageError("--damping: empty value; expected none or any of "
                          f"{', '.join(DAMPING_KINDS)} (comma separated)")

@@ -1,11 +1,11 @@
-"""One set of reading options for every command that reads data (`fit`, `select`, `plot`):
-the same options in each command's help, recorded in the report (`data.reading`) and used
-again by `plot`, so that a file a data-acquisition system wrote is read alike by all."""
+"""One set of reading options for every command that reads data (`fit`, `fit --each`,
+`select`, `plot`): recorded in the report (`data.reading`) and used again by `plot`, so that
+a file a data-acquisition system wrote is read alike by all (the same options in each
+command's help: tests/test_option_spec.py)."""
 
 from __future__ import annotations
 
 import json
-import re
 import subprocess
 
 import pandas as pd
@@ -13,12 +13,9 @@ import pytest
 from helpers import hamid_command
 
 import hamid
-from hamid.options import READING_OPTIONS
 
 SAMPLE = "sample_data/duffing.csv"
 DAQ_OPTIONS = ["--skip-rows", "2", "--delimiter", ";", "--decimal", ","]
-READING_FLAGS = {"--columns", "--time", "--time-unit", "--scale", "--gaps", "--trajectory",
-                 "--format-in", "--delimiter", "--decimal", "--skip-rows", "--units-row"}
 
 
 def _run(*args: str, cwd=None) -> subprocess.CompletedProcess:
@@ -34,22 +31,6 @@ def daq(tmp_path_factory):
     body = pd.read_csv(SAMPLE, comment="#").to_csv(sep=";", decimal=",", index=False)
     path.write_text("Logger 7 export\n2026-11-24 06:00\n" + body)
     return path
-
-
-def _flags(command: str) -> set[str]:
-    done = _run(command, "--help")
-    assert done.returncode == 0, done.stderr
-    return set(re.findall(r"^\s+(--[a-z-]+)", done.stdout, flags=re.MULTILINE))
-
-
-@pytest.mark.parametrize("command", ["fit", "select", "plot"])
-def test_every_command_that_reads_data_lists_the_reading_options(command):
-    assert _flags(command) >= READING_FLAGS
-
-
-def test_the_reading_options_are_those_the_fit_takes():
-    names = {flag.removeprefix("--").replace("-", "_") for flag in READING_FLAGS}
-    assert names - {"format_in"} | {"format"} == set(READING_OPTIONS)
 
 
 def test_the_report_records_the_reading_options_given(daq):
@@ -101,3 +82,19 @@ def test_select_takes_the_reading_keywords(daq):
     assert chosen.chosen == ["q1**2", "q1**4"]
     with pytest.raises(TypeError, match="'skiprows'"):
         hamid.select(daq, "poly:1:4", skiprows=2)
+
+
+def test_fit_each_reads_logger_files(daq, tmp_path):
+    """Each file read with the options given, as a single fit reads it, and recorded."""
+    other = tmp_path / "daq2.csv"
+    other.write_bytes(daq.read_bytes())
+    done = _run("fit", "--each", str(daq), str(other), "--model", "duffing", *DAQ_OPTIONS,
+                "--format", "jsonl", "--jobs", "1")
+    assert done.returncode == 0, done.stderr
+    lines = [json.loads(line) for line in done.stdout.splitlines()]
+    plain = hamid.fit(SAMPLE, "duffing").estimates
+    assert [line["status"] for line in lines] == ["ok", "ok"]
+    for line in lines:
+        assert line["data"]["reading"] == {"delimiter": ";", "decimal": ",", "skip_rows": 2}
+        assert {p["name"]: p["estimate"] for p in line["parameters"]} == pytest.approx(
+            plain, rel=1e-12)

@@ -22,15 +22,9 @@ from typing import TYPE_CHECKING, Any, NoReturn
 import click
 
 from hamid import __version__
-from hamid.cli import console
-from hamid.cli.reading_options import reading_keywords, reading_options
+from hamid.cli import console, option_groups
 from hamid.cli.select_command import select
 from hamid.errors import DataError, HamidError, UsageError
-from hamid.options import (
-    COVARIANCE_KINDS,
-    METHODS,
-    VELOCITY_SOURCES,
-)
 
 if TYPE_CHECKING:
     from hamid.data import writing
@@ -273,7 +267,6 @@ def _check_room(config: str, output: str, table_format: str, max_samples: int | 
                         "free on its disk; simulate less, or write elsewhere")
 
 
-# Spellings of a tab on the command line, where a literal tab is awkward to type.
 def _to_stdout(output: str) -> bool:
     """Whether an output goes to this process's standard output: '-', or a name that leads
     to the same open file (/dev/stdout, /dev/fd/1, a symlink to either)."""
@@ -290,107 +283,52 @@ def _to_stdout(output: str) -> bool:
                                                                            null.st_ino)
 
 
-def _parse_floats(text: str | None, option: str) -> dict[str, float] | None:
-    from hamid import options
-
-    return None if text is None else options.parse_float_mapping(text, option=option)
-
-
-def _parse_noise(text: str | None) -> str | dict[str, float] | None:
-    if text is None or text in ("none", "auto"):
-        return text
-    return _parse_floats(text, "--noise")
-
-
 @cli.command()
 @click.argument("data", nargs=-1, required=True)
 @click.option("--model", metavar="NAME|MODEL.toml", help="Built-in model or model file.")
-@reading_options
+@option_groups.reading
 @click.option("--strict", is_flag=True,
               help="Exit with status 3 when the fit has any warning (the report is written).")
-@click.option("--velocity", default="measured", show_default=True,
-              type=click.Choice(VELOCITY_SOURCES),
-              help="Velocities from the file, or derived from the positions (Savitzky-Golay).")
-@click.option("--window", type=click.IntRange(min=3), metavar="SAMPLES",
-              help="Savitzky-Golay window (odd; default about a tenth of the period).")
-@click.option("--order", default=5, show_default=True, type=click.IntRange(min=1),
-              help="Savitzky-Golay polynomial order.")
-@click.option("--noise", metavar="none|auto|COL=SIGMA,...",
-              help="Measurement noise std per column; rows are weighted by the variance it "
-                   "puts into them. auto estimates it from the data.")
-@click.option("--bias-correct", is_flag=True,
-              help="Remove the bias that the noise puts into least squares (needs --noise).")
-@click.option("--method", default="auto", show_default=True,
-              type=click.Choice(METHODS),
-              help="Energy rows, weak-form equations of motion, or both (auto: joint when "
-                   "the data allow it, refined by fitting the integrated trajectories).")
-@click.option("--weak-window", type=float, metavar="SECONDS",
-              help="Length of the weak-form windows (default: half the dominant period).")
-@click.option("--damping", default="none", show_default=True,
-              metavar="none|viscous|coulomb|quadratic[,...]",
-              help="Dissipative forces to fit, one coefficient per coordinate and kind.")
-@click.option("--fix", metavar="NAME=VALUE,...", help="Hold parameters at known values.")
-@click.option("--cov", default="hac", show_default=True,
-              type=click.Choice(COVARIANCE_KINDS),
-              help="How standard errors are computed.")
-@click.option("--level", default=0.95, show_default=True, type=click.FloatRange(0, 1,
-              min_open=True, max_open=True), help="Confidence level of the bounds.")
-@click.option("--bootstrap", "n_boot", default=200, show_default=True,
-              type=click.IntRange(min=10), help="Replicates for --cov bootstrap.")
-@click.option("--seed", type=click.IntRange(min=0), help="Seed for --cov bootstrap.")
+@option_groups.velocities
+@option_groups.method
+@option_groups.covariance
 @click.option("--format", "fmt", type=_FORMATS,
               help="Report format (default: from -o's extension: .json, .csv, .md, .txt; "
                    "table for standard output and special files).")
 @click.option("-o", "--output", default="-", metavar="FILE", help="Write the report here.")
 @click.option("--residuals", metavar="FILE",
               help="Write per-sample residuals (CSV/Parquet); reads the data into memory.")
-@click.option("--chunk-rows", type=click.IntRange(min=1), metavar="ROWS",
-              help="Read the file in chunks of ROWS rows, in bounded memory; auto then "
-                   "skips its trajectory refinement (default for files over 64 MB once "
-                   "decoded: chunks of 262144 rows, and auto refines holding only the "
-                   "records).")
 @click.option("--plot", "figure", metavar="FIG",
               help="Also draw the fit (hamid plot): FIG.png or .svg, a file per panel, or "
                    ".pdf, a page per panel.")
 @click.option("--each", is_flag=True,
               help="Fit each file by itself (DATA: files, folders, glob patterns, URLs); "
                    "one jsonl line, or CSV or table rows, per file.")
-@click.option("--jobs", type=click.IntRange(min=1), metavar="N",
-              help="Local processes, default one per core: with --each, the files fitted "
-                   "at once; else, those that auto's trajectory refinement of a long record "
-                   "runs in (the same results).")
+@option_groups.run
 @click.option("--scheduler", metavar="tcp://HOST:PORT",
               help="With --each: fit on this Dask cluster (default $DASK_SCHEDULER_ADDRESS).")
 @click.option("--ship-data", is_flag=True,
               help="With --scheduler: send the files' bytes rather than their names.")
-def fit(data: tuple[str, ...], model: str | None, strict: bool, velocity: str,
-        window: int | None, order: int, noise: str | None, bias_correct: bool, method: str,
-        weak_window: float | None, damping: str, fix: str | None, cov: str, level: float,
-        n_boot: int,
-        seed: int | None, fmt: str | None, output: str, residuals: str | None,
-        chunk_rows: int | None, figure: str | None, each: bool, jobs: int | None,
-        scheduler: str | None, ship_data: bool, **reading: Any) -> None:
+def fit(data: tuple[str, ...], model: str | None, strict: bool, fmt: str | None,
+        output: str, residuals: str | None, figure: str | None, each: bool,
+        scheduler: str | None, ship_data: bool, **options: Any) -> None:
     """Fit the energy of the recorded motion in DATA (CSV, TSV, Parquet; '-' for stdin)."""
     from hamid.api import fit as run_fit
     from hamid.data import writing
 
-    if seed is not None and cov != "bootstrap":
+    if options["seed"] is not None and options["cov"] != "bootstrap":
         raise click.UsageError("--seed applies only to --cov bootstrap")
-    if residuals is not None and chunk_rows is not None:
+    if residuals is not None and options["chunk_rows"] is not None:
         raise click.UsageError("--residuals needs the data in memory; leave out --chunk-rows")
     global _sources
     _sources = data
-    fit_options = dict(velocity=velocity, window=window, order=order,
-                       noise=_parse_noise(noise), bias_correct=bias_correct,
-                       fix=_parse_floats(fix, "--fix"), method=method,
-                       weak_window=weak_window, damping=damping, cov=cov, level=level,
-                       bootstrap=n_boot, seed=seed, chunk_rows=chunk_rows,
-                       **reading_keywords(reading))
+    fit_options = option_groups.fit_keywords(options)
     if each or scheduler or ship_data:
         if figure is not None:
             raise UsageError("--plot draws one fit: it does not combine with --each")
-        _fit_each(each, jobs, scheduler, ship_data, data, model, fit_options, fmt, output,
-                  strict, residuals)
+        _fit_each(data, model, fit_options, each=each, scheduler=scheduler,
+                  ship_data=ship_data, fmt=fmt, output=output, strict=strict,
+                  residuals=residuals, jobs=options["jobs"], level=options["level"])
         return
     outputs = _outputs([*data, *([model] if model is not None and os.path.isfile(model)
                                  else [])])
@@ -409,7 +347,7 @@ def fit(data: tuple[str, ...], model: str | None, strict: bool, velocity: str,
         raise UsageError("--format jsonl writes one line per file: it needs --each")
     with console.Status("fitting") as status:
         result = run_fit(list(data), model, **fit_options, in_memory=residuals is not None,
-                         progress=status, jobs=jobs)
+                         progress=status)
     result = result.with_command(shlex.join(["hamid", *sys.argv[1:]]))
 
     notes: list[str] = []
@@ -432,10 +370,12 @@ def fit(data: tuple[str, ...], model: str | None, strict: bool, velocity: str,
         raise click.exceptions.Exit(3)
 
 
-def _fit_each(each: bool, jobs: int | None, scheduler: str | None, ship_data: bool,
-              data: tuple[str, ...], model: str | None, fit_options: dict[str, Any],
-              fmt: str | None, output: str, strict: bool, residuals: str | None) -> None:
-    """`fit --each`: a fit per file, written in their order as they end (hamid.batch)."""
+def _fit_each(data: tuple[str, ...], model: str | None, fit_options: dict[str, Any], *,
+              each: bool, scheduler: str | None, ship_data: bool, fmt: str | None,
+              output: str, strict: bool, residuals: str | None, jobs: int | None,
+              level: float) -> None:
+    """`fit --each`: a fit per file, written in their order as they end (hamid.batch);
+    `fit_options` are `hamid.fit`'s keywords, `jobs` the files fitted at once."""
     from hamid.batch import each_output, many_files
     from hamid.data import destinations
     from hamid.executor import Workers
@@ -451,7 +391,7 @@ def _fit_each(each: bool, jobs: int | None, scheduler: str | None, ship_data: bo
     partial = each_output.partial_name(output)
     if partial is not None:
         outputs.claim("-o's partial file", partial)
-    out = each_output.EachOutput(fmt or _report_format(output), output, fit_options["level"],
+    out = each_output.EachOutput(fmt or _report_format(output), output, level,
                               shlex.join(["hamid", *sys.argv[1:]]),
                               destinations.is_terminal(output))
     outcomes = many_files.iter_fits(sources, model, fit_options,
@@ -508,7 +448,7 @@ def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
 @click.option("--panels", metavar="LIST",
               help="Panels by number or name: 1 energy, 2 residuals, 3 phase, 4 motion, "
                    "5 parameters, 6 correlation (default: all that apply).")
-@reading_options
+@option_groups.reading
 def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | None,
          **reading: Any) -> None:
     """Draw a saved fit result (JSON); panels 1-4 need the DATA it was fitted to, read as
@@ -520,7 +460,8 @@ def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | Non
     _claim_figure(_outputs([result_file, *data]), "-o", output, panels)
     source = readers.STDIN if readers.is_stdio(result_file) else result_file
     report = FitResult.from_dict(documents.read_json(result_file), source=source).to_dict()
-    recording = fitted.read_recording(report, data, reading_keywords(reading)) if data else None
+    recording = (fitted.read_recording(report, data, option_groups.fit_keywords(reading))
+                 if data else None)
     with writing.all_or_nothing():
         notes = figures.save(report, recording, output, panels)
     for note in notes:

@@ -8,8 +8,7 @@ from typing import Any
 
 import click
 
-from hamid.cli import console
-from hamid.cli.reading_options import reading_keywords, reading_options
+from hamid.cli import console, option_groups
 from hamid.errors import UsageError
 from hamid.options import SELECTION_CRITERIA
 
@@ -35,10 +34,11 @@ __all__ = ["select"]
 @click.option("--format", "fmt", type=click.Choice(["table", "json"]),
               help="Report format (default: json for -o *.json, else table).")
 @click.option("-o", "--output", default="-", metavar="FILE", help="Write the report here.")
-@reading_options
+@option_groups.reading
+@option_groups.velocities
 def select(data: tuple[str, ...], library: str | None, keep: str | None, criterion: str,
            stability: int, seed: int | None, damping: str, write_model: str | None,
-           fmt: str | None, output: str, **reading: Any) -> None:
+           fmt: str | None, output: str, **options: Any) -> None:
     """Choose the terms of the energy of DATA from a library, and refit the chosen model."""
     from hamid.data import destinations, writing
     from hamid.selection import select_render
@@ -57,7 +57,8 @@ def select(data: tuple[str, ...], library: str | None, keep: str | None, criteri
     with console.Status("selecting") as status:
         chosen = run_select(list(data), library, keep=(keep or "").split(",") if keep else (),
                             criterion=criterion, stability=stability, seed=seed or 0,
-                            damping=damping, progress=status, **reading_keywords(reading))
+                            damping=damping, progress=status,
+                            **option_groups.fit_keywords(options))
     document = chosen.to_dict()
     fmt = fmt or ("json" if output.lower().endswith(".json") else "table")
     text = select_render.render(document, fmt, color=destinations.is_terminal(output)

@@ -24,7 +24,7 @@ from hamid.linear import estimate, plan, solve
 from hamid.linear.unknowns import Unknowns
 from hamid.model.dissipation import Dissipation
 from hamid.model.models import Model, parse_poly_name, poly_model_over
-from hamid.options import READING_OPTIONS, FitOptions, check_replicates
+from hamid.options import OPTION_GROUPS, FitOptions, check_replicates
 from hamid.result.fit_result import FitResult, plain_data
 from hamid.selection import best_subsets
 from hamid.selection.library import Library
@@ -32,6 +32,9 @@ from hamid.selection.library import Library
 __all__ = ["SCHEMA", "Choice", "SelectOptions", "Selection", "choose", "select"]
 
 SCHEMA = "hamid.select/1"
+# The keywords of `hamid.fit` that `select` takes and passes on: how the records are read,
+# velocities included (`options.OPTION_GROUPS`).
+READING_KEYWORDS = OPTION_GROUPS["reading"] + OPTION_GROUPS["velocities"]
 DEFAULT_DEGREE = 4
 MIN_REPLICATES = 10
 RULES = {
@@ -238,7 +241,8 @@ def choose(data: Any, options: SelectOptions, *, reading: Mapping[str, Any] | No
            damping: str | Sequence[str] = "none",
            progress: Callable[[str], None] | None = None) -> Choice:
     """Search the library's subsets on the records in `data`, read with `reading` (the
-    reading keywords of `hamid.fit`), with no refit (see `select`)."""
+    reading and velocity keywords of `hamid.fit`, `READING_KEYWORDS`), with no refit (see
+    `select`)."""
     if any(os.fspath(d) == "-" for d in (data if isinstance(data, list | tuple) else [data])
            if isinstance(d, str | os.PathLike)):
         raise UsageError("select reads the data twice (to choose, then to refit): give a "
@@ -308,9 +312,10 @@ def select(data: Any, library: str | os.PathLike[str] | Model | None = None, *,
     damping
         As for `hamid.fit`; damping coefficients are always in.
     **reading
-        How the data are read, as for `hamid.fit`: ``columns``, ``time``, ``time_unit``,
-        ``trajectory``, ``scale``, ``gaps``, ``format``, ``delimiter``, ``decimal``,
-        ``skip_rows``, ``units_row``.
+        How the data are read and their velocities found, as for `hamid.fit`: ``columns``,
+        ``time``, ``time_unit``, ``trajectory``, ``scale``, ``gaps``, ``format``,
+        ``delimiter``, ``decimal``, ``skip_rows``, ``units_row``; ``velocity``, ``window``,
+        ``order``.
 
     Returns
     -------
@@ -326,7 +331,7 @@ def select(data: Any, library: str | os.PathLike[str] | Model | None = None, *,
     """
     from hamid.api import fit
 
-    unknown = sorted(set(reading) - set(READING_OPTIONS))
+    unknown = sorted(set(reading) - set(READING_KEYWORDS))
     if unknown:
         raise TypeError(f"select() got an unexpected keyword argument {unknown[0]!r}")
     options = SelectOptions(library, tuple(keep), criterion, stability, seed)
