@@ -110,11 +110,29 @@ def test_every_option_shows_fits_default():
     assert shown == {name: FIT_PARAMETERS[name].default for name in shown}
 
 
-def _help_flags(command: str) -> dict[str, str]:
-    """The option strings of a command's help, each with its line and the lines under it."""
+def _help(command: str) -> str:
     done = CliRunner().invoke(cli, [command, "--help"], prog_name="hamid")
     assert done.exit_code == 0, done.output
-    entries = re.split(r"\n(?=  -)", done.stdout.split("Options:\n", 1)[1])
+    return done.stdout
+
+
+def _help_sections(command: str) -> dict[str, list[str]]:
+    """The sections of a command's help after its description: heading -> the lines."""
+    sections: dict[str, list[str]] = {"Options": []}
+    heading = "Options"
+    for line in _help(command).split("\nOptions:\n", 1)[1].splitlines():
+        if line.endswith(":") and not line.startswith(" "):
+            heading = line[:-1]
+            sections[heading] = []
+        elif line.strip():
+            sections[heading].append(line)
+    return sections
+
+
+def _help_flags(command: str) -> dict[str, str]:
+    """The option strings of a command's help, each with its line and the lines under it."""
+    entries = re.split(r"\n(?=  -)", "\n".join(
+        line for lines in _help_sections(command).values() for line in lines))
     return {flag: " ".join(entry.split()) for entry in entries
             for flag in re.findall(r"--[a-z-]+", re.split(r"\s{2,}", entry.strip())[0])}
 
@@ -130,6 +148,21 @@ def test_fit_select_and_plot_list_the_same_reading_options():
              for command in ("fit", "select", "plot")}
     assert set(shown["fit"]) == flags
     assert shown["fit"] == shown["select"] == shown["plot"]
+
+
+@pytest.mark.parametrize(("command", "groups"), [
+    ("fit", list(OPTION_GROUPS)), ("select", ["reading", "velocities"]), ("plot", ["reading"]),
+])
+def test_the_help_lists_each_groups_options_under_its_heading(command, groups):
+    sections = _help_sections(command)
+    headings = {"reading": "Reading options", "velocities": "Velocity options",
+                "method": "Method options", "covariance": "Covariance options",
+                "run": "Run options"}
+    assert list(sections) == ["Options", *(headings[group] for group in groups)]
+    for group in groups:
+        shown = [re.match(r"  (--[a-z-]+)", line) for line in sections[headings[group]]]
+        declared = _command(getattr(option_groups, group)).params
+        assert [match[1] for match in shown if match] == [p.opts[0] for p in declared]
 
 
 def test_select_lists_the_velocity_options_as_fit_does():

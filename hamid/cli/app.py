@@ -66,8 +66,9 @@ class _StreamsChecked:
             raise
 
 
-class _HamidCommand(_StreamsChecked, click.Command):
-    """A subcommand whose help may fail to be written."""
+class _HamidCommand(_StreamsChecked, option_groups.GroupedCommand):
+    """A subcommand whose help may fail to be written, and lists the options of `hamid.fit`
+    under their groups' headings."""
 
 
 class _HamidGroup(_StreamsChecked, click.Group):

@@ -1,13 +1,13 @@
 """The command line's options of `hamid.fit`, declared once per group of
-`options.OPTION_GROUPS`, each group a decorator: `fit` takes them all, `select` the reading
-and velocity options, `plot` and `fit --each` the reading options, so that each command reads
-the files the others read.
+`options.OPTION_GROUPS`, each group a decorator: `fit` (and so `fit --each`) takes them all,
+`select` the reading and velocity options, `plot` the reading options, so that each command
+reads the files the others read.
 
 Every option takes the name of `hamid.fit`'s keyword (``--format-in`` is ``format``);
-`fit_keywords` turns what the command line gave into those keywords. The run group's
-`in_memory` and `progress` have no option: the commands set them (`fit --residuals` reads
-the data into memory; the status line is the progress).
-"""
+`fit_keywords` turns what the command line gave into those keywords; `GroupedCommand`'s
+help lists each group under its heading. The run group's `in_memory` and `progress` have no
+option: the commands set them (`fit --residuals` reads the data into memory; the status line
+is the progress)."""
 
 from __future__ import annotations
 
@@ -27,7 +27,16 @@ from hamid.options import (
     VELOCITY_SOURCES,
 )
 
-__all__ = ["API_ONLY", "covariance", "fit_keywords", "method", "reading", "run", "velocities"]
+__all__ = ["API_ONLY", "GroupedCommand", "covariance", "fit_keywords", "method", "reading",
+           "run", "velocities"]
+
+class _SpecOption(click.Option):
+    """An option of `options.OPTION_GROUPS`: `format_options` lists it under its group."""
+
+
+def _option(*declarations: str, **attributes: Any) -> Callable[[Any], Any]:
+    return click.option(*declarations, cls=_SpecOption, **attributes)
+
 
 # Keywords of `hamid.fit` that no option sets: the commands set them.
 API_ONLY = ("in_memory", "progress")
@@ -36,84 +45,84 @@ _DELIMITER_NAMES = {"tab": "\t", "\\t": "\t"}
 
 _GROUPS: dict[str, tuple[Callable[[Any], Any], ...]] = {
     "reading": (
-        click.option("--columns", metavar="NAME=COL,...",
+        _option("--columns", metavar="NAME=COL,...",
                      help="Map model names to file columns."),
-        click.option("--time", metavar="COL",
+        _option("--time", metavar="COL",
                      help="Time column (default t or time in any case, with a unit: time_ms, "
                           "Time [s])."),
-        click.option("--time-unit", type=click.Choice(TIME_UNITS),
+        _option("--time-unit", type=click.Choice(TIME_UNITS),
                      help="Unit of the time column (default: its name's suffix, else s)."),
-        click.option("--trajectory", metavar="COL",
+        _option("--trajectory", metavar="COL",
                      help="Trajectory column (default trajectory)."),
-        click.option("--scale", metavar="COL=FACTOR,...",
+        _option("--scale", metavar="COL=FACTOR,...",
                      help="Multiply file columns by these factors to bring them to SI units "
                           "(default: from unit suffixes such as x1_mm, v1_mm_s)."),
-        click.option("--gaps", default="split", show_default=True,
+        _option("--gaps", default="split", show_default=True,
                      type=click.Choice(GAP_POLICIES),
                      help="At a missing value or a time gap, cut the trajectory in two, or "
                           "refuse."),
-        click.option("--format-in", "format", type=click.Choice(["csv", "tsv", "parquet"]),
+        _option("--format-in", "format", type=click.Choice(["csv", "tsv", "parquet"]),
                      help="Input format, when the file name does not tell it."),
-        click.option("--delimiter", metavar="CHAR",
+        _option("--delimiter", metavar="CHAR",
                      help="Delimiter of text input ('tab' or \\t for a tab; default: tab for "
                           ".tsv, else ';' when the header has more ';' than ',', else ',')."),
-        click.option("--decimal", type=click.Choice([".", ","]),
+        _option("--decimal", type=click.Choice([".", ","]),
                      help="Decimal mark of text input (default: ',' when the delimiter is not "
                           "',' and the numbers are written so, else '.')."),
-        click.option("--skip-rows", default=0, show_default=True, type=click.IntRange(min=0),
+        _option("--skip-rows", default=0, show_default=True, type=click.IntRange(min=0),
                      metavar="N",
                      help="Lines of preamble to skip before the header of text input."),
-        click.option("--units-row/--no-units-row", default=None,
+        _option("--units-row/--no-units-row", default=None,
                      help="Whether the row under the header of text input holds units "
                           "(default: when it has no number and the next row has)."),
     ),
     "velocities": (
-        click.option("--velocity", default="measured", show_default=True,
+        _option("--velocity", default="measured", show_default=True,
                      type=click.Choice(VELOCITY_SOURCES),
                      help="Velocities from the file, or derived from the positions "
                           "(Savitzky-Golay)."),
-        click.option("--window", type=click.IntRange(min=3), metavar="SAMPLES",
+        _option("--window", type=click.IntRange(min=3), metavar="SAMPLES",
                      help="Savitzky-Golay window (odd; default about a tenth of the period)."),
-        click.option("--order", default=SAVGOL_ORDER, show_default=True,
+        _option("--order", default=SAVGOL_ORDER, show_default=True,
                      type=click.IntRange(min=1), help="Savitzky-Golay polynomial order."),
     ),
     "method": (
-        click.option("--method", default="auto", show_default=True, type=click.Choice(METHODS),
+        _option("--method", default="auto", show_default=True, type=click.Choice(METHODS),
                      help="Energy rows, weak-form equations of motion, or both (auto: joint "
                           "when the data allow it, refined by fitting the integrated "
                           "trajectories)."),
-        click.option("--weak-window", type=float, metavar="SECONDS",
+        _option("--weak-window", type=float, metavar="SECONDS",
                      help="Length of the weak-form windows (default: half the dominant "
                           "period)."),
-        click.option("--damping", default="none", show_default=True,
+        _option("--damping", default="none", show_default=True,
                      metavar="none|viscous|coulomb|quadratic[,...]",
                      help="Dissipative forces to fit, one coefficient per coordinate and "
                           "kind."),
-        click.option("--fix", metavar="NAME=VALUE,...", help="Hold parameters at known values."),
-        click.option("--noise", metavar="none|auto|COL=SIGMA,...",
+        _option("--fix", metavar="NAME=VALUE,...", help="Hold parameters at known values."),
+        _option("--noise", metavar="none|auto|COL=SIGMA,...",
                      help="Measurement noise std per column; rows are weighted by the "
                           "variance it puts into them. auto estimates it from the data."),
-        click.option("--bias-correct", is_flag=True,
+        _option("--bias-correct", is_flag=True,
                      help="Remove the bias that the noise puts into least squares (needs "
                           "--noise)."),
     ),
     "covariance": (
-        click.option("--cov", default="hac", show_default=True,
+        _option("--cov", default="hac", show_default=True,
                      type=click.Choice(COVARIANCE_KINDS),
                      help="How standard errors are computed."),
-        click.option("--level", default=0.95, show_default=True,
+        _option("--level", default=0.95, show_default=True,
                      type=click.FloatRange(0, 1, min_open=True, max_open=True),
                      help="Confidence level of the bounds."),
-        click.option("--bootstrap", default=200, show_default=True,
+        _option("--bootstrap", default=200, show_default=True,
                      type=click.IntRange(min=10), help="Replicates for --cov bootstrap."),
-        click.option("--seed", type=click.IntRange(min=0), help="Seed for --cov bootstrap."),
+        _option("--seed", type=click.IntRange(min=0), help="Seed for --cov bootstrap."),
     ),
     "run": (
-        click.option("--jobs", type=click.IntRange(min=1), metavar="N",
+        _option("--jobs", type=click.IntRange(min=1), metavar="N",
                      help="Local processes, default one per core: with --each, the files "
                           "fitted at once; else, those that auto's trajectory refinement of a "
                           "long record runs in (the same results)."),
-        click.option("--chunk-rows", type=click.IntRange(min=1), metavar="ROWS",
+        _option("--chunk-rows", type=click.IntRange(min=1), metavar="ROWS",
                      help="Read the file in chunks of ROWS rows, in bounded memory; auto then "
                           "skips its trajectory refinement (default for files over 64 MB once "
                           "decoded: chunks of 262144 rows, and auto refines holding only the "
@@ -167,3 +176,32 @@ def fit_keywords(given: Mapping[str, Any]) -> dict[str, Any]:
 
 def _identity(value: Any) -> Any:
     return value
+
+
+# The help's heading of each group.
+_HEADINGS = {"reading": "Reading options", "velocities": "Velocity options",
+             "method": "Method options", "covariance": "Covariance options",
+             "run": "Run options"}
+
+
+class GroupedCommand(click.Command):
+    """A command whose help lists the options of `hamid.fit` under their groups' headings:
+    its own under "Options", then each group's it takes, in the order of
+    `options.OPTION_GROUPS`."""
+
+    def format_options(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        group_of = {name: group for group, names in options.OPTION_GROUPS.items()
+                    for name in names}
+        sections: dict[str, list[tuple[str, str]]] = {"Options": []}
+        sections.update((heading, []) for heading in _HEADINGS.values())
+        for param in self.get_params(ctx):
+            record = param.get_help_record(ctx)
+            if record is None or isinstance(param, click.Argument):
+                continue
+            heading = (_HEADINGS[group_of[param.name]] if isinstance(param, _SpecOption)
+                       and param.name is not None else "Options")
+            sections[heading].append(record)
+        for heading, records in sections.items():
+            if records:
+                with formatter.section(heading):
+                    formatter.write_dl(records)

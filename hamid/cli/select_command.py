@@ -15,7 +15,7 @@ from hamid.options import SELECTION_CRITERIA
 __all__ = ["select"]
 
 
-@click.command()
+@click.command(cls=option_groups.GroupedCommand)
 @click.argument("data", nargs=-1, required=True)
 @click.option("--library", metavar="poly:N:D|MODEL.toml",
               help="Candidate terms: monomials of degree 2..D, or each parameter's term of "
