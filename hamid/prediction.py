@@ -39,7 +39,7 @@ import numpy.typing as npt
 from hamid import safe_text
 from hamid.data import loading, measurement
 from hamid.data.records import Recording
-from hamid.errors import DataError, FitError, ModelError, UsageError
+from hamid.errors import DataError, ModelError, UsageError
 from hamid.linear import design
 from hamid.model.dynamics import Dynamics, Motion
 from hamid.model.models import model_from_info
@@ -178,8 +178,10 @@ def fit_start(integration: Integration, tau: Array, recorded: Array, weight: Arr
     for _ in range(_ITERATIONS):
         Y, failed = integration.run(np.vstack([x0, x0 + np.diag(step)]), tau)
         if failed is not None:
-            raise FitError(f"{label}: the fitted model cannot be integrated over its first "
-                           f"segment (it escapes near {failed:.6g} s from its start)")
+            raise ModelError(f"{label}: the fitted model's motion escapes (past {ESCAPE:g} "
+                             f"times the recorded values, or no longer finite) near "
+                             f"{failed:.6g} s after its first sample, in the segment its start "
+                             "state is fitted to; the model does not hold there")
         residual = ((recorded.T - Y[:, 0]) * weight[:, None]).ravel()
         J = (Y[:, 1:] - Y[:, :1]) / step[None, :, None] * weight[:, None, None]
         d_x = np.linalg.lstsq(J.transpose(0, 2, 1).reshape(-1, n_states), residual,
@@ -223,7 +225,7 @@ class Prediction:
             return json.dumps(self.document, indent=2, allow_nan=False,
                               ensure_ascii=True) + "\n"
         if format == "csv":
-            return self.frame.to_csv(index=False, lineterminator="\n", float_format="%.17g")
+            return self.frame.to_csv(index=False, lineterminator="\n")
         if format == "table":
             return _table(self.document, color)
         raise UsageError(f"unknown predict format {format!r} (choose from "
@@ -347,8 +349,9 @@ def _table(doc: Mapping[str, Any], color: bool) -> str:
 
     start = ("from rest" if doc["start"] == "rest" else
              "from each trajectory's start state fitted to its first period")
+    count = len(doc["trajectories"])
     console.print(Text(safe_text.printable(
-        f"hamid predict — model {doc['model']}, {len(doc['trajectories'])} trajectories, "
+        f"hamid predict — model {doc['model']}, {count} trajector{'y' if count == 1 else 'ies'}, "
         f"{doc['samples']} samples, {start}"), style="bold"))
     names = list(doc["channels"])
     table(("channel", "RMS error", "NRMSE"),

@@ -23,6 +23,7 @@ import click
 
 from hamid import __version__
 from hamid.cli import console
+from hamid.cli.predict_command import predict
 from hamid.cli.reading_options import reading_keywords, reading_options
 from hamid.cli.select_command import select
 from hamid.errors import DataError, HamidError, UsageError
@@ -197,6 +198,7 @@ def cli(debug: bool) -> None:
 
 
 cli.add_command(select)
+cli.add_command(predict)
 
 
 @cli.command()
