@@ -15,12 +15,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from hamid.data import loading, measurement
+from hamid import prediction
 from hamid.data.records import Recording
 from hamid.errors import DataError, FitError
 from hamid.linear import design
-from hamid.model.models import Model, model_from_info
-from hamid.options import TIME_UNITS, FitOptions
+from hamid.model.models import Model
+from hamid.prediction import noise_levels
 
 __all__ = ["Energies", "Segment", "energies", "lowest_energy", "noise_levels",
            "read_recording", "segment_motion"]
@@ -28,36 +28,23 @@ __all__ = ["Energies", "Segment", "energies", "lowest_energy", "noise_levels",
 Array = npt.NDArray[np.float64]
 # Recorded configurations of the other coordinates over which `lowest_energy` minimises.
 _CONFIGURATIONS = 32
-_ITERATIONS = 10   # Gauss-Newton steps of `segment_motion`; three or four usually settle it
 
 
 def read_recording(report: Mapping[str, Any], data: Sequence[str],
                    reading: Mapping[str, Any] | None = None) -> Recording:
-    """The records of `data` read as the fit of `report` read them (the reading options it
-    records, its columns, time column and unit, scale factors and velocities), checked to
-    be as many samples and trajectories as the fit had. `reading` (`hamid.fit`'s reading
-    keywords) overrides what the report records, for data that moved or were converted."""
-    info = report["model"]
-    model = model_from_info(info, where="the report's model")
-    read = report["data"]
-    unit = read.get("time_unit")
-    savgol = read["velocity_source"] == "savgol"
-    resolved = {"columns": read["columns"], "time": read.get("time"),
-                "time_unit": unit if unit in TIME_UNITS else None,
-                "scale": read.get("scale") or None}
-    options = FitOptions(**{**read.get("reading", {}), **resolved, **(reading or {})},
-                         velocity=read["velocity_source"],
-                         window=read.get("velocity_window") if savgol else None,
-                         order=read.get("velocity_order", 5) if savgol else 5,
-                         damping="none")
-    records = loading.load(list(data), model, options).records
+    """The records of `data` read as the fit of `report` read them (`prediction.read`),
+    checked to be as many samples and trajectories as the fit had. `reading` (`hamid.fit`'s
+    reading keywords) overrides what the report records, for data that moved or were
+    converted."""
+    recording = prediction.read(report, list(data), reading)
+    records = recording.records
     found = (len(records.group), records.n_trajectories)
-    fitted = (read["n_samples"], read["n_trajectories"])
+    fitted = (report["data"]["n_samples"], report["data"]["n_trajectories"])
     if found != fitted:
         raise DataError(f"{', '.join(data)}: {found[0]} samples in {found[1]} trajectories, "
                         f"but the fit had {fitted[0]} in {fitted[1]}: give the files the fit "
                         "read (with the trajectory column, delimiter and gap policy it had)")
-    return Recording(model, records)
+    return recording
 
 
 def _values(report: Mapping[str, Any], role: str) -> dict[str, float]:
@@ -103,16 +90,6 @@ def energies(report: Mapping[str, Any], recording: Recording) -> Energies:
     return Energies(rows.time, energy, h - work, energy + work - h, noise, records.group)
 
 
-def noise_levels(report: Mapping[str, Any], recording: Recording) -> Array:
-    """The noise standard deviation of each model variable: given to the fit, else
-    estimated from the records' differences (`measurement.estimate_noise`)."""
-    records = recording.records
-    sigma = measurement.estimate_noise(records.X, records.bounds())
-    given = report["method"].get("noise") or {}
-    return np.array([given.get(name) or s for name, s in zip(recording.model.variables, sigma,
-                                                              strict=True)])
-
-
 def lowest_energy(report: Mapping[str, Any], recording: Recording, coordinate: int,
                   trajectory: int, q: Array, v: Array) -> Array:
     """The lowest fitted energy at each point (q, v) of one coordinate's phase plane,
@@ -151,45 +128,19 @@ def segment_motion(report: Mapping[str, Any], recording: Recording,
     """The fitted model integrated over the first segment of a trajectory (the length of
     the refinement's segments), from the initial state that fits the recorded samples best
     in the noise-weighted squares the refinement minimised, the parameters held."""
-    from scipy.integrate import solve_ivp
-
-    from hamid.model.dynamics import Dynamics
-    from hamid.refine.trajectory import NOISE_FLOOR, STEP
-
-    model, records = recording.model, recording.records
+    records = recording.records
     assert records.t is not None
     start, stop = records.bounds()[trajectory]
     t = records.t[start:stop]
     length = report["method"]["refinement"]["segment_seconds"]
     stop = start + max(int(np.searchsorted(t, t[0] + length, side="right")), 2)
     tau, recorded = records.t[start:stop] - records.t[start], records.X[start:stop]
-    dissipation = model.dissipative(report["method"]["damping"])
-    damping = _values(report, "damping")
-    motion = Dynamics(model, dissipation).at([1.0, *_theta(report, model),
-                                              *(damping[name] for name in dissipation.names)])
-    weight = 1.0 / np.maximum(noise_levels(report, recording), NOISE_FLOOR * records.spread)
-    if report["data"]["velocity_source"] == "savgol":
-        weight[len(model.coordinates):] = 0.0   # derived: no information of their own
-
-    # Gauss-Newton over the initial state; each step integrates the state and its 2N
-    # perturbed copies together, as the refinement does (they share the adaptive steps)
-    n_states = recorded.shape[1]
-    step = STEP * np.maximum(records.extent, records.spread)
-    x0 = recorded[0].copy()
-    for _ in range(_ITERATIONS):
-        starts = np.vstack([x0, x0 + np.diag(step)])                 # (1 + 2N, 2N)
-        solution = solve_ivp(motion, (0.0, tau[-1]), starts.T.ravel(), method="DOP853",
-                             t_eval=tau, rtol=1e-10,
-                             atol=np.repeat(1e-3 * step, len(starts)))
-        if solution.status != 0 or solution.y.shape[1] != len(tau):
-            raise FitError(f"trajectory {records.labels[trajectory]}: the fitted model "
-                           f"cannot be integrated over its segment ({solution.message})")
-        Y = solution.y.reshape(n_states, len(starts), len(tau))
-        residual = ((recorded.T - Y[:, 0]) * weight[:, None]).ravel()
-        J = ((Y[:, 1:] - Y[:, :1]) / step[None, :, None] * weight[:, None, None])
-        d_x = np.linalg.lstsq(J.transpose(0, 2, 1).reshape(-1, n_states), residual,
-                              rcond=None)[0]
-        x0 = x0 + d_x
-        if np.all(np.abs(d_x) <= 10 * step):
-            break
+    integration = prediction.Integration.of(report, recording)
+    x0 = prediction.fit_start(integration, tau, recorded,
+                              prediction.start_weights(report, recording),
+                              label=f"trajectory {records.labels[trajectory]}")
+    Y, failed = integration.run(x0[None, :], tau)
+    if failed is not None:
+        raise FitError(f"trajectory {records.labels[trajectory]}: the fitted model cannot be "
+                       f"integrated over its segment (it escapes near {failed:.6g} s)")
     return Segment(records.t[start:stop], recorded, Y[:, 0].T)

@@ -22,6 +22,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
     from hamid.data.records import Recording
+    from hamid.prediction import Prediction
 
 __all__ = [
     "AcceptanceInfo",
@@ -384,6 +385,32 @@ class FitResult:
             "simulate": {"t_end": float(times[-1]), "dt": float(steps[0])},
         }
         return next(simulation.sampled(system, where="the fitted model"))
+
+    def predict(self, data: Any, *, from_rest: bool = False,
+                **reading: Any) -> Prediction:
+        """The fitted model (damping included) over every trajectory of `data`, from each
+        trajectory's start state fitted to its first period (or from rest), beside the
+        recorded motion: the check of a fit on records it never saw (`hamid.prediction`).
+
+        Parameters
+        ----------
+        data : str, path, list of them, or pandas.DataFrame
+            The recording, read as the fit read its own (`data.reading` of the report)
+            unless `reading` (`hamid.fit`'s reading keywords: columns, time, ...) says
+            otherwise.
+        from_rest : bool, optional
+            Start every trajectory from the zero state (a record that starts at rest).
+
+        Returns
+        -------
+        hamid.prediction.Prediction
+            ``.frame``: ``trajectory``, ``t``, each variable recorded and predicted
+            (``x``, ``x_predicted``); ``.channels``: RMS error and NRMSE per variable;
+            ``.to_dict()``: the ``hamid.predict/1`` report.
+        """
+        from hamid import prediction
+
+        return prediction.predict(self.to_dict(), data, reading, from_rest=from_rest)
 
     @property
     def estimates(self) -> dict[str, float]:
