@@ -294,7 +294,8 @@ class FitOptions:
         with its own dissipation function (`dissipative`) needs the data in memory.
         """
         obstacle = self._needs_memory(data) or (
-            "the model's dissipation function needs the data in memory" if dissipative else "")
+            "the model's dissipation function or forcing needs the data in memory"
+            if dissipative else "")
         if self.chunk_rows is not None and (obstacle or self.in_memory):
             raise UsageError(f"--chunk-rows: "
                              f"{obstacle or 'in_memory asks for the data in memory'}")

@@ -215,8 +215,9 @@ def resolve_columns(
     *,
     mapping: Mapping[str, str] | None = None,
     source: str,
+    inputs: Sequence[str] = (),
 ) -> dict[str, str]:
-    """Find the file column of each coordinate and velocity of a model.
+    """Find the file column of each coordinate, velocity and input of a model.
 
     Each name is looked for in `mapping`, then as the same name (or the same name before a
     unit suffix); a velocity not found so is looked for by `velocity_names`, applied to its
@@ -232,11 +233,13 @@ def resolve_columns(
         Model name -> file column, as given by ``--columns``.
     source : str
         File name used in messages.
+    inputs : sequence of str
+        The model's recorded inputs (`Model.forcing`), found like coordinates.
 
     Returns
     -------
     columns : dict
-        Model name -> file column, coordinates first.
+        Model name -> file column, coordinates first, inputs last.
 
     Raises
     ------
@@ -252,11 +255,11 @@ def resolve_columns(
     {'x': 'pos', 'v': 'vel'}
     """
     mapping = dict(mapping or {})
-    names = [*coordinates, *velocities]
+    names = [*coordinates, *velocities, *inputs]
     for key in mapping:
         if key not in names:
             raise UsageError(
-                f"--columns: {key!r} is not a coordinate or velocity of the model "
+                f"--columns: {key!r} is not a coordinate, velocity or input of the model "
                 f"({', '.join(names)})"
             )
     present = set(columns)
@@ -295,6 +298,14 @@ def resolve_columns(
                 f"{velocity}=COL, or derive velocities with --velocity savgol"
             )
         resolved[velocity] = found
+    for name in inputs:
+        column = mapping.get(name, index.get(name, name))
+        if column not in present:
+            raise DataError(
+                f"{source}: no column for input {name!r} of the model's [forcing] (columns: "
+                f"{readers.list_columns(columns)}); map it with --columns {name}=COL"
+            )
+        resolved[name] = column
     owner: dict[str, str] = {}
     for model_name, column in resolved.items():
         if column in owner:

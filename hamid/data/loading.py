@@ -104,7 +104,7 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
         names = [str(c) for c in frame]
         mapping = column_roles.resolve_columns(
             names, m.coordinates, () if derived else m.velocities, mapping=options.columns,
-            source=source)
+            source=source, inputs=m.inputs)
         time, trajectory = _special_columns(names, mapping, options, source, notes)
         units = _units(names, mapping, time, options, table_metadata, source)
         notes.extend(units["notes"])
@@ -127,7 +127,8 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
     records = parts[0] if len(parts) == 1 else Records(
         np.vstack([part.X for part in parts]),
         np.concatenate([part.t for part in parts]) if has_time else None,
-        np.concatenate([part.group for part in parts]), ())
+        np.concatenate([part.group for part in parts]), (),
+        np.vstack([part.U for part in parts]) if m.inputs else None)
     records = dataclasses.replace(records, labels=tuple(labels))
     firsts = np.cumsum([0] + [len(part.group) for part in parts[:-1]])
     del parts
@@ -217,7 +218,8 @@ class Reader:
     @property
     def columns(self) -> list[str]:
         """The table's columns that are read."""
-        wanted = [self.mapping[v] for v in self.model.variables if v in self.mapping]
+        wanted = [self.mapping[v] for v in (*self.model.variables, *self.model.inputs)
+                  if v in self.mapping]
         return list(dict.fromkeys([*wanted, *(c for c in (self.time, self.trajectory) if c)]))
 
     @property
@@ -234,6 +236,8 @@ class Reader:
             X = np.column_stack([self._numbers(chunk, self.mapping[v], row)
                                  if v in self.mapping else np.zeros(n)
                                  for v in self.model.variables])
+            U = (np.column_stack([self._numbers(chunk, self.mapping[u], row)
+                                  for u in self.model.inputs]) if self.model.inputs else None)
             t = self._numbers(chunk, self.time, row) if self.time else None
             if t is not None and np.any(np.abs(t) > _LARGEST_TIME):
                 k = int(np.argmax(np.abs(t) > _LARGEST_TIME))
@@ -272,7 +276,7 @@ class Reader:
                 if self.chunked:
                     self._refuse_gaps(t - before, same, group, row)
                 last_t = float(t[-1])
-            yield Records(X, t, group, ())
+            yield Records(X, t, group, (), U)
 
     def _refuse_gaps(self, steps: np.ndarray, same: np.ndarray, group: np.ndarray,
                      row: int) -> None:
@@ -477,11 +481,12 @@ def _units(names: list[str], mapping: Mapping[str, str], time: str | None,
 
 
 def dissipative(model: str | os.PathLike[str] | Model | None) -> bool:
-    """Whether a model given to a fit has its own dissipation function (and so needs the
-    data in memory)."""
+    """Whether a model given to a fit has its own dissipation function or a forcing (and so
+    needs the data in memory: their integrals between the samples are not made in chunks)."""
     if isinstance(model, str | os.PathLike) and os.fspath(model).endswith(".toml"):
         model = load_model(model)
-    return isinstance(model, Model) and model.dissipation is not None
+    return isinstance(model, Model) and (model.dissipation is not None
+                                         or model.forcing is not None)
 
 
 def _settle_model(model: str | os.PathLike[str] | Model | None,
@@ -613,6 +618,8 @@ def _split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int],
     an error (missing values already are). Returns the records and, when rows were dropped,
     the row read of each row kept."""
     missing = np.isnan(records.X).any(axis=1)
+    if records.U is not None:
+        missing |= np.isnan(records.U).any(axis=1)
     if records.t is not None:
         missing |= np.isnan(records.t)
     kept = np.flatnonzero(~missing)
@@ -675,7 +682,7 @@ def _split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int],
                  f"{int((~keep_rows).sum())} row(s) in pieces under {SHORTEST_PIECE} samples "
                  "dropped, nothing interpolated (--gaps error refuses instead)")
     return Records(records.X[kept], None if t is None else t[kept], new_group,
-                   tuple(labels)), kept
+                   tuple(labels), None if records.U is None else records.U[kept]), kept
 
 
 def _locate(row_sources: tuple[tuple[str, int], ...], row: int) -> tuple[str, int]:

@@ -23,12 +23,15 @@ class Records:
     t : shape (n_samples,), or None when the data have no time column.
     group : shape (n_samples,), trajectory index 0..J-1, contiguous.
     labels : the trajectory labels shown to the user, one per index.
+    U : shape (n_samples, m), the recorded inputs of a driven model (`Model.forcing`), in
+        the order of its inputs; None for a free one.
     """
 
     X: npt.NDArray[np.float64]
     t: npt.NDArray[np.float64] | None
     group: npt.NDArray[np.int64]
     labels: tuple[str | int, ...]
+    U: npt.NDArray[np.float64] | None = None
 
     @property
     def n_trajectories(self) -> int:
@@ -37,7 +40,13 @@ class Records:
     def slice(self, start: int, stop: int | None) -> Records:
         """Rows start:stop, without labels (a piece of a chunked pass)."""
         return Records(self.X[start:stop], None if self.t is None else self.t[start:stop],
-                       self.group[start:stop], ())
+                       self.group[start:stop], (),
+                       None if self.U is None else self.U[start:stop])
+
+    def taken(self, rows: npt.NDArray[np.intp]) -> Records:
+        """The given rows (an index array), labels kept."""
+        return Records(self.X[rows], None if self.t is None else self.t[rows],
+                       self.group[rows], self.labels, None if self.U is None else self.U[rows])
 
     @cached_property
     def spread(self) -> npt.NDArray[np.float64]:

@@ -73,14 +73,40 @@ def _by_kinks(dissipation: Dissipation) -> dict[tuple[Func, ...], list[int]]:
     return dict(groups.values())
 
 
+def _input_work(model: Model, records: Records) -> tuple[np.ndarray, np.ndarray]:
+    """Work the recorded inputs have done on the system since the start of its trajectory:
+    integral_0^t Q(q, u) . v dt, its parameter-free part W0 (n,) and its part per model
+    parameter W (n, P), Q = dW/dq the generalized force of `Model.forcing`.
+
+    The inputs are interpolated between the samples by the same local quintic as the state
+    (`hamid.linear.quadrature`): a DAQ samples its inputs, it does not hold them.
+    """
+    assert model.forcing is not None and records.U is not None
+    width = records.X.shape[1]
+    joined = replace(records, X=np.hstack([records.X, records.U]))
+    points = quadrature.state_points(joined)
+    Q0, Q = model.forcing.parts(points.X[:, :width], points.X[:, width:])
+    V = points.X[:, len(model.coordinates):width]
+    W0 = points.cumulative(np.einsum("pi,pi->p", Q0, V), records)
+    power = np.einsum("pik,pi->pk", Q, V)
+    W = np.column_stack([points.cumulative(power[:, k], records)
+                         for k in range(power.shape[1])])
+    return W0, W
+
+
 def energy_block(model: Model, records: Records,
                  dissipation: Dissipation | None = None) -> Block:
     """The energy rows: E0(x_i) + sum_k theta_k phi_k(x_i) - h_j = r_i, one per sample.
 
     With a `dissipation`, the energy balance: the work dissipated since the start of the
-    trajectory is added, one column per dissipative coefficient.
+    trajectory is added, one column per dissipative coefficient. With a forcing, the work
+    the recorded inputs did since then is taken away (its parameter-free part into b).
     """
     E0, Phi = model.energy_basis(records.X)   # rows of one array, which Phi keeps
+    if model.forcing is not None:
+        W0, W = _input_work(model, records)
+        Phi -= W
+        E0 -= W0
     if dissipation:
         Phi = np.hstack([Phi, _dissipated_work(records, dissipation)])
     time = records.t if records.t is not None else _sample_index(records)
@@ -472,7 +498,8 @@ def weak_block(model: Model, records: Records, windows: Windows,
                dissipation: Dissipation | None = None) -> Block:
     """Weak-form rows of Lagrange's equations: one per window and coordinate.
 
-    Row (w, i):  integral( psi_w' dL/dv_i + psi_w dL/dq_i + psi_w F_i ) dt = r,  split
+    Row (w, i):  integral( psi_w' dL/dv_i + psi_w (dL/dq_i + Q_i) + psi_w F_i ) dt = r,
+    Q_i the generalized force of the recorded inputs (`Model.forcing`), split
     into the parameter-free part (moved to b) and one column per parameter; the dissipative
     force F_i = -sum_k c_k dR_k/dv_i gives the column -integral(psi_w dR_k/dv_i) of c_k in
     the rows of i.
@@ -485,6 +512,10 @@ def weak_block(model: Model, records: Records, windows: Windows,
     for a in range(0, n, _GRADIENT_ROWS):
         b = min(a + _GRADIENT_ROWS, n)
         dLdv, dLdq = model.lagrangian.gradients(records.X[a:b])   # (b - a, N, 1 + p)
+        if model.forcing is not None:   # the generalized force joins dL/dq
+            assert records.U is not None
+            Q0, Q = model.forcing.parts(records.X[a:b], records.U[a:b])
+            dLdq = dLdq + np.concatenate([Q0[:, :, None], Q], axis=2)
         dLdv, dLdq = dLdv.reshape(b - a, -1), dLdq.reshape(b - a, -1)
         w_lo = int(np.searchsorted(windows.last, a, side="left"))
         w_hi = int(np.searchsorted(windows.first, b, side="left"))

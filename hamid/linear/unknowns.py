@@ -40,7 +40,8 @@ class Unknowns:
         (name -> value, from --fix) checked against them.
 
         An energy without a parameter-free part (``m*v**2/2 + k*x**2/2``) takes its scale
-        from a parameter fixed at a value other than zero; with none, every multiple of the
+        from a parameter fixed at a value other than zero, or from a recorded force with a
+        known coefficient (`Forcing.has_known_part`); with neither, every multiple of the
         parameters fits the motion alike."""
         energy = model.parameters
         names = (*energy, *damping)
@@ -52,7 +53,8 @@ class Unknowns:
                 raise UsageError(f"--fix: {name}={value!r} is not a finite number")
         if all(name in fix for name in names):
             raise UsageError("every parameter is fixed; nothing is left to fit")
-        if model.E0.is_zero() and not any(fix.get(name) for name in energy):
+        driven = model.forcing is not None and model.forcing.has_known_part
+        if model.E0.is_zero() and not driven and not any(fix.get(name) for name in energy):
             raise ModelError(f"model {model.name!r}: the energy has no parameter-free part "
                              "(such as the kinetic energy), so its scale is undetermined; "
                              "fix one of its parameters (--fix NAME=VALUE, e.g. a known "

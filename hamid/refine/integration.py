@@ -21,7 +21,7 @@ import dataclasses
 import functools
 import io
 import pickle
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,7 +32,7 @@ from hamid.executor import Pool, Workers, started
 from hamid.model.dynamics import Dynamics
 from hamid.refine import dop853
 
-__all__ = ["Batch", "Blocks", "IntegrationFailed", "Tolerance", "blocks", "common_times",
+__all__ = ["Batch", "Blocks", "IntegrationFailed", "SampledInputs", "Tolerance", "blocks", "common_times",
            "parallel", "run"]
 
 Array = npt.NDArray[np.float64]
@@ -68,6 +68,45 @@ class Tolerance:
 
 
 @dataclass(frozen=True, eq=False)
+class SampledInputs:
+    """The recorded inputs of a batch's segments: each segment's sample times from its
+    start (`tau`, through the sample a tie compares with) and inputs there (m, n_inputs).
+
+    Between the samples the inputs follow a cubic spline (not-a-knot): a DAQ samples a
+    band-limited input, it does not hold it, and a cubic errs by O(dt^4) where linear
+    interpolation errs by O(dt^2). Segments sampled alike (the usual case) share one spline
+    of all their columns, evaluated once per integrator stage; past a segment's last
+    sample its last value is held (no residual is taken there).
+    """
+
+    tau: Sequence[Array]
+    values: Sequence[Array]
+
+    def path(self, copies: int, resolution: float) -> Callable[[float], Array]:
+        """u(t) of every integrated state, (n_inputs, B * copies), each segment's inputs
+        repeated for its copies (the states' order in `blocks`); times closer than
+        `resolution` are one (`common_times`)."""
+        from scipy.interpolate import CubicSpline
+
+        grid, _ = common_times(list(self.tau), resolution)
+        n_inputs = self.values[0].shape[1]
+        table = np.empty((len(grid), n_inputs, len(self.tau)))
+        for b, (tau, values) in enumerate(zip(self.tau, self.values, strict=True)):
+            inside = int(np.searchsorted(grid, tau[-1], side="right"))
+            alike = inside == len(tau) and np.allclose(tau, grid[:inside], rtol=0,
+                                                       atol=resolution)
+            table[:inside, :, b] = (values if alike
+                                    else CubicSpline(tau, values, axis=0)(grid[:inside]))
+            table[inside:, :, b] = table[inside - 1, :, b]
+        spline = CubicSpline(grid, table.reshape(len(grid), -1), axis=0)
+
+        def u(t: float) -> Array:
+            return np.repeat(spline(t).reshape(n_inputs, -1), copies, axis=1)
+
+        return u
+
+
+@dataclass(frozen=True, eq=False)
 class Batch:
     """Segments integrated together, each as `starts.shape[0]` copies.
 
@@ -87,6 +126,7 @@ class Batch:
     steps: Array
     tolerance: Tolerance
     ends: Array | None = None
+    inputs: SampledInputs | None = None
 
     @property
     def values(self) -> int:
@@ -159,7 +199,9 @@ def blocks(batch: Batch) -> Blocks:
     grid, where = common_times(times, tol.resolution)
     # the columns of the integrated system segment by segment, each segment's copies
     # together: the values of a few neighbouring segments are then one contiguous run
-    motion = batch.dynamics.at(batch.weights.transpose(0, 2, 1).reshape(len(batch.weights), -1))
+    motion = batch.dynamics.at(batch.weights.transpose(0, 2, 1).reshape(len(batch.weights), -1),
+                               inputs=None if batch.inputs is None
+                               else batch.inputs.path(copies, tol.resolution))
     try:
         values = dop853.integrate(
             motion, batch.starts.transpose(2, 1, 0).ravel(), grid, tol.rtol,

@@ -122,6 +122,7 @@ class _Problem:
     weight: npt.NDArray[np.float64]           # 1 / noise of each variable
     length: float                             # seconds per segment as cut
     starts: npt.NDArray[np.intp]              # each group's first segment (tied to the next)
+    inputs: integration.SampledInputs | None  # each segment's recorded inputs (driven models)
 
     @classmethod
     def cut(cls, model: Model, records: Records, damping: Dissipation, length: float,
@@ -138,7 +139,7 @@ class _Problem:
         return cls(Dynamics(model, damping), records, pieces,
                    [t[a:b] - t[a] for a, b in pieces], [X[a:b] for a, b in pieces],
                    STEP * np.maximum(records.extent, records.spread), resolution,
-                   weight, length, np.arange(len(pieces)))
+                   weight, length, np.arange(len(pieces)), _segment_inputs(records, pieces))
 
     def reweighted(self, weight: npt.NDArray[np.float64]) -> _Problem:
         """The same segments under other weights."""
@@ -343,6 +344,19 @@ def _segments(records: Records, t: npt.NDArray[np.float64],
         pieces += [(start + a, start + b) for a, b in zip(edges[:-1], edges[1:], strict=True)
                    if b - a >= MIN_SEGMENT_SAMPLES]
     return pieces
+
+
+def _segment_inputs(records: Records, pieces: list[tuple[int, int]]
+                    ) -> integration.SampledInputs | None:
+    """Each segment's recorded inputs, through the next sample of its trajectory (where a
+    tie compares its end), or None for a free model."""
+    if records.U is None:
+        return None
+    assert records.t is not None
+    t, group = records.t, records.group
+    through = [b + 1 if b < len(group) and group[b] == group[a] else b for a, b in pieces]
+    return integration.SampledInputs([t[a:c] - t[a] for (a, _), c in zip(pieces, through, strict=True)],
+                                     [records.U[a:c] for (a, _), c in zip(pieces, through, strict=True)])
 
 
 def segment_count(records: Records, length: float) -> int:
@@ -613,9 +627,11 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
         W = np.repeat(parameters[:, None, lo:hi], copies, axis=1)  # (1 + P, copies, B)
         for k, index in enumerate(free):
             W[1 + index, 1 + n_x + k] += theta_step[k]
-        batches.append(integration.Batch(problem.dynamics, tau[lo:hi], measured[lo:hi],
-                                         problem.weight, starts, W, steps, tolerance,
-                                         ends[lo:hi]))
+        inputs = problem.inputs
+        batches.append(integration.Batch(
+            problem.dynamics, tau[lo:hi], measured[lo:hi], problem.weight, starts, W, steps,
+            tolerance, ends[lo:hi], inputs=None if inputs is None else integration.SampledInputs(
+                inputs.tau[lo:hi], inputs.values[lo:hi])))
     cost = np.zeros((S, n_states))
     H = np.zeros((S, copies - 1, copies - 1))
     g = np.zeros((S, copies - 1))
