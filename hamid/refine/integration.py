@@ -32,8 +32,8 @@ from hamid.executor import Pool, Workers, started
 from hamid.model.dynamics import Dynamics
 from hamid.refine import dop853
 
-__all__ = ["Batch", "Blocks", "IntegrationFailed", "SampledInputs", "Tolerance", "blocks", "common_times",
-           "parallel", "run"]
+__all__ = ["Batch", "Blocks", "IntegrationFailed", "SampledInputs", "Tolerance", "blocks",
+           "common_times", "parallel", "run"]
 
 Array = npt.NDArray[np.float64]
 

@@ -354,9 +354,9 @@ def _segment_inputs(records: Records, pieces: list[tuple[int, int]]
         return None
     assert records.t is not None
     t, group = records.t, records.group
-    through = [b + 1 if b < len(group) and group[b] == group[a] else b for a, b in pieces]
-    return integration.SampledInputs([t[a:c] - t[a] for (a, _), c in zip(pieces, through, strict=True)],
-                                     [records.U[a:c] for (a, _), c in zip(pieces, through, strict=True)])
+    rows = [(a, b + 1 if b < len(group) and group[b] == group[a] else b) for a, b in pieces]
+    return integration.SampledInputs([t[a:c] - t[a] for a, c in rows],
+                                     [records.U[a:c] for a, c in rows])
 
 
 def segment_count(records: Records, length: float) -> int:
