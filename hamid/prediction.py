@@ -21,16 +21,18 @@ for the whole), the samples of the start segment included: 0 is a perfect predic
 no better than the recorded mean. The report is `Prediction.to_dict()`, schema
 ``hamid.predict/1`` (hamid/schema/predict-1.json, docs/output.md).
 
-The integration of one trajectory is described by an `Integration`: the recorded inputs
-of a driven fit become one more field of it, a function of the trajectory's time.
+The integration of one trajectory is described by an `Integration`: for a driven model its
+recorded inputs are one more field, a function of the trajectory's time (`Integration.over`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -38,7 +40,7 @@ import numpy.typing as npt
 
 from hamid import safe_text
 from hamid.data import loading, measurement
-from hamid.data.records import Recording
+from hamid.data.records import Recording, Records
 from hamid.errors import DataError, ModelError, UsageError
 from hamid.linear import design
 from hamid.model.dynamics import Dynamics, Motion
@@ -50,7 +52,7 @@ if TYPE_CHECKING:
     import pandas as pd
 
 __all__ = ["FORMATS", "SCHEMA", "START_SAMPLES", "Integration", "Prediction", "fit_start",
-           "fitted_motion", "noise_levels", "predict", "read", "start_weights"]
+           "fitted_dynamics", "noise_levels", "predict", "read", "start_weights"]
 
 Array = npt.NDArray[np.float64]
 SCHEMA = "hamid.predict/1"
@@ -95,32 +97,54 @@ def noise_levels(report: Mapping[str, Any], recording: Recording) -> Array:
                                                               strict=True)])
 
 
-def fitted_motion(report: Mapping[str, Any], recording: Recording) -> Motion:
-    """Lagrange's equations of the report's model at its estimates: the energy's parameters
-    and the damping's (the model's own dissipation function and the --damping terms)."""
+def fitted_dynamics(report: Mapping[str, Any], recording: Recording) -> tuple[Dynamics, Array]:
+    """Lagrange's equations of the report's model and its weights at the estimates: the
+    energy's parameters and the damping's (the model's own dissipation function and the
+    --damping terms)."""
     model = recording.model
     dissipation = model.dissipative(report["method"]["damping"])
     estimate = {p["name"]: p["estimate"] for p in report["parameters"]}
-    return Dynamics(model, dissipation).at(
+    return Dynamics(model, dissipation), np.array(
         [1.0, *(estimate[name] for name in (*model.parameters, *dissipation.names))])
 
 
 @dataclass(frozen=True)
 class Integration:
-    """How the fitted model is integrated over one trajectory: its equations, and each
-    variable's scale (the larger of its recorded extent and spread), which sets the
-    absolute tolerance, the finite-difference step of `fit_start` and the escape bound."""
+    """How the fitted model is integrated over one trajectory: its equations at the fitted
+    weights, each variable's scale (the larger of its recorded extent and spread), which
+    sets the absolute tolerance, the finite-difference step of `fit_start` and the escape
+    bound, and for a driven model the trajectory's recorded inputs as functions of its time
+    (`over`)."""
 
-    motion: Motion
+    dynamics: Dynamics
+    weights: Array
     scale: Array
+    inputs: Callable[[float], Array] | None = None
 
     @classmethod
     def of(cls, report: Mapping[str, Any], recording: Recording) -> Integration:
         """The fitted model of `report` at the scales of `recording`'s variables."""
         records = recording.records
-        return cls(fitted_motion(report, recording),
+        return cls(*fitted_dynamics(report, recording),
                    np.maximum(np.maximum(records.extent, records.spread),
                               np.finfo(float).tiny))
+
+    def over(self, records: Records, start: int, stop: int) -> Integration:
+        """The integration of the trajectory in rows start:stop, driven by its recorded
+        inputs, a cubic spline between the samples as in the refinement
+        (`hamid.refine.integration.SampledInputs`); a free model's is this one."""
+        if records.U is None:
+            return self
+        from scipy.interpolate import CubicSpline
+
+        assert records.t is not None
+        t = records.t[start:stop]
+        return dataclasses.replace(self, inputs=CubicSpline(t - t[0], records.U[start:stop],
+                                                            axis=0))
+
+    @cached_property
+    def motion(self) -> Motion:
+        return self.dynamics.at(self.weights, inputs=self.inputs)
 
     @property
     def step(self) -> Array:
@@ -246,7 +270,7 @@ def predict(report: Mapping[str, Any], data: Any, reading: Mapping[str, Any] | N
     if records.t is None:
         raise DataError(f"{_names(data)}: no time column; a prediction integrates over time "
                         "(give --time COL)")
-    integration = Integration.of(report, recording)
+    whole = Integration.of(report, recording)
     weight = start_weights(report, recording)
     scales = design.trajectory_scales(records, len(model.coordinates))
     predicted = np.empty_like(records.X)
@@ -255,6 +279,7 @@ def predict(report: Mapping[str, Any], data: Any, reading: Mapping[str, Any] | N
         label = f"trajectory {safe_text.printable(str(records.labels[j]))}"
         t = records.t[start:stop]
         tau, recorded = t - t[0], records.X[start:stop]
+        integration = whole.over(records, start, stop)
         if from_rest:
             x0, fitted_on = np.zeros(recorded.shape[1]), None
         else:

@@ -135,7 +135,7 @@ def segment_motion(report: Mapping[str, Any], recording: Recording,
     length = report["method"]["refinement"]["segment_seconds"]
     stop = start + max(int(np.searchsorted(t, t[0] + length, side="right")), 2)
     tau, recorded = records.t[start:stop] - records.t[start], records.X[start:stop]
-    integration = prediction.Integration.of(report, recording)
+    integration = prediction.Integration.of(report, recording).over(records, start, stop)
     x0 = prediction.fit_start(integration, tau, recorded,
                               prediction.start_weights(report, recording),
                               label=f"trajectory {records.labels[trajectory]}")

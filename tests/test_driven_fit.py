@@ -1,0 +1,97 @@
+"""Driven systems fitted from their recorded force: parameters in physical units (masses
+included), against the values they were simulated with."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import hamid
+
+DUFFING_MODEL = """
+[model]
+name = "driven-duffing"
+coordinates = ["x"]
+velocities = ["v"]
+energy = "m*v**2/2 + k*x**2/2 + k3*x**4/4"
+parameters = ["m", "k", "k3"]
+
+[forcing]
+inputs = ["F"]
+work = "F*x"
+"""
+
+DUFFING_TRUTH = {"m": 1.5, "k": 4.0, "k3": 2.0, "c_x": 0.08}
+
+CHAIN_MODEL = """
+[model]
+name = "chain"
+coordinates = ["x1", "x2"]
+velocities = ["v1", "v2"]
+energy = "m1*v1**2/2 + m2*v2**2/2 + k1*x1**2/2 + k2*(x2 - x1)**2/2"
+parameters = ["m1", "m2", "k1", "k2"]
+
+[damping]
+dissipation = "c1*v1**2/2 + c2*(v2 - v1)**2/2"
+parameters = ["c1", "c2"]
+
+[forcing]
+inputs = ["F"]
+work = "F*x2"
+"""
+
+CHAIN_TRUTH = {"m1": 1.0, "m2": 0.5, "k1": 3.0, "k2": 2.0, "c1": 0.05, "c2": 0.03}
+
+
+def _system(model_text: str, truth: dict, damping: dict, signal: dict, initial: dict,
+            t_end: float, dt: float, noise: dict | None = None) -> dict:
+    import tomllib
+
+    document = tomllib.loads(model_text)
+    document.pop("damping", None)
+    document["forcing"]["signals"] = {"F": signal}
+    return {**document, "parameters": {k: v for k, v in truth.items() if k not in damping},
+            "damping": damping, "initial": [initial],
+            "simulate": {"t_end": t_end, "dt": dt}, **({"noise": noise} if noise else {})}
+
+
+def duffing_system(noise: dict | None = None) -> dict:
+    return _system(DUFFING_MODEL, DUFFING_TRUTH, {"c_x": DUFFING_TRUTH["c_x"]},
+                   {"kind": "multisine", "amplitude": 1.0, "band": [0.05, 1.0], "seed": 3},
+                   {"x": 0.0, "v": 0.0}, 80.0, 0.01, noise)
+
+
+def chain_system(noise: dict | None = None) -> dict:
+    damping = {"dissipation": "c1*v1**2/2 + c2*(v2 - v1)**2/2", "parameters": ["c1", "c2"],
+               "c1": CHAIN_TRUTH["c1"], "c2": CHAIN_TRUTH["c2"]}
+    return _system(CHAIN_MODEL, CHAIN_TRUTH, damping,
+                   {"kind": "multisine", "amplitude": 1.0, "band": [0.05, 1.2], "seed": 5},
+                   {"x1": 0.0, "x2": 0.0, "v1": 0.0, "v2": 0.0}, 80.0, 0.01, noise)
+
+
+@pytest.fixture
+def duffing_model(tmp_path):
+    path = tmp_path / "driven_duffing.toml"
+    path.write_text(DUFFING_MODEL)
+    return path
+
+
+@pytest.fixture
+def chain_model(tmp_path):
+    path = tmp_path / "chain.toml"
+    path.write_text(CHAIN_MODEL)
+    return path
+
+
+def test_a_driven_duffing_with_free_mass_is_recovered_in_physical_units(duffing_model):
+    data = hamid.simulate(duffing_system())
+    result = hamid.fit(data, duffing_model, damping="viscous")
+    for name, value in DUFFING_TRUTH.items():
+        assert result.estimates[name] == pytest.approx(value, rel=1e-5), name
+
+
+def test_a_two_mass_chain_forced_on_its_second_mass_is_recovered(chain_model):
+    data = hamid.simulate(chain_system())
+    result = hamid.fit(data, chain_model)
+    for name, value in CHAIN_TRUTH.items():
+        assert result.estimates[name] == pytest.approx(value, rel=1e-5), name
