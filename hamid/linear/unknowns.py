@@ -27,12 +27,17 @@ class Unknowns:
     """Every parameter's name and role, and the values of those held fixed.
 
     `names` lists the model's energy parameters (the first `n_energy`), then the damping
-    coefficients; `fixed` maps the names of the fixed ones to their values.
+    coefficients; `fixed` maps the names of the fixed ones to their values; `scale` says
+    where the energy's scale comes from (the report's `method.scale`): ``energy`` (its
+    parameter-free part), ``input`` (a recorded input with a known coefficient in the
+    forcing's work: the parameters are then in the recording's physical units) or
+    ``fixed`` (a parameter held at a known value), with the part that sets it.
     """
 
     names: tuple[str, ...]
     n_energy: int
     fixed: Mapping[str, float]
+    scale: Mapping[str, str] = dataclasses.field(default_factory=dict)
 
     @classmethod
     def of(cls, model: Model, damping: Sequence[str], fix: Mapping[str, float]) -> Unknowns:
@@ -53,13 +58,21 @@ class Unknowns:
                 raise UsageError(f"--fix: {name}={value!r} is not a finite number")
         if all(name in fix for name in names):
             raise UsageError("every parameter is fixed; nothing is left to fit")
-        driven = model.forcing is not None and model.forcing.has_known_part
-        if model.E0.is_zero() and not driven and not any(fix.get(name) for name in energy):
+        known = [name for name in energy if fix.get(name)]
+        if model.forcing is not None and model.forcing.has_known_part:
+            scale = {"source": "input", "by": model.forcing.work}
+        elif not model.E0.is_zero():
+            scale = {"source": "energy", "by": "the energy's parameter-free part"}
+        elif known:
+            scale = {"source": "fixed", "by": ", ".join(f"{name} = {fix[name]:g}"
+                                                        for name in known)}
+        else:
             raise ModelError(f"model {model.name!r}: the energy has no parameter-free part "
                              "(such as the kinetic energy), so its scale is undetermined; "
                              "fix one of its parameters (--fix NAME=VALUE, e.g. a known "
                              "mass)")
-        return cls(names, len(energy), {name: float(value) for name, value in fix.items()})
+        return cls(names, len(energy), {name: float(value) for name, value in fix.items()},
+                   scale)
 
     @cached_property
     def free(self) -> npt.NDArray[np.intp]:

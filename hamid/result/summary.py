@@ -79,7 +79,8 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
         "noise": provenance.noise, "weighting_rounds": fit.weighting_rounds,
         "bias_correction": options.bias_correct, "covariance": options.cov,
         "covariance_description": fit.description, "level": options.level,
-        "fixed": dict(unknowns.fixed), "block_variance": fit.block_variance,
+        "fixed": dict(unknowns.fixed), "scale": dict(unknowns.scale),
+        "block_variance": fit.block_variance,
         "refinement": refinement,
         "discretization": None if fit.discretization is None else dict(
             zip(unknowns.free_names, fit.discretization.tolist(), strict=True)),
