@@ -22,7 +22,7 @@ from hamid.model.dissipation import Dissipation
 from hamid.model.expressions import Func
 from hamid.model.models import Model
 
-__all__ = ["Block", "energy_block", "median_period",
+__all__ = ["Block", "energy_block", "input_work", "median_period",
            "trajectory_scales", "weak_block", "window_means", "windows"]
 
 
@@ -73,7 +73,7 @@ def _by_kinks(dissipation: Dissipation) -> dict[tuple[Func, ...], list[int]]:
     return dict(groups.values())
 
 
-def _input_work(model: Model, records: Records) -> tuple[np.ndarray, np.ndarray]:
+def input_work(model: Model, records: Records) -> tuple[np.ndarray, np.ndarray]:
     """Work the recorded inputs have done on the system since the start of its trajectory:
     integral_0^t Q(q, u) . v dt, its parameter-free part W0 (n,) and its part per model
     parameter W (n, P), Q = dW/dq the generalized force of `Model.forcing`.
@@ -104,7 +104,7 @@ def energy_block(model: Model, records: Records,
     """
     E0, Phi = model.energy_basis(records.X)   # rows of one array, which Phi keeps
     if model.forcing is not None:
-        W0, W = _input_work(model, records)
+        W0, W = input_work(model, records)
         Phi -= W
         E0 -= W0
     if dissipation:

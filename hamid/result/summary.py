@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -13,6 +14,7 @@ import numpy as np
 
 from hamid import __version__
 from hamid.data import loading, readers
+from hamid.data.records import Records
 from hamid.errors import DataError
 from hamid.linear import design, uncertainty
 from hamid.linear.design import Block
@@ -235,6 +237,41 @@ def dissipation_summary(model: Model, source: loading.Loaded, damping: Dissipati
         ratio = estimates[viscous] * period / (4 * np.pi * mass)
     return {"trajectories": trajectories, "equivalent_damping_ratio": ratio,
             "period": period}
+
+
+# Below this fraction of the energy's changes, the input's work explains nothing of them.
+INPUT_WORK_FLOOR = 0.01
+
+
+def forcing_summary(model: Model, records: Records, mapping: Mapping[str, str],
+                    estimates: Mapping[str, float]) -> dict[str, Any] | None:
+    """The inputs of a driven fit, their columns, and the share of the energy budget the
+    input work makes up: the total variation of the fitted input work along the records
+    over that of the fitted energy (1 when the input alone moves the energy, more when the
+    damping takes some of it away, near 0 when the input explains nothing of it)."""
+    if model.forcing is None:
+        return None
+    theta = np.array([estimates[name] for name in model.parameters])
+    W0, W = design.input_work(model, records)
+    work = W0 + W @ theta
+    energy = model.total_energy(records.X, theta)
+    same = records.group[1:] == records.group[:-1]
+    changes = float(np.abs(np.diff(energy))[same].sum())
+    fraction = float(np.abs(np.diff(work))[same].sum()) / changes if changes > 0 else None
+    return {"inputs": {name: mapping.get(name, name) for name in model.forcing.inputs},
+            "work": model.forcing.work, "input_work_fraction": fraction}
+
+
+def forcing_warnings(forcing: Mapping[str, Any] | None) -> list[str]:
+    """An input whose work explains nothing of the energy's changes is probably the wrong
+    column, or the wrong work."""
+    fraction = None if forcing is None else forcing["input_work_fraction"]
+    if fraction is None or fraction >= INPUT_WORK_FLOOR:
+        return []
+    return [f"the work of the inputs ({', '.join(forcing['inputs'])}; work "
+            f"{forcing['work']!r}) makes up {100 * fraction:.2g}% of the energy's changes: "
+            "the input explains almost nothing of the motion (the right column? the right "
+            "work?)"]
 
 
 def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: Any,
