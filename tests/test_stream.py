@@ -481,3 +481,15 @@ def test_both_sources_have_the_members_of_a_source(unchecked_file):
     assert chunks.scales() == whole.scales()
     np.testing.assert_array_equal(chunks.whole().X, whole.whole().X)
     assert chunks.locate(1000) == whole.locate(1000) == (unchecked_file, 1001)
+
+
+def test_each_line_carries_the_checks_skipped(unchecked_file, noisy_files):
+    _, paths = noisy_files
+    done = CliRunner().invoke(cli, ["fit", "--each", unchecked_file, paths["csv"],
+                                    "--chunk-rows", "250", "--format", "jsonl"])
+    assert done.exit_code in (0, 3), done.output
+    lines = [json.loads(line) for line in done.stdout.splitlines()]
+    assert [line["source"] for line in lines] == [unchecked_file, paths["csv"]]
+    for line in lines:
+        assert line["status"] == "ok"
+        assert [skip["check"] for skip in line["checks_skipped"]] == SKIPPED_IN_CHUNKS
