@@ -4,15 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from hamid.data import input_size, loading
 from hamid.data.records import Recording
-from hamid.errors import UsageError
 from hamid.executor import one_blas_thread
-from hamid.linear import estimate, plan
-from hamid.linear.design import Block
+from hamid.linear import chunked, estimate, plan
 from hamid.linear.unknowns import Unknowns
 from hamid.model.models import Model, load_model
 from hamid.options import SAVGOL_ORDER, FitOptions
@@ -153,73 +151,52 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
          chunks: int | None, run: ProvenanceInfo,
          progress: Callable[[str], None] | None) -> FitResult:
     """The fit of `fit`, its options checked and standard input in a file."""
-    # records: whole, or a file to pass over in chunks
-    if chunks is None:
-        source = loading.load(data, model, opts)
-        sigma, noise_info = loading.noise_levels(source, opts.noise)
-        if (opts.damping or source.model.dissipation) and source.records.t is None:
-            raise UsageError("damping needs a time column (the dissipated work is an "
-                             "integral over time); name it with --time COL")
-    else:
-        source = loading.open_chunks(data, model, opts, chunks, progress)
-        sigma, noise_info = None, None
+    # the records: whole, or a file to pass over in chunks (the same `loading.Source`)
+    source = (loading.load(data, model, opts) if chunks is None
+              else loading.open_chunks(data, model, opts, chunks, progress))
+    sigma, noise_info = loading.noise_levels(source, opts.noise)
     m = source.model
     damping_forces = m.dissipative(opts.damping)
     unknowns = Unknowns.of(m, damping_forces.names, opts.fix)
     # plan, then the linear estimate
     fit_plan = plan.decide(opts, m, source.scales() if opts.method != "energy" else None)
-    if chunks is None:
-        linear, fit_plan, rows = estimate.fit_rows(source, unknowns, damping_forces, fit_plan,
-                                                   opts, sigma)
-        energy_rows: Iterable[Block] = rows.pieces()
-    else:
-        from hamid.linear import chunked
-
-        linear, fit_plan = chunked.fit_chunks(source, unknowns, fit_plan, opts)
-        chunk_rows_of = chunked.energy_rows(source, unknowns)
-        energy_rows = (chunk_rows_of(records, row)
-                       for records, row in source.rows("residual summary"))
+    step = chunked.linear_fit(source, unknowns, damping_forces, fit_plan, opts, sigma)
+    linear, fit_plan, rows = step.fit, step.plan, step.rows
     # refine
     fitted, refinement = linear, None
     if opts.method == "auto" and fit_plan.kind == "joint":
-        n_samples = int(linear.sizes.sum())
-        obstacle = plan.refinement_obstacle(
-            opts, None if chunks is None else 8 * n_samples * (len(m.variables) + 2))
+        obstacle = plan.refinement_obstacle(opts, source.whole_bytes())
         if obstacle is None:
-            records = source.records if chunks is None else source.whole(n_samples)
+            records = source.whole()
             given = sigma if isinstance(opts.noise, Mapping) else None   # not --noise auto
-            if chunks is None:   # the energy rows of every sample, made again after it
+            if rows is not None:   # the energy rows of every sample, made again after it
                 rows.release()
             refined, refinement = joint_refinement.refine(
                 linear, m, records, damping_forces, unknowns, fit_plan, given,
-                opts.velocity == "savgol",
-                                                rows if chunks is None else None, progress,
-                                                opts.jobs)
+                opts.velocity == "savgol", rows, progress, opts.jobs)
             fitted = refined or linear
             del records
         else:
             refinement = {"applied": False, "reason": obstacle}
         fit_plan = fit_plan.refined(refinement)
-    residuals = fitted.residuals or estimate.residual_sums(energy_rows, fitted.theta, fitted.h)
+    residuals = fitted.residuals or estimate.residual_sums(step.energy_pieces(), fitted.theta,
+                                                           fitted.h)
     if fitted is not linear:
         errors = joint_refinement.level_errors(fitted, residuals)
         fitted = dataclasses.replace(fitted, h_stderr=errors)
-    # result
-    if chunks is not None:
-        provenance = summary.Provenance(source.data_info(linear.sizes, opts), source.labels,
-                                        source.truth, source.notes + source.reader.notes)
-        return summary.fit_result(m, unknowns, fitted, residuals, fit_plan, opts, provenance,
-                                  refinement, run=run)
-    labels = source.records.labels
+    # the checks (those a pass in chunks cannot make said in `checks_skipped`), the result
+    noise_check = None if rows is None else estimate.noise_check(
+        source, rows, linear if fitted is linear else None, unknowns, damping_forces, opts, sigma)
     provenance = summary.Provenance(
-        source.data_info, labels, source.truth,
+        source.data_info, source.labels, source.truth,
         source.notes + tuple(plan.window_warnings(fit_plan, source.durations())), noise_info,
-        estimate.noise_check(source, rows, linear if fitted is linear else None, unknowns,
-                             damping_forces, opts, sigma))
+        noise_check, step.skipped)
     result = summary.fit_result(
         m, unknowns, fitted, residuals, fit_plan, opts, provenance, refinement,
         dissipation=summary.dissipation_summary(m, source, damping_forces,
-                                                unknowns.estimates(fitted.theta),
-                                                rows.all_energy, fitted.h),
-        samples=summary.samples(rows, fitted, m, unknowns, fit_plan, labels), run=run)
-    return dataclasses.replace(result, recording=Recording(m, source.records))  # for plot()
+                                                unknowns.estimates(fitted.theta), rows, fitted.h),
+        samples=None if rows is None else summary.samples(rows, fitted, m, unknowns, fit_plan,
+                                                          source.labels), run=run)
+    if rows is None:   # no records in memory, for plot()
+        return result
+    return dataclasses.replace(result, recording=Recording(m, source.whole()))

@@ -39,7 +39,7 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid import safe_text
-from hamid.data import loading, measurement
+from hamid.data import input_size, loading, measurement
 from hamid.data.records import Recording, Records
 from hamid.errors import DataError, ModelError, UsageError
 from hamid.linear import design
@@ -334,7 +334,7 @@ def _errors(recorded: Array, predicted: Array,
 
 def _sources(data: Any) -> list[str]:
     """Helper: the data's names as given (a DataFrame has none)."""
-    if loading.in_memory_table(data) is not None:
+    if input_size.in_memory_table(data) is not None:
         return []
     return [str(d) for d in ([data] if isinstance(data, str) else data)]
 

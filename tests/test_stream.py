@@ -3,6 +3,8 @@ memory."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -12,9 +14,12 @@ from conftest import PENG, with_noise
 import hamid
 from hamid import options
 from hamid.cli.app import cli
-from hamid.data import input_size, readers, writing
+from hamid.data import input_size, loading, measurement, readers, writing
+from hamid.data.records import Records
 from hamid.errors import DataError, UsageError
-from hamid.linear import chunked, design, plan
+from hamid.linear import chunked, design, estimate, plan
+from hamid.result import validation
+from hamid.result.fit_result import FitResult
 
 
 @pytest.fixture(scope="module")
@@ -351,3 +356,140 @@ def test_a_joint_fit_in_chunks_holds_no_more_for_a_longer_file(tmp_path, monkeyp
 
     small, large = peak(2), peak(8)
     assert large < 1.25 * small
+
+
+# --- the same checks whole and in chunks (issue 34: one source interface) ---
+
+@pytest.fixture(scope="module")
+def unchecked_file(noisy_files, tmp_path_factory):
+    """Noisy peng-quadratic records whose velocity 'v1' is twice the positions' rate (the
+    velocity check says so) with a trajectory shorter than the weak-form window (the window
+    check says so), as CSV."""
+    frame, _ = noisy_files
+    doubled = frame.copy()
+    doubled["v1"] *= 2
+    short = doubled[doubled.trajectory == 1].iloc[:30].copy()
+    short["trajectory"] = 9
+    data = pd.concat([doubled, short], ignore_index=True)
+    path = str(tmp_path_factory.mktemp("checks") / "unchecked.csv")
+    writing.write_table(data, path, metadata=frame.attrs["hamid"])
+    return path
+
+
+SKIPPED_IN_CHUNKS = ["noise check", "residuals per sample", "records for plotting"]
+
+
+@pytest.mark.parametrize("method", ["weak", "energy"])
+def test_chunks_make_the_checks_of_a_whole_read_or_name_them(unchecked_file, method):
+    whole = hamid.fit(unchecked_file, method=method, in_memory=True)
+    chunks = hamid.fit(unchecked_file, method=method, chunk_rows=250)
+    assert whole.checks_skipped == ()
+    assert "checks_skipped" not in whole.to_dict()
+    assert [skip["check"] for skip in chunks.checks_skipped] == SKIPPED_IN_CHUNKS
+    assert all(skip["reason"] for skip in chunks.checks_skipped)
+    assert chunks.warnings == whole.warnings
+    assert any("'u1' change 0.5 times as fast as the velocities 'v1'" in w
+               for w in chunks.warnings)
+    if method == "weak":
+        assert any("1 of 3 trajectories are shorter than the weak-form window" in w
+                   for w in chunks.warnings)
+    assert whole.samples is not None and whole.recording is not None
+    assert chunks.samples is None and chunks.recording is None
+    assert chunks.data == whole.data
+
+
+def test_what_chunks_skip_is_the_noise_check_whole(noisy_files, tmp_path, monkeypatch):
+    """With noise the check sees, the warnings of a whole read are those of the chunked one
+    and those of the noise check, which the chunked fit names as skipped."""
+    frame, _ = noisy_files
+    path = str(tmp_path / "noisier.csv")
+    writing.write_table(with_noise(frame, 0.05, seed=7), path, metadata=frame.attrs["hamid"])
+    whole = hamid.fit(path, method="energy", in_memory=True)
+    chunks = hamid.fit(path, method="energy", chunk_rows=300)
+    monkeypatch.setattr(estimate, "noise_check", lambda *args: None)
+    unchecked = hamid.fit(path, method="energy", in_memory=True)
+    noise_warnings = set(whole.warnings) - set(unchecked.warnings)
+    assert noise_warnings   # the noise check says something of these data
+    assert chunks.warnings == unchecked.warnings
+    assert set(whole.warnings) - set(chunks.warnings) == noise_warnings
+    assert "noise check" in [skip["check"] for skip in chunks.checks_skipped]
+
+
+@pytest.mark.parametrize("size", [1, 7, 8, 9, 40, 777])
+def test_velocity_sums_in_chunks_are_those_of_the_records_whole(noisy_files, size):
+    frame, _ = noisy_files
+    sorted_frame = frame.sort_values(["trajectory", "t"], kind="stable")
+    X = sorted_frame[["u1", "u2", "v1", "v2"]].to_numpy()
+    X[:, 2] *= 1.5
+    t = sorted_frame["t"].to_numpy()
+    lengths = [5, 3] + [len(t) - 8]   # two short trajectories, then the rest as one
+    group = np.repeat(np.arange(3), lengths)
+    t = np.concatenate([t[:5], t[5:8], t[8:]])
+    records = Records(X, t, group, ())
+    expected = measurement.velocity_check(records, ["u1", "u2"], ["v1", "v2"], {}, 2.0)
+    sums = measurement.VelocitySums(2)
+    for start in range(0, len(t), size):
+        sums.add(records.slice(start, start + size), ended=False)
+    sums.end()
+    assert sums.warnings(["u1", "u2"], ["v1", "v2"], {}, 2.0) == expected
+    assert any("'u1' change" in w for w in expected)
+    whole = measurement.VelocitySums(2)
+    whole.add(records)
+    np.testing.assert_allclose(sums.normal, whole.normal, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(sums.right, whole.right, rtol=1e-12, atol=0)
+    assert sums.count.tolist() == whole.count.tolist() and sums.span == whole.span
+
+
+def test_the_command_line_reports_the_checks_skipped(unchecked_file):
+    runner = CliRunner()
+    done = runner.invoke(cli, ["fit", unchecked_file, "--chunk-rows", "250", "--format",
+                               "json"])
+    assert done.exit_code == 0, done.output
+    report = json.loads(done.stdout)
+    validation.check_result(report)
+    assert [skip["check"] for skip in report["checks_skipped"]] == SKIPPED_IN_CHUNKS
+    whole = runner.invoke(cli, ["fit", unchecked_file, "--format", "json"])
+    assert "checks_skipped" not in json.loads(whole.stdout)
+    table = runner.invoke(cli, ["fit", unchecked_file, "--chunk-rows", "250",
+                                "--format", "table"])
+    assert table.exit_code == 0, table.output
+    shown = " ".join(table.stdout.split())
+    for check in SKIPPED_IN_CHUNKS:
+        assert f"skipped: {check}:" in shown
+
+
+def test_checks_skipped_survive_a_report_read_again(unchecked_file):
+    chunks = hamid.fit(unchecked_file, method="energy", chunk_rows=250)
+    again = FitResult.from_dict(json.loads(json.dumps(chunks.to_dict())))
+    assert again.checks_skipped == chunks.checks_skipped
+    assert "skipped: noise check:" in " ".join(again.summary().split())
+
+
+def test_both_sources_have_the_members_of_a_source(unchecked_file):
+    opts = options.FitOptions()
+    whole = loading.load(unchecked_file, None, opts)
+    chunks = loading.open_chunks(unchecked_file, None, opts, 250, None)
+    members = [name for name in dir(loading.Source) if not name.startswith("_")]
+    assert {"model", "labels", "truth", "notes", "data_info", "scales", "durations",
+            "locate", "rows", "whole", "whole_bytes"} <= set(members)
+    for name in members:
+        assert hasattr(whole, name) and hasattr(chunks, name), name
+    assert chunks.labels == whole.labels
+    assert chunks.data_info == whole.data_info
+    assert chunks.notes == whole.notes
+    assert chunks.durations() == pytest.approx(whole.durations(), rel=1e-12)
+    assert chunks.scales() == whole.scales()
+    np.testing.assert_array_equal(chunks.whole().X, whole.whole().X)
+    assert chunks.locate(1000) == whole.locate(1000) == (unchecked_file, 1001)
+
+
+def test_each_line_carries_the_checks_skipped(unchecked_file, noisy_files):
+    _, paths = noisy_files
+    done = CliRunner().invoke(cli, ["fit", "--each", unchecked_file, paths["csv"],
+                                    "--chunk-rows", "250", "--format", "jsonl"])
+    assert done.exit_code in (0, 3), done.output
+    lines = [json.loads(line) for line in done.stdout.splitlines()]
+    assert [line["source"] for line in lines] == [unchecked_file, paths["csv"]]
+    for line in lines:
+        assert line["status"] == "ok"
+        assert [skip["check"] for skip in line["checks_skipped"]] == SKIPPED_IN_CHUNKS

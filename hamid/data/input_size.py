@@ -1,6 +1,7 @@
 """An input before it is read: the memory its table takes once decoded, which decides
 whether a fit reads it in chunks, and standard input kept in a temporary file, so that it
-is read (in chunks too) like any file.
+is read (in chunks too) like any file; data given in memory (a DataFrame, a dict of arrays)
+read as a table.
 
 A file's size on disk says little about the memory it needs: a Parquet file of
 repetitive data decodes to five times its size, and compressed text to many times more.
@@ -16,14 +17,17 @@ import errno
 import os
 import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from hamid.data import compressed, lab_formats, readers, text_layout
 from hamid.errors import DataError
 
-__all__ = ["Spooled", "decoded_bytes", "name_of", "spooled"]
+__all__ = ["Spooled", "decoded_bytes", "in_memory_name", "in_memory_table", "name_of",
+           "spooled"]
 
 # The start of a text file whose rows are counted: enough lines for a steady mean.
 SAMPLE_BYTES = 1 << 20
@@ -214,3 +218,40 @@ def _unkept(exc: OSError) -> DataError:
     return DataError(f"{readers.STDIN}: cannot keep it in a temporary file in {folder} "
                      f"({readers.os_reason(exc)}); set TMPDIR to a folder with room, or give "
                      "a file")
+
+
+def in_memory_name(data: Any) -> str | None:
+    """The name of data given in memory, in messages and the report's sources:
+    ``<DataFrame>`` (pandas), ``<array>`` (a NumPy structured array) or ``<dict>`` (a
+    mapping of column name to array); None for files."""
+    pandas = sys.modules.get("pandas")   # no import: a DataFrame needs pandas loaded
+    if pandas is not None and isinstance(data, pandas.DataFrame):
+        return "<DataFrame>"
+    if isinstance(data, np.ndarray) and data.dtype.names:
+        return "<array>"
+    return "<dict>" if isinstance(data, Mapping) else None
+
+
+def in_memory_table(data: Any) -> tuple[str, Mapping[str, Any], Any] | None:
+    """Data given in memory as a table, read as a file's columns would be: its name
+    (`in_memory_name`), its columns and its metadata (a DataFrame's ``attrs["hamid"]``);
+    None for files."""
+    name = in_memory_name(data)
+    if name == "<DataFrame>":
+        # the columns of a frame without its attrs: pandas deep-copies them on every column
+        # taken, and a simulated record's provenance lists every trajectory (5,000
+        # trajectories: a second of copies)
+        return name, type(data)(data, copy=False), data.attrs.get("hamid")
+    if name == "<array>":
+        return name, {field: data[field] for field in data.dtype.names}, None
+    if name is None:
+        return None
+    columns = {str(key): np.asarray(values) for key, values in data.items()}
+    for key, values in columns.items():
+        if values.ndim != 1:
+            raise DataError(f"{name}: column {key!r} has shape {values.shape}; give one "
+                            "one-dimensional array per column")
+    if len({len(values) for values in columns.values()}) > 1:
+        listed = ", ".join(f"{key}: {len(values)}" for key, values in columns.items())
+        raise DataError(f"{name}: the columns have different lengths ({listed})")
+    return name, columns, None

@@ -14,12 +14,12 @@ import os
 import sys
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from hamid.data import column_roles, input_size, measurement, readers
-from hamid.data.records import Records, medians_by, runs
+from hamid.data.records import GAP_STEPS, Records, locate, runs, split_gaps
 from hamid.errors import DataError, UsageError
 from hamid.linear import design
 from hamid.model.dissipation import shorthand_names
@@ -33,19 +33,53 @@ from hamid.model.models import (
 )
 from hamid.options import FitOptions
 
-__all__ = ["Chunked", "Loaded", "in_memory_name", "in_memory_table", "load", "open_chunks",
-           "trajectory_label"]
+__all__ = ["Chunked", "Loaded", "Source", "Survey", "load",
+           "open_chunks", "trajectory_label"]
 
 # Times beyond this overflow in the sums of squares the residual summary takes; time
 # steps below the smallest underflow in the weak form's integrals (1e-150 gave a division
 # by zero, 1e-300 an SVD that did not converge).
 _LARGEST_TIME, _SMALLEST_STEP = 1e150, 1e-100
-_IN_MEMORY = ("<DataFrame>", "<dict>", "<array>")   # `in_memory_name`
+_IN_MEMORY = ("<DataFrame>", "<dict>", "<array>")   # `input_size.in_memory_name`
+
+
+class Source(Protocol):
+    """Data to fit, read whole (`Loaded`) or a pass at a time (`Chunked`): the same members,
+    so that the fit (`hamid.api`) takes the same steps and makes the same checks of both."""
+
+    @property
+    def model(self) -> Model: ...
+    @property
+    def labels(self) -> tuple[Any, ...]:
+        """Each trajectory's label, in order of their numbers."""
+    @property
+    def truth(self) -> dict[str, float]:
+        """The true parameters a simulated file records for the model, else none."""
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """What the report says of how the data were read, and of the checks of them."""
+    @property
+    def data_info(self) -> dict[str, Any]:
+        """What the report says about the data (docs/output.md, `data`)."""
+    def scales(self) -> list[tuple[float | None, float]] | None:
+        """Each trajectory's period and time step, None without a time column."""
+    def locate(self, row: int) -> tuple[str, int]:
+        """The source and 1-based data row of a row read (0-based, all sources)."""
+    def durations(self) -> list[float] | None:
+        """Each trajectory's length in seconds, None without a time column."""
+    def rows(self, purpose: str) -> Iterator[tuple[Records, int]]:
+        """The records a chunk at a time, with the row of each chunk's first, in a pass
+        for `purpose`; records read whole are one chunk."""
+    def whole(self) -> Records:
+        """All the records in memory (for the trajectory refinement)."""
+    def whole_bytes(self) -> int | None:
+        """The memory `whole` takes anew, None when the records are in memory already."""
 
 
 @dataclass(frozen=True)
 class Loaded:
-    """Records read whole, the model, and what the report says about the data."""
+    """Records read whole, the model, and what the report says about the data (a
+    `Source`)."""
 
     model: Model
     records: Records
@@ -63,8 +97,7 @@ class Loaded:
         """The source and 1-based data row of a row of the records."""
         if self.file_rows is not None:
             row = int(self.file_rows[row])
-        source, first = next((s, f) for s, f in reversed(self.row_sources) if f <= row)
-        return source, row - first + 1
+        return locate(self.row_sources, row)
 
     def scales(self) -> list[tuple[float | None, float]] | None:
         """Each trajectory's period and time step, None without a time column."""
@@ -76,11 +109,28 @@ class Loaded:
         return None if t is None else [float(t[stop - 1] - t[start])
                                        for start, stop in self.records.bounds()]
 
+    @property
+    def labels(self) -> tuple[Any, ...]:
+        """Each trajectory's label."""
+        return self.records.labels
+
+    def rows(self, purpose: str) -> Iterator[tuple[Records, int]]:
+        """The records, as one chunk."""
+        yield self.records, 0
+
+    def whole(self) -> Records:
+        """The records."""
+        return self.records
+
+    def whole_bytes(self) -> None:
+        """None: the records are in memory."""
+        return None
+
 
 def load(data: Any, model: str | os.PathLike[str] | Model | None,
          options: FitOptions) -> Loaded:
     """Read the sources whole, settle the model and arrange the rows by trajectory."""
-    table = in_memory_table(data)
+    table = input_size.in_memory_table(data)
     if table is not None:
         tables = [table]
     else:
@@ -136,7 +186,7 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
     if arrow is not None:
         arrow.default_memory_pool().release_unused()
     row_sources = tuple((name, int(f)) for name, f in zip(sources, firsts, strict=True))
-    records, file_rows = _split_gaps(records, options.gaps, row_sources, notes)
+    records, file_rows = split_gaps(records, options.gaps, row_sources, notes)
     labels = list(records.labels)
     # from the coordinates, which a derivation of the velocities leaves as they are
     scales = (None if records.t is None
@@ -156,6 +206,14 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
                            mapping, options, units)
     if derivation:
         data_info.update(velocity_window=derivation[0], velocity_order=options.order)
+    if (options.damping or m.dissipation) and records.t is None:
+        raise UsageError("damping needs a time column (the dissipated work is an integral "
+                         "over time); name it with --time COL")
+    if m.forcing is not None and records.t is None:
+        raise UsageError("a [forcing] needs a time column (the input's work is an integral "
+                         "over time); name it with --time COL")
+    if m.forcing is not None:
+        data_info["inputs"] = {name: mapping[name] for name in m.inputs}
     return Loaded(m, records, _truth(metadata, m), data_info, tuple(notes),
                   derivation[1] if derivation else None, row_sources, scales, file_rows)
 
@@ -170,7 +228,7 @@ class Reader:
                  scales: Mapping[str, float] | None = None, missing_ok: bool = False,
                  chunked: bool = False) -> None:
         self.model, self.mapping, self.source = model, mapping, source
-        # Missing cells read as NaN (for `_split_gaps`), else they are errors.
+        # Missing cells read as NaN (for `records.split_gaps`), else they are errors.
         self.missing_ok = missing_ok
         # Read in chunks: time gaps are refused (`_refuse_gaps`), with each trajectory's
         # median step.
@@ -260,7 +318,7 @@ class Reader:
                 before = np.concatenate([[np.nan if last_t is None else last_t], t[:-1]])
                 same = np.ones(n, dtype=bool)
                 same[starts] = False
-                # a missing time is cut at by `_split_gaps`
+                # a missing time is cut at by `records.split_gaps`
                 bad = np.flatnonzero(same & ~(t > before) & ~np.isnan(t) & ~np.isnan(before))
                 if bad.size:
                     k = int(bad[0])
@@ -280,7 +338,7 @@ class Reader:
 
     def _refuse_gaps(self, steps: np.ndarray, same: np.ndarray, group: np.ndarray,
                      row: int) -> None:
-        """A file read in chunks is not cut at time gaps (`_split_gaps` cuts records in
+        """A file read in chunks is not cut at time gaps (`records.split_gaps` cuts records in
         memory): a step over `GAP_STEPS` times its trajectory's median step in the first
         chunk that holds three of its rows is an error, not a different fit."""
         reference = np.empty(len(group))
@@ -317,18 +375,74 @@ class Reader:
         return keys
 
 
-@dataclass(frozen=True)
+class Survey:
+    """What a pass over a file read in chunks learns of its trajectories, for the checks
+    that a fit in memory makes of its records: each trajectory's samples and time span, its
+    first `design.SCALE_SAMPLES` samples for its period and time step, and the velocity
+    check's sums (`measurement.VelocitySums`)."""
+
+    def __init__(self, n_coordinates: int, has_time: bool) -> None:
+        self.N = n_coordinates
+        self.sizes: list[int] = []
+        self.spans: list[list[float]] = []   # each trajectory's first and last time
+        self.scales: list[tuple[float | None, float]] | None = [] if has_time else None
+        self.velocity = measurement.VelocitySums(n_coordinates) if has_time else None
+        self._held: list[Records] = []   # the first samples of the open trajectory
+        self._kept = 0
+
+    def add(self, records: Records) -> None:
+        """A chunk's records."""
+        if self.velocity is not None:
+            self.velocity.add(records, ended=False)
+        for j, start, stop in runs(records.group):
+            if j == len(self.sizes):   # a trajectory begins
+                self._scale()
+                self.sizes.append(0)
+                self.spans.append([np.nan, np.nan] if records.t is None
+                                  else [float(records.t[start]), np.nan])
+            self.sizes[j] += stop - start
+            if records.t is not None:
+                self.spans[j][1] = float(records.t[stop - 1])
+                stop = min(stop, start + design.SCALE_SAMPLES - self._kept)
+                if stop > start:
+                    self._held.append(records.slice(start, stop))
+                    self._kept += stop - start
+
+    def end(self) -> None:
+        """The end of the pass."""
+        self._scale()
+        if self.velocity is not None:
+            self.velocity.end()
+
+    def _scale(self) -> None:
+        """The period and step of the trajectory whose first samples are held."""
+        if self._held and self.scales is not None:
+            t = np.concatenate([r.t for r in self._held])
+            X = np.vstack([r.X[:, :self.N] for r in self._held])
+            self.scales.extend(design.trajectory_scales(
+                Records(X, t, np.zeros(len(t), np.int64), (0,)), self.N))
+        self._held, self._kept = [], 0
+
+    def durations(self) -> list[float] | None:
+        """Each trajectory's length in seconds, None without a time column."""
+        return None if self.scales is None else [last - first for first, last in self.spans]
+
+
+@dataclass(eq=False)
 class Chunked:
-    """One file read in chunks of rows, a pass at a time (`hamid.linear.chunked`)."""
+    """One file read in chunks of rows, a pass at a time (`hamid.linear.chunked`; a
+    `Source`). The first whole pass surveys the trajectories (`Survey`)."""
 
     model: Model
-    notes: tuple[str, ...]
+    read_notes: tuple[str, ...]
     truth: dict[str, float]
     table: readers.TableChunks
     reader: Reader
     chunk_rows: int
     progress: Callable[[str], None] | None
     units: dict[str, Any]
+    options: FitOptions
+    survey: Survey | None = None   # set by the first pass read to its end
 
     @property
     def labels(self) -> tuple[Any, ...]:
@@ -349,45 +463,61 @@ class Chunked:
                     row += len(chunk[self.reader.columns[0]])
 
         row = 0
+        survey = None if self.survey else Survey(len(self.model.coordinates),
+                                                 self.reader.time is not None)
         # closed when an error stops the pass, not when the interpreter exits: the file's
         # reader and the thread reading ahead for it end here
         with contextlib.closing(chunks()) as pieces:
             for records in self.reader.read(pieces):
+                if survey is not None:
+                    survey.add(records)
                 yield records, row
                 row += len(records.group)
+        if survey is not None:
+            survey.end()
+            self.survey = survey
+
+    def locate(self, row: int) -> tuple[str, int]:
+        """The file and its 1-based data row of a row read (0-based)."""
+        return self.table.name, row + 1
+
+    def surveyed(self) -> Survey:
+        """The survey of the trajectories, made in a pass of its own if none was read to its
+        end yet."""
+        if self.survey is None:
+            for _ in self.rows("periods of the trajectories"):
+                pass
+        assert self.survey is not None
+        return self.survey
 
     def scales(self) -> list[tuple[float | None, float]] | None:
         """Each trajectory's period and time step, from the first samples of each that
-        `design.trajectory_scales` looks at, which are held until the trajectory ends."""
-        if self.reader.time is None:
-            return None
-        scales: list[tuple[float | None, float]] = []
-        held: list[Records] = []
-        kept = 0   # samples of the current trajectory held
-        N = len(self.model.coordinates)
+        `design.trajectory_scales` looks at (`Survey`)."""
+        return self.surveyed().scales
 
-        def finish() -> None:
-            if held:
-                t = np.concatenate([r.t for r in held])
-                X = np.vstack([r.X[:, :N] for r in held])
-                scales.extend(design.trajectory_scales(
-                    Records(X, t, np.zeros(len(t), np.int64), (0,)), N))
-                held.clear()
+    def durations(self) -> list[float] | None:
+        """Each trajectory's length in seconds, None without a time column."""
+        return self.surveyed().durations()
 
-        for records, _ in self.rows("periods of the trajectories"):
-            for j, start, stop in runs(records.group):
-                if held and held[-1].group[0] != j:
-                    finish()
-                    kept = 0
-                stop = min(stop, start + design.SCALE_SAMPLES - kept)
-                if stop > start:
-                    held.append(records.slice(start, stop))
-                    kept += stop - start
-        finish()
-        return scales
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """What the report says of how the file was read, and the velocity check's
+        warnings."""
+        survey, m = self.surveyed(), self.model
+        checked = [] if survey.velocity is None else survey.velocity.warnings(
+            m.coordinates, m.velocities, self.reader.mapping,
+            design.median_period(survey.scales) if survey.scales else None)
+        return (*self.read_notes, *self.reader.notes, *checked)
 
-    def whole(self, n_samples: int) -> Records:
+    @property
+    def data_info(self) -> dict[str, Any]:
+        """What the report says about the data."""
+        return _data_info([self.table.name], sum(self.surveyed().sizes), len(self.labels),
+                          self.reader.mapping, self.options, self.units)
+
+    def whole(self) -> Records:
         """All the records of the file, for the trajectory refinement."""
+        n_samples = sum(self.surveyed().sizes)
         X = np.empty((n_samples, len(self.model.variables)))
         t = np.empty(n_samples)
         group = np.empty(n_samples, dtype=np.int64)
@@ -396,10 +526,9 @@ class Chunked:
             X[rows], t[rows], group[rows] = records.X, records.t, records.group
         return Records(X, t, group, self.labels)
 
-    def data_info(self, sizes: np.ndarray, options: FitOptions) -> dict[str, Any]:
-        """What the report says about the data, once a pass has counted the samples."""
-        return _data_info([self.table.name], int(sizes.sum()), len(self.labels),
-                          self.reader.mapping, options, self.units)
+    def whole_bytes(self) -> int:
+        """The bytes of the records in memory, with their times and trajectories."""
+        return 8 * sum(self.surveyed().sizes) * (len(self.model.variables) + 2)
 
 
 def open_chunks(path: str | os.PathLike[str], model: str | os.PathLike[str] | Model | None,
@@ -421,8 +550,9 @@ def open_chunks(path: str | os.PathLike[str], model: str | os.PathLike[str] | Mo
     notes.extend(units["notes"])
     reader = Reader(m, mapping, time, trajectory, table.name,
                     typed=table.format == "parquet", scales=units["scale"], chunked=True)
-    return Chunked(m, tuple(notes), _truth(table.metadata, m), table, reader, chunk_rows,
-                   progress, units)
+    return Chunked(model=m, read_notes=tuple(notes), truth=_truth(table.metadata, m),
+                   table=table, reader=reader, chunk_rows=chunk_rows, progress=progress,
+                   units=units, options=options)
 
 
 def _data_info(sources: list[str], n_samples: int, n_trajectories: int,
@@ -606,90 +736,6 @@ def _truth(metadata: Mapping[str, Any] | None, m: Model) -> dict[str, float]:
     return {k: float(v) for k, v in values.items() if isinstance(v, int | float)}
 
 
-GAP_STEPS = 5.0   # a time step over this many times the median step is a gap
-SHORTEST_PIECE = 3   # pieces of fewer samples are dropped
-
-
-def _split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int], ...],
-                notes: list[str]) -> tuple[Records, Any]:
-    """Cut the trajectories at rows with a missing value (dropped) and at time steps over
-    `GAP_STEPS` times their trajectory's median step, into trajectories of their own (each
-    with its own energy level); nothing is interpolated. With ``gaps="error"`` a time gap is
-    an error (missing values already are). Returns the records and, when rows were dropped,
-    the row read of each row kept."""
-    missing = np.isnan(records.X).any(axis=1)
-    if records.U is not None:
-        missing |= np.isnan(records.U).any(axis=1)
-    if records.t is not None:
-        missing |= np.isnan(records.t)
-    kept = np.flatnonzero(~missing)
-    group, t = records.group, records.t
-    whole = len(kept) == len(group)   # no copies of the columns when nothing is missing
-    cut = np.zeros(len(kept), dtype=bool)
-    if not whole:
-        cut[1:] = (kept[1:] - kept[:-1] > 1) & (group[kept[1:]] == group[kept[:-1]])
-    n_gaps = 0
-    if t is not None and len(kept) > 1:
-        tk, gk = (t, group) if whole else (t[kept], group[kept])
-        steps = np.diff(tk)
-        same = gk[1:] == gk[:-1]
-        adjacent = same if whole else same & (kept[1:] - kept[:-1] == 1)
-        # the steps of a trajectory (gk[1:] is contiguous) and its median step
-        trajectory = np.concatenate([[0], np.cumsum(gk[2:] != gk[1:-1])])
-        median = medians_by(steps[adjacent], trajectory[adjacent], int(trajectory[-1]) + 1)
-        limit = np.where(np.isnan(median), np.inf, GAP_STEPS * median)[trajectory]
-        back = np.flatnonzero(same & ~(steps > 0))
-        if back.size:
-            source, row = _locate(row_sources, int(kept[back[0] + 1]))
-            raise DataError(f"{source}: row {row}: time does not increase across the missing "
-                            "values before it; sort the file by trajectory then time")
-        gap = same & (steps > limit)
-        if gap.any() and gaps == "error":
-            source, row = _locate(row_sources, int(kept[np.argmax(gap) + 1]))
-            raise DataError(f"{source}: row {row}: a time gap of {steps[np.argmax(gap)]:g} s "
-                            f"(over {GAP_STEPS:g} times the median step); give --gaps split "
-                            "to fit the pieces as separate trajectories")
-        n_gaps = int(gap.sum())
-        cut[1:] |= gap
-    n_dropouts = int(cut.sum()) - n_gaps
-    if not cut.any() and not missing.any():
-        return records, None
-    start = np.ones(len(kept), dtype=bool)
-    start[1:] = cut[1:] | (group[kept[1:]] != group[kept[:-1]])
-    piece = np.cumsum(start) - 1
-    sizes = np.bincount(piece) if len(piece) else np.zeros(0, np.int64)
-    short = sizes < SHORTEST_PIECE
-    keep_rows = ~short[piece] if len(piece) else np.zeros(0, bool)
-    kept, piece = kept[keep_rows], piece[keep_rows]
-    if not len(kept):
-        raise DataError(f"{', '.join(source for source, _ in row_sources)}: no piece of "
-                        f"{SHORTEST_PIECE} samples or more is left once the trajectories are "
-                        "cut at missing values and time gaps; give --gaps error to see where")
-    # pieces in order of appearance, each numbered as a trajectory of its own
-    pieces, first = np.unique(piece, return_index=True)
-    owner = group[kept[first]].tolist()
-    count = np.bincount(owner)
-    labels, seen = [], {}
-    for j in owner:
-        seen[j] = seen.get(j, 0) + 1
-        label = records.labels[j]
-        labels.append(label if count[j] == 1 else f"{label}/{seen[j]}")
-    new_group = np.searchsorted(pieces, piece).astype(np.int64)
-    notes.append(f"{n_dropouts + n_gaps} cut(s) in the trajectories ({n_dropouts} at missing "
-                 f"values, {n_gaps} at time gaps over {GAP_STEPS:g} times the median step): "
-                 f"{len(labels)} trajectories fitted, each with its own energy level; "
-                 f"{int(missing.sum())} row(s) with missing values and "
-                 f"{int((~keep_rows).sum())} row(s) in pieces under {SHORTEST_PIECE} samples "
-                 "dropped, nothing interpolated (--gaps error refuses instead)")
-    return Records(records.X[kept], None if t is None else t[kept], new_group,
-                   tuple(labels), None if records.U is None else records.U[kept]), kept
-
-
-def _locate(row_sources: tuple[tuple[str, int], ...], row: int) -> tuple[str, int]:
-    source, first = next((s, f) for s, f in reversed(row_sources) if f <= row)
-    return source, row - first + 1
-
-
 def _derive_velocities(records: Records, model: Model, window: int | None, order: int,
                        period: float | None) -> tuple[Records, tuple[int, float]]:
     """Records whose velocities come from Savitzky-Golay differentiation of the positions
@@ -711,13 +757,12 @@ def _derive_velocities(records: Records, model: Model, window: int | None, order
     return dataclasses.replace(records, X=X), (window, gain)
 
 
-def noise_levels(loaded: Loaded,
+def noise_levels(loaded: Source,
                  noise: str | Mapping[str, float] | None) -> tuple[Any, dict[str, float] | None]:
     """Noise std per model variable, from the user or estimated; None without --noise."""
-    from hamid.data import measurement
-
     if noise is None or noise == "none":
         return None, None
+    assert isinstance(loaded, Loaded)   # noise weighting reads the records whole
     model, records = loaded.model, loaded.records
     N = len(model.coordinates)
     if noise == "auto":
@@ -753,40 +798,3 @@ def trajectory_label(value: Any) -> Any:
     as int (a column with missing cells is read as floats)."""
     value = value.item() if hasattr(value, "item") else value
     return int(value) if isinstance(value, float) and value.is_integer() else value
-
-
-def in_memory_name(data: Any) -> str | None:
-    """The name of data given in memory, in messages and the report's sources:
-    ``<DataFrame>`` (pandas), ``<array>`` (a NumPy structured array) or ``<dict>`` (a
-    mapping of column name to array); None for files."""
-    pandas = sys.modules.get("pandas")   # no import: a DataFrame needs pandas loaded
-    if pandas is not None and isinstance(data, pandas.DataFrame):
-        return "<DataFrame>"
-    if isinstance(data, np.ndarray) and data.dtype.names:
-        return "<array>"
-    return "<dict>" if isinstance(data, Mapping) else None
-
-
-def in_memory_table(data: Any) -> tuple[str, Mapping[str, Any], Any] | None:
-    """Data given in memory as a table, read as a file's columns would be: its name
-    (`in_memory_name`), its columns and its metadata (a DataFrame's ``attrs["hamid"]``);
-    None for files."""
-    name = in_memory_name(data)
-    if name == "<DataFrame>":
-        # the columns of a frame without its attrs: pandas deep-copies them on every column
-        # taken, and a simulated record's provenance lists every trajectory (5,000
-        # trajectories: a second of copies)
-        return name, type(data)(data, copy=False), data.attrs.get("hamid")
-    if name == "<array>":
-        return name, {field: data[field] for field in data.dtype.names}, None
-    if name is None:
-        return None
-    columns = {str(key): np.asarray(values) for key, values in data.items()}
-    for key, values in columns.items():
-        if values.ndim != 1:
-            raise DataError(f"{name}: column {key!r} has shape {values.shape}; give one "
-                            "one-dimensional array per column")
-    if len({len(values) for values in columns.values()}) > 1:
-        listed = ", ".join(f"{key}: {len(values)}" for key, values in columns.items())
-        raise DataError(f"{name}: the columns have different lengths ({listed})")
-    return name, columns, None

@@ -8,10 +8,11 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from hamid.data.records import Records, ranges
+from hamid.data.records import Records, ranges, runs
 from hamid.errors import DataError, UsageError
 
-__all__ = ["DIFFERENCE_ORDER", "estimate_noise", "savgol_velocities", "velocity_check"]
+__all__ = ["DIFFERENCE_ORDER", "VelocitySums", "estimate_noise", "savgol_velocities",
+           "velocity_check"]
 
 # Differences of this order remove a smooth signal (its k-th difference is ~ (w dt)^k) and
 # keep white noise, scaled by sqrt(C(2k, k)).
@@ -172,17 +173,22 @@ LAG_DAMPING_RATIO = 5e-4
 LAG_SIGNIFICANCE = 4.0   # standard errors: a lag the noise could fake is not said
 
 
-def _velocity_spans(records: Records) -> dict[int, npt.NDArray[np.intp]]:
+def _velocity_spans(records: Records,
+                    open_length: bool = False) -> dict[int, npt.NDArray[np.intp]]:
     """The spans of `velocity_check`: `VELOCITY_SPAN` samples, or all of a shorter
     trajectory's; for each length, the first sample of every span that has it, all
-    trajectories at once (a loop over them took a sixth of a fit of 5,000 short ones)."""
+    trajectories at once (a loop over them took a sixth of a fit of 5,000 short ones).
+    `open_length`: every trajectory is known to be longer than a span (the rest of one
+    whose first spans were taken already)."""
     bounds = np.array(records.bounds(), dtype=np.intp).reshape(-1, 2)
-    lengths = np.minimum(VELOCITY_SPAN, bounds[:, 1] - bounds[:, 0] - 1)
+    lengths = (np.full(len(bounds), VELOCITY_SPAN) if open_length
+               else np.minimum(VELOCITY_SPAN, bounds[:, 1] - bounds[:, 0] - 1))
     spans = {}
     for length in np.unique(lengths[lengths >= 1]):
         mine = bounds[lengths == length]
         # the spans in each trajectory
-        spans[int(length)] = ranges(mine[:, 0], mine[:, 1] - mine[:, 0] - length)
+        counts = np.maximum(mine[:, 1] - mine[:, 0] - length, 0)
+        spans[int(length)] = ranges(mine[:, 0], counts)
     return spans
 
 
@@ -190,7 +196,16 @@ def velocity_check(records: Records, coordinates: Sequence[str], velocities: Seq
                    mapping: Mapping[str, str], period: float | None) -> list[str]:
     """Warnings when the measured velocities disagree with the rate of change of the
     positions: a column in other units (mm with m/s), a wrong time unit, or a lag (a
-    velocity channel filtered after the fact).
+    velocity channel filtered after the fact); `VelocitySums` over all the records."""
+    sums = VelocitySums(len(coordinates))
+    sums.add(records)
+    return sums.warnings(coordinates, velocities, mapping, period)
+
+
+class VelocitySums:
+    """The sums of `velocity_check`'s regressions, added a piece of records at a time: a
+    file read in chunks adds each chunk's, the last samples of its open trajectory carried
+    into the next, so that the sums are those of the records read whole.
 
     Over spans of `VELOCITY_SPAN` samples, the change of each coordinate is regressed on
     the integral of its velocity and on the change of the velocity: x(t+s) - x(t) =
@@ -200,51 +215,114 @@ def velocity_check(records: Records, coordinates: Sequence[str], velocities: Seq
     `LAG_SIGNIFICANCE` standard errors from zero. Integrals rather than differences keep
     the position noise from being amplified.
     """
-    assert records.t is not None
-    N = len(coordinates)
-    warnings = []
-    spans = _velocity_spans(records)
-    span = max(spans, default=0)
-    for k, (q, v) in enumerate(zip(coordinates, velocities, strict=True)):
-        normal, right, squares, count = np.zeros((2, 2)), np.zeros(2), 0.0, 0
-        x, rate = records.X[:, k], records.X[:, N + k]
-        # the integral of the velocity from each trajectory's start (the trapezoids after
-        # its last sample, into the next one, are left out)
-        pieces = np.diff(records.t) * (rate[1:] + rate[:-1]) / 2
-        pieces[np.diff(records.group) != 0] = 0.0
-        integral = np.concatenate([[0.0], np.cumsum(pieces)])
-        for length, first in spans.items():
-            a = x[first + length] - x[first]
-            B = np.column_stack([integral[first + length] - integral[first],
-                                 rate[first + length] - rate[first]])
-            normal += B.T @ B
-            right += B.T @ a
-            squares, count = squares + float(a @ a), count + len(a)
-        if normal[0, 0] <= 0 or not np.all(np.isfinite(normal)):
-            continue
-        with np.errstate(all="ignore"):
-            ratio = right[0] / normal[0, 0]
-            fit = np.linalg.lstsq(normal, right, rcond=1e-12)[0]
-        if not np.isfinite(ratio):
-            continue
-        name_q, name_v = mapping.get(q, q), mapping.get(v, v)
-        if not 1 / VELOCITY_RATIO <= ratio <= VELOCITY_RATIO:
-            warnings.append(
-                f"the positions {name_q!r} change {ratio:.3g} times as fast as the "
-                f"velocities {name_v!r} say: are the units mixed (mm with m/s) or "
-                "the time unit wrong? Give --time-unit, or --scale COL=FACTOR")
-            continue
-        lag = float(fit[1] / fit[0])
-        # the lag's standard error from the residuals, the overlap of the spans counted
-        residual = max(squares - float(fit @ right), 0.0) / max(count - 2, 1)
-        with np.errstate(all="ignore"):
-            spread = math.sqrt(residual * abs(np.linalg.pinv(normal)[1, 1]) * span) / abs(fit[0])
-        if (period and np.isfinite(lag) and abs(lag) > LAG_SIGNIFICANCE * spread
-                and math.pi * abs(lag) / period > LAG_DAMPING_RATIO):
-            warnings.append(
-                f"the velocities {name_v!r} {'lag behind' if lag > 0 else 'run ahead of'} "
-                f"the positions {name_q!r} by {abs(lag):.3g} s ({abs(lag) / period:.2g} of a "
-                "period; a filtered channel?): that acts like a damping ratio of "
-                f"{'+' if lag < 0 else '-'}{math.pi * abs(lag) / period:.2g} and biases "
-                "damping estimates; derive the velocities with --velocity savgol")
-    return warnings
+
+    def __init__(self, n_coordinates: int) -> None:
+        N = n_coordinates
+        self.normal, self.right = np.zeros((N, 2, 2)), np.zeros((N, 2))
+        self.squares, self.count, self.span = np.zeros(N), np.zeros(N, np.int64), 0
+        self._carry: Records | None = None   # the open trajectory's samples not yet spanned
+        self._started = False   # whether spans of the open trajectory were taken
+
+    def add(self, records: Records, ended: bool = True) -> None:
+        """Add the spans of `records` (with a time column); with `ended` False their last
+        trajectory may go on in the next records added."""
+        if self._carry is not None:
+            carry = self._carry
+            records = Records(np.vstack([carry.X, records.X]),
+                              np.concatenate([carry.t, records.t]),
+                              np.concatenate([carry.group, records.group]), ())
+        self._carry = None
+        pieces = runs(records.group)
+        first = pieces[0][2] if pieces else 0
+        if self._started and (ended or len(pieces) > 1):   # the carried trajectory ends
+            self._sums(records.slice(0, first), open_length=True)
+            self._started = False
+            records = records.slice(first, None)
+            pieces = runs(records.group)
+        if not ended and pieces:
+            last = pieces[-1][1]
+            self._sums(records.slice(0, last))
+            records = records.slice(last, None)
+            if len(records.group) > VELOCITY_SPAN or self._started:
+                self._sums(records, open_length=True)
+                self._started = True
+                records = records.slice(len(records.group) - VELOCITY_SPAN, None)
+            self._carry = records
+        elif len(records.group):
+            self._sums(records, open_length=False)
+
+    def end(self) -> None:
+        """The end of the records: the trajectory carried ends."""
+        if self._carry is not None:
+            carry, self._carry = self._carry, None
+            self._sums(carry, open_length=self._started)
+            self._started = False
+
+    def _sums(self, records: Records, open_length: bool = False) -> None:
+        """Add the spans of whole trajectories (`open_length`: of their rest)."""
+        assert records.t is not None
+        if not len(records.group):
+            return
+        N = len(self.count)
+        spans = _velocity_spans(records, open_length)
+        self.span = max(self.span, *spans, 0)
+        for k in range(N):
+            self._add(k, records, spans)
+
+    def _add(self, k: int, records: Records, spans: dict[int, npt.NDArray[np.intp]]) -> None:
+        """Add the spans of coordinate `k`."""
+        assert records.t is not None
+        N = len(self.count)
+        with np.errstate(over="ignore", invalid="ignore"):
+            x, rate = records.X[:, k], records.X[:, N + k]
+            # the integral of the velocity from each trajectory's start (the trapezoids
+            # after its last sample, into the next one, are left out)
+            pieces = np.diff(records.t) * (rate[1:] + rate[:-1]) / 2
+            pieces[np.diff(records.group) != 0] = 0.0
+            integral = np.concatenate([[0.0], np.cumsum(pieces)])
+            for length, first in spans.items():   # not finite: no warning (`warnings`)
+                a = x[first + length] - x[first]
+                B = np.column_stack([integral[first + length] - integral[first],
+                                     rate[first + length] - rate[first]])
+                self.normal[k] += B.T @ B
+                self.right[k] += B.T @ a
+                self.squares[k] += float(a @ a)
+                self.count[k] += len(a)
+
+    def warnings(self, coordinates: Sequence[str], velocities: Sequence[str],
+                 mapping: Mapping[str, str], period: float | None) -> list[str]:
+        """What the sums say of each coordinate's velocity column."""
+        warnings = []
+        for k, (q, v) in enumerate(zip(coordinates, velocities, strict=True)):
+            normal, right = self.normal[k], self.right[k]
+            if normal[0, 0] <= 0 or not np.all(np.isfinite(normal)):
+                continue
+            with np.errstate(all="ignore"):
+                ratio = right[0] / normal[0, 0]
+                fit = np.linalg.lstsq(normal, right, rcond=1e-12)[0]
+            if not np.isfinite(ratio):
+                continue
+            name_q, name_v = mapping.get(q, q), mapping.get(v, v)
+            if not 1 / VELOCITY_RATIO <= ratio <= VELOCITY_RATIO:
+                warnings.append(
+                    f"the positions {name_q!r} change {ratio:.3g} times as fast as the "
+                    f"velocities {name_v!r} say: are the units mixed (mm with m/s) or "
+                    "the time unit wrong? Give --time-unit, or --scale COL=FACTOR")
+                continue
+            lag = float(fit[1] / fit[0])
+            # the lag's standard error from the residuals, the overlap of the spans counted
+            residual = (max(float(self.squares[k]) - float(fit @ right), 0.0)
+                        / max(int(self.count[k]) - 2, 1))
+            with np.errstate(all="ignore"):
+                spread = math.sqrt(residual * abs(np.linalg.pinv(normal)[1, 1])
+                                   * self.span) / abs(fit[0])
+            if (period and np.isfinite(lag) and abs(lag) > LAG_SIGNIFICANCE * spread
+                    and math.pi * abs(lag) / period > LAG_DAMPING_RATIO):
+                warnings.append(
+                    f"the velocities {name_v!r} "
+                    f"{'lag behind' if lag > 0 else 'run ahead of'} the positions {name_q!r} "
+                    f"by {abs(lag):.3g} s ({abs(lag) / period:.2g} of a period; a filtered "
+                    "channel?): that acts like a damping ratio of "
+                    f"{'+' if lag < 0 else '-'}{math.pi * abs(lag) / period:.2g} and biases "
+                    "damping estimates; derive the velocities with --velocity savgol")
+        return warnings

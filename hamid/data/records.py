@@ -1,18 +1,22 @@
-"""Recorded states, grouped by trajectory: what every step after loading works on."""
+"""Recorded states, grouped by trajectory: what every step after loading works on; and
+the cutting of records read whole at missing values and time gaps."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
 
+from hamid.errors import DataError
+
 if TYPE_CHECKING:
     from hamid.model.models import Model
 
-__all__ = ["Recording", "Records", "medians_by", "ranges", "runs"]
+__all__ = ["GAP_STEPS", "SHORTEST_PIECE", "Recording", "Records", "locate", "medians_by", "ranges",
+           "runs", "split_gaps"]
 
 
 @dataclass(frozen=True)
@@ -42,11 +46,6 @@ class Records:
         return Records(self.X[start:stop], None if self.t is None else self.t[start:stop],
                        self.group[start:stop], (),
                        None if self.U is None else self.U[start:stop])
-
-    def taken(self, rows: npt.NDArray[np.intp]) -> Records:
-        """The given rows (an index array), labels kept."""
-        return Records(self.X[rows], None if self.t is None else self.t[rows],
-                       self.group[rows], self.labels, None if self.U is None else self.U[rows])
 
     @cached_property
     def spread(self) -> npt.NDArray[np.float64]:
@@ -103,6 +102,92 @@ def medians_by(values: npt.NDArray[np.float64], ids: npt.NDArray[np.int64],
     high = ordered[(first + lengths // 2)[has]]
     medians[has] = np.where(lengths[has] % 2 == 1, low, (low + high) / 2)
     return medians
+
+
+GAP_STEPS = 5.0   # a time step over this many times the median step is a gap
+SHORTEST_PIECE = 3   # pieces of fewer samples are dropped
+
+
+def split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int], ...],
+               notes: list[str]) -> tuple[Records, Any]:
+    """Cut the trajectories at rows with a missing value (dropped) and at time steps over
+    `GAP_STEPS` times their trajectory's median step, into trajectories of their own (each
+    with its own energy level); nothing is interpolated. With ``gaps="error"`` a time gap is
+    an error (missing values already are). Returns the records and, when rows were dropped,
+    the row read of each row kept."""
+    missing = np.isnan(records.X).any(axis=1)
+    if records.U is not None:
+        missing |= np.isnan(records.U).any(axis=1)
+    if records.t is not None:
+        missing |= np.isnan(records.t)
+    kept = np.flatnonzero(~missing)
+    group, t = records.group, records.t
+    whole = len(kept) == len(group)   # no copies of the columns when nothing is missing
+    cut = np.zeros(len(kept), dtype=bool)
+    if not whole:
+        cut[1:] = (kept[1:] - kept[:-1] > 1) & (group[kept[1:]] == group[kept[:-1]])
+    n_gaps = 0
+    if t is not None and len(kept) > 1:
+        tk, gk = (t, group) if whole else (t[kept], group[kept])
+        steps = np.diff(tk)
+        same = gk[1:] == gk[:-1]
+        adjacent = same if whole else same & (kept[1:] - kept[:-1] == 1)
+        # the steps of a trajectory (gk[1:] is contiguous) and its median step
+        trajectory = np.concatenate([[0], np.cumsum(gk[2:] != gk[1:-1])])
+        median = medians_by(steps[adjacent], trajectory[adjacent], int(trajectory[-1]) + 1)
+        limit = np.where(np.isnan(median), np.inf, GAP_STEPS * median)[trajectory]
+        back = np.flatnonzero(same & ~(steps > 0))
+        if back.size:
+            source, row = locate(row_sources, int(kept[back[0] + 1]))
+            raise DataError(f"{source}: row {row}: time does not increase across the missing "
+                            "values before it; sort the file by trajectory then time")
+        gap = same & (steps > limit)
+        if gap.any() and gaps == "error":
+            source, row = locate(row_sources, int(kept[np.argmax(gap) + 1]))
+            raise DataError(f"{source}: row {row}: a time gap of {steps[np.argmax(gap)]:g} s "
+                            f"(over {GAP_STEPS:g} times the median step); give --gaps split "
+                            "to fit the pieces as separate trajectories")
+        n_gaps = int(gap.sum())
+        cut[1:] |= gap
+    n_dropouts = int(cut.sum()) - n_gaps
+    if not cut.any() and not missing.any():
+        return records, None
+    start = np.ones(len(kept), dtype=bool)
+    start[1:] = cut[1:] | (group[kept[1:]] != group[kept[:-1]])
+    piece = np.cumsum(start) - 1
+    sizes = np.bincount(piece) if len(piece) else np.zeros(0, np.int64)
+    short = sizes < SHORTEST_PIECE
+    keep_rows = ~short[piece] if len(piece) else np.zeros(0, bool)
+    kept, piece = kept[keep_rows], piece[keep_rows]
+    if not len(kept):
+        raise DataError(f"{', '.join(source for source, _ in row_sources)}: no piece of "
+                        f"{SHORTEST_PIECE} samples or more is left once the trajectories are "
+                        "cut at missing values and time gaps; give --gaps error to see where")
+    # pieces in order of appearance, each numbered as a trajectory of its own
+    pieces, first = np.unique(piece, return_index=True)
+    owner = group[kept[first]].tolist()
+    count = np.bincount(owner)
+    labels, seen = [], {}
+    for j in owner:
+        seen[j] = seen.get(j, 0) + 1
+        label = records.labels[j]
+        labels.append(label if count[j] == 1 else f"{label}/{seen[j]}")
+    new_group = np.searchsorted(pieces, piece).astype(np.int64)
+    notes.append(f"{n_dropouts + n_gaps} cut(s) in the trajectories ({n_dropouts} at missing "
+                 f"values, {n_gaps} at time gaps over {GAP_STEPS:g} times the median step): "
+                 f"{len(labels)} trajectories fitted, each with its own energy level; "
+                 f"{int(missing.sum())} row(s) with missing values and "
+                 f"{int((~keep_rows).sum())} row(s) in pieces under {SHORTEST_PIECE} samples "
+                 "dropped, nothing interpolated (--gaps error refuses instead)")
+    return Records(records.X[kept], None if t is None else t[kept], new_group,
+                   tuple(labels), None if records.U is None else records.U[kept]), kept
+
+
+def locate(row_sources: tuple[tuple[str, int], ...], row: int) -> tuple[str, int]:
+    """The source and 1-based data row of row `row` of tables read one after another, each
+    (name, its first row)."""
+    source, first = next((s, f) for s, f in reversed(row_sources) if f <= row)
+    return source, row - first + 1
 
 
 @dataclass(frozen=True)

@@ -16,28 +16,73 @@ Every pass reads the file again, chunk by chunk (Parquet batches, blocks of CSV 
 
 Both return the `estimate.LinearFit` that the fit in memory returns for the same rows
 (equal up to rounding; tested to 1e-10), scored by the same `estimate.Scores`.
+`linear_fit` takes either source, whole (`estimate.fit_rows`) or in chunks, and says
+which checks of the fit a pass in chunks cannot make.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 import numpy as np
 
 from hamid.data import readers
-from hamid.data.loading import Chunked
+from hamid.data.loading import Chunked, Loaded, Source
 from hamid.data.records import Records, runs
 from hamid.errors import DataError
 from hamid.linear import design, estimate, noise_free, solve, uncertainty
 from hamid.linear.design import Block
-from hamid.linear.estimate import LinearFit, ResidualSums, Scores
+from hamid.linear.estimate import LinearFit, ResidualSums, Rows, Scores
 from hamid.linear.plan import FitPlan
 from hamid.linear.unknowns import Unknowns
+from hamid.model.dissipation import Dissipation
 from hamid.options import FitOptions
 
-__all__ = ["energy_rows", "fit_chunks"]
+__all__ = ["CHUNKED_SKIPS", "LinearStep", "energy_rows", "fit_chunks", "linear_fit"]
+
+
+# What a fit read in chunks cannot make or keep, and why: (check, reason), in the report's
+# `checks_skipped` (docs/output.md).
+CHUNKED_SKIPS = (
+    ("noise check", "it estimates the noise from the median of each trajectory's differences "
+     "and compares least squares with adjusted least squares on every sample's rows, which "
+     "need the records in memory; read the file whole (Python: in_memory=True; the command "
+     "line: --residuals FILE)"),
+    ("residuals per sample", "they are as long as the file; read it whole to keep them "
+     "(Python: in_memory=True, result.samples; the command line: --residuals FILE)"),
+    ("records for plotting", "the panels over the data (energy, residuals, phase, motion) "
+     "need the records in memory; hamid plot REPORT DATA reads the file again for them"),
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class LinearStep:
+    """The linear fit of a source and its plan; the rows fitted when the records are in
+    memory (None in chunks), and the checks of the fit that could not be made, each
+    (check, reason)."""
+
+    fit: LinearFit
+    plan: FitPlan
+    rows: Rows | None
+    energy_pieces: Callable[[], Iterable[Block]]   # every sample's energy rows, in pieces
+    skipped: tuple[tuple[str, str], ...]
+
+
+def linear_fit(source: Source, unknowns: Unknowns, damping: Dissipation, plan: FitPlan,
+               options: FitOptions, sigma: Any) -> LinearStep:
+    """The linear fit of the records in memory (`estimate.fit_rows`) or of a file a pass
+    at a time (`fit_chunks`: no damping, no noise weighting, and no noise check)."""
+    if isinstance(source, Loaded):
+        fit, plan, rows = estimate.fit_rows(source, unknowns, damping, plan, options, sigma)
+        return LinearStep(fit, plan, rows, rows.pieces, ())
+    assert isinstance(source, Chunked) and not damping and sigma is None
+    fit, plan = fit_chunks(source, unknowns, plan, options)
+    rows_of = energy_rows(source, unknowns)
+    return LinearStep(fit, plan, None, lambda: (rows_of(records, row) for records, row
+                                                in source.rows("residual summary")),
+                      CHUNKED_SKIPS)
 
 
 def energy_rows(source: Chunked, unknowns: Unknowns) -> Callable[[Records, int], Block]:
@@ -47,7 +92,7 @@ def energy_rows(source: Chunked, unknowns: Unknowns) -> Callable[[Records, int],
 
     def rows(records: Records, first_row: int) -> Block:
         block = design.energy_block(source.model, records)
-        design.check_finite(block, lambda r: (source.table.name, first_row + r + 1), names)
+        design.check_finite(block, lambda r: source.locate(first_row + r), names)
         return unknowns.hold_fixed(block)
 
     return rows

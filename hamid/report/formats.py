@@ -320,13 +320,20 @@ def _data_line(data: Mapping[str, Any]) -> str:
     return text
 
 
+def _skipped_lines(result: Mapping[str, Any]) -> tuple[str, ...]:
+    """Helper: a line for each check the fit skipped (`checks_skipped`), and why."""
+    return tuple(f"skipped: {skip['check']}: {skip['reason']}"
+                 for skip in result.get("checks_skipped", ()))
+
+
 def _view(result: Mapping[str, Any]) -> _View:
     """Helper: the report's content, in order, as text."""
     method = result["method"]
     title = f"hamid fit — {result['model']['name']}, method {method['kind']}"
     if method["kind_reason"]:
         title += f" ({method['kind_reason']})"
-    warnings = tuple(f"warning: {w}" for w in result["warnings"])
+    warnings = (*(f"warning: {w}" for w in result["warnings"]),
+                *_skipped_lines(result))
     sections = tuple(section for section in (
         _parameters_section(result),
         _energy_levels_section(result),
@@ -566,7 +573,8 @@ def _render_summary(result: Mapping[str, Any], *, color: bool, width: int | None
             lines += ["=" * width, *_text_table(table, width)]
     lines.append("=" * width)
     notes = [f"method {method['kind']}: {method['kind_reason']}",
-             method.get("covariance_description") or "", *result["warnings"]]
+             method.get("covariance_description") or "", *result["warnings"],
+             *_skipped_lines(result)]
     notes = [printable(note) for note in notes if note]
     lines += ["Notes:", *(textwrap.fill(f"[{i}] {note}", width, subsequent_indent="    ")
                           for i, note in enumerate(notes, 1))]

@@ -45,6 +45,7 @@ __all__ = [
     "RefinementInfo",
     "ResidualSummary",
     "SCHEMA",
+    "SkippedCheck",
     "plain_data",
 ]
 
@@ -220,6 +221,14 @@ class ProvenanceInfo(TypedDict):
     command: str | None
 
 
+class SkippedCheck(TypedDict):
+    """A check the fit could not make, and why (a file read in chunks cannot be checked
+    where the check needs every sample in memory)."""
+
+    check: str
+    reason: str
+
+
 @dataclass(frozen=True, slots=True)
 class ParameterEstimate:
     """One parameter; `stderr` is None when it could not be computed (never 0)."""
@@ -267,6 +276,8 @@ class FitResult:
     # The model and records the fit read, for the panels over the data (`plot`); None for a
     # result read from a report or fitted in chunks. Not part of the JSON nor of equality.
     recording: Recording | None = field(default=None, compare=False, repr=False)
+    # The checks the fit could not make (a file read in chunks), each {check, reason}.
+    checks_skipped: tuple[SkippedCheck, ...] = field(default=())
 
     def __repr__(self) -> str:
         refined = (self.method.get("refinement") or {}).get("applied")
@@ -428,6 +439,8 @@ class FitResult:
         extra = {key: value for key, value in (("covariance", self.covariance),
                                                  ("provenance", self.provenance))
                  if value is not None}
+        if self.checks_skipped:   # written only when a check was skipped
+            extra["checks_skipped"] = list(self.checks_skipped)
         return plain_data({
             "schema": SCHEMA,
             "hamid_version": self.hamid_version,
@@ -481,6 +494,7 @@ class FitResult:
             dissipation=data.get("dissipation"),
             covariance=data.get("covariance"),
             provenance=data.get("provenance"),
+            checks_skipped=tuple(data.get("checks_skipped", ())),
         )
 
 

@@ -13,11 +13,10 @@ from typing import Any
 import numpy as np
 
 from hamid import __version__
-from hamid.data import loading, readers
+from hamid.data import input_size, loading, readers
 from hamid.data.records import Records
 from hamid.errors import DataError
 from hamid.linear import design, uncertainty
-from hamid.linear.design import Block
 from hamid.linear.estimate import LinearFit, NoiseCheck, ResidualSums, Rows
 from hamid.linear.plan import FitPlan
 from hamid.linear.unknowns import Unknowns
@@ -50,6 +49,7 @@ class Provenance:
     notes: tuple[str, ...]
     noise: dict[str, float] | None = None
     noise_check: NoiseCheck | None = None
+    skipped: tuple[tuple[str, str], ...] = ()   # checks not made: (check, reason)
 
 
 def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: ResidualSums,
@@ -116,6 +116,8 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
                     "matrix": plain_data(_symmetric(fit.covariance).tolist())},
         provenance=run,
         samples=samples,
+        checks_skipped=tuple({"check": check, "reason": reason}
+                             for check, reason in provenance.skipped),
     )
 
 
@@ -142,7 +144,7 @@ def run_provenance(data: Any, options: FitOptions) -> ProvenanceInfo:
 def _input_file(item: Any) -> InputFile:
     """Helper: one input's name, size and digest (None for stdin, a DataFrame, an error)."""
     if not isinstance(item, str | os.PathLike):
-        return {"path": loading.in_memory_name(item) or type(item).__name__, "size": None,
+        return {"path": input_size.in_memory_name(item) or type(item).__name__, "size": None,
                 "sha256": None}
     if readers.is_stdio(item):
         return {"path": readers.STDIN, "size": None, "sha256": None}
@@ -200,17 +202,19 @@ def _finite_or_none(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def dissipation_summary(model: Model, source: loading.Loaded, damping: Dissipation,
-                        estimates: dict[str, float], energy_rows: Block,
+def dissipation_summary(model: Model, source: loading.Source, damping: Dissipation,
+                        estimates: dict[str, float], rows: Rows | None,
                         h: Any) -> dict[str, Any] | None:
     """Energy lost per trajectory and, for one viscous coordinate, the damping ratio.
 
     The energy lost is the fitted dissipated work over the record divided by the energy
-    above the lowest potential energy seen on the trajectory.
+    above the lowest potential energy seen on the trajectory. Damping needs the records
+    in memory (`options.FitOptions.chunking`), and so `rows` of every sample.
     """
     if not damping:
         return None
-    records = source.records
+    assert rows is not None
+    records, energy_rows = source.whole(), rows.all_energy
     n_energy = len(model.parameters)
     coefficients = np.array([estimates[name] for name in damping.names])
     work = energy_rows.A[:, n_energy:] @ coefficients if energy_rows.A.shape[1] > n_energy \
