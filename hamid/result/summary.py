@@ -247,12 +247,12 @@ def dissipation_summary(model: Model, source: loading.Source, damping: Dissipati
 INPUT_WORK_FLOOR = 0.01
 
 
-def forcing_summary(model: Model, records: Records, mapping: Mapping[str, str],
+def forcing_summary(model: Model, records: Records,
                     estimates: Mapping[str, float]) -> dict[str, Any] | None:
-    """The inputs of a driven fit, their columns, and the share of the energy budget the
-    input work makes up: the total variation of the fitted input work along the records
-    over that of the fitted energy (1 when the input alone moves the energy, more when the
-    damping takes some of it away, near 0 when the input explains nothing of it)."""
+    """A driven fit's work and the share of the energy budget the input work makes up: the
+    total variation of the fitted input work along the records over that of the fitted
+    energy (1 when the input alone moves the energy, more when the damping takes some of it
+    away, near 0 when the input explains nothing of it). The report's `data.forcing`."""
     if model.forcing is None:
         return None
     theta = np.array([estimates[name] for name in model.parameters])
@@ -262,8 +262,8 @@ def forcing_summary(model: Model, records: Records, mapping: Mapping[str, str],
     same = records.group[1:] == records.group[:-1]
     changes = float(np.abs(np.diff(energy))[same].sum())
     fraction = float(np.abs(np.diff(work))[same].sum()) / changes if changes > 0 else None
-    return {"inputs": {name: mapping.get(name, name) for name in model.forcing.inputs},
-            "work": model.forcing.work, "input_work_fraction": fraction}
+    return {"inputs": list(model.forcing.inputs), "work": model.forcing.work,
+            "input_work_fraction": fraction}
 
 
 def forcing_warnings(forcing: Mapping[str, Any] | None) -> list[str]:
