@@ -196,7 +196,9 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
         dissipation=summary.dissipation_summary(m, source, damping_forces,
                                                 unknowns.estimates(fitted.theta), rows, fitted.h),
         samples=None if rows is None else summary.samples(rows, fitted, m, unknowns, fit_plan,
-                                                          source.labels), run=run)
+                                                          source.labels), run=run,
+        forcing=m.forcing and summary.forcing_summary(m, source.whole(),
+                                                      unknowns.estimates(fitted.theta)))
     if rows is None:   # no records in memory, for plot()
         return result
     return dataclasses.replace(result, recording=Recording(m, source.whole()))

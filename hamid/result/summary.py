@@ -56,9 +56,11 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
                plan: FitPlan, options: FitOptions, provenance: Provenance,
                refinement: dict[str, Any] | None, dissipation: dict[str, Any] | None = None,
                samples: dict[str, Any] | None = None,
-               run: ProvenanceInfo | None = None) -> FitResult:
+               run: ProvenanceInfo | None = None,
+               forcing: dict[str, Any] | None = None) -> FitResult:
     """The fit's report: estimates with bounds, levels, residuals, conditioning, warnings,
-    the free parameters' covariance and the run's provenance (`run_provenance`)."""
+    the free parameters' covariance and the run's provenance (`run_provenance`); a driven
+    fit's `forcing_summary` joins the data's part."""
     stderr = np.sqrt(np.clip(np.diag(fit.covariance), 0, None))
     low, high = uncertainty.confidence_bounds(fit.theta, stderr, fit.df, options.level)
     truth = provenance.truth
@@ -100,11 +102,11 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
     warnings = [*provenance.notes,
                 *_warnings(parameters, stats, cond, fit.df, options, plan.kind, refinement,
                            [*options.damping, *(["Rayleigh"] if model.dissipation else [])]),
-                *_noise_warnings(provenance.noise_check)]
+                *_noise_warnings(provenance.noise_check), *forcing_warnings(forcing)]
     return FitResult(
         hamid_version=__version__,
         model=model.info(),
-        data=plain_data(provenance.data),
+        data=plain_data({**provenance.data, **({"forcing": forcing} if forcing else {})}),
         method=plain_data(method),
         parameters=tuple(parameters),
         energy_levels=levels,
