@@ -33,6 +33,7 @@ import numpy.typing as npt
 
 from hamid.model.dissipation import Dissipation
 from hamid.model.expressions import Func, Stack
+from hamid.model.forcing import Forcing
 from hamid.model.models import Model
 
 __all__ = ["Dynamics", "Motion"]
@@ -105,6 +106,7 @@ class Dynamics:
         self.n = len(self.coordinates)
         self._parts = (lagrangian.L0, *lagrangian.L)
         self.dissipation = dissipation if dissipation else None
+        self.forcing = model.forcing
 
     @property
     def n_weights(self) -> int:
@@ -115,25 +117,31 @@ class Dynamics:
     def _per_part(self) -> _Terms:
         return _Terms.derive(self._parts, self.coordinates, self.velocities)
 
-    def at(self, weights: npt.ArrayLike, *, drained: bool = False) -> Motion:
+    def at(self, weights: npt.ArrayLike, *, drained: bool = False,
+           inputs: Callable[[float], Array] | None = None) -> Motion:
         """The equations at weights (1, theta, dissipation coefficients).
 
         `weights` has shape (n_weights,), shared by every state, or (n_weights, n_states),
         one column per state (the states passed to the `Motion` must then number n_states).
         With `drained`, the states carry one more row: the energy the damping has drained
-        since the start, whose rate is the power -F.v.
+        since the start, whose rate is the power -F.v. A driven model (`Model.forcing`)
+        needs its `inputs` as a function of time, u(t) of shape (m,) or (m, n_states);
+        their generalized force joins the dissipative forces.
         """
         w = np.asarray(weights, dtype=np.float64)
         P = len(self._parts)
         if w.ndim not in (1, 2) or len(w) != self.n_weights:
             raise ValueError(f"weights of shape {w.shape}: expected ({self.n_weights},) or "
                              f"({self.n_weights}, n_states)")
+        if (self.forcing is None) != (inputs is None):
+            raise ValueError("a driven model's equations need its inputs, a free one's none")
         forces = None if self.dissipation is None else _Forces(self.dissipation, w[P:])
+        driven = None if inputs is None else _InputForces.of(self.forcing, w[1:P], inputs)
         if w.ndim == 1:
             lagrangian = Func.combine(self._parts, [float(x) for x in w[:P]])
             terms = _Terms.derive([lagrangian], self.coordinates, self.velocities)
-            return Motion(terms, None, forces, drained)
-        return Motion(self._per_part, w[:P], forces, drained)
+            return Motion(terms, None, forces, drained, driven)
+        return Motion(self._per_part, w[:P], forces, drained, driven)
 
 
 @dataclass(frozen=True)
@@ -146,6 +154,40 @@ class _Forces:
     def __call__(self, Y: Array) -> Array:
         """F (N, n) at the states Y (2N, n)."""
         return self.dissipation.forces_at(Y, self.coefficients)
+
+
+@dataclass(frozen=True)
+class _InputForces:
+    """The generalized force of the recorded inputs, Q0 + sum_k theta_k Q_k, at the
+    parameters theta (one vector, or a column per state) and the inputs u(t)."""
+
+    stack: Stack                          # the nonzero parts, over (q, v, u)
+    coordinate: npt.NDArray[np.intp]      # the coordinate of each part
+    weight: Array                         # its weight: 1, or theta_k (per state)
+    inputs: Callable[[float], Array]
+    n: int
+
+    @classmethod
+    def of(cls, forcing: Forcing | None, theta: Array,
+           inputs: Callable[[float], Array]) -> _InputForces:
+        assert forcing is not None
+        parts = [(i, None, f) for i, f in enumerate(forcing.Q0) if not f.is_zero()]
+        parts += [(i, k, g) for i, row in enumerate(forcing.Q) for k, g in enumerate(row)
+                  if not g.is_zero()]
+        ones = np.ones(theta.shape[1:])
+        return cls(Func.stack([f for _, _, f in parts]),
+                   np.array([i for i, _, _ in parts], dtype=np.intp),
+                   np.array([ones if k is None else theta[k] for _, k, _ in parts]),
+                   inputs, len(forcing.Q0))
+
+    def __call__(self, t: float, Y: Array) -> Array:
+        """Q (N, n) at time t and states Y (2N, n)."""
+        u = np.asarray(self.inputs(t), dtype=np.float64)
+        U = np.broadcast_to(u.reshape(len(u), -1), (len(u), Y.shape[1]))
+        values = self.stack(np.vstack([Y, U])) * self.weight.reshape(len(self.weight), -1)
+        Q = np.zeros((self.n, Y.shape[1]))
+        np.add.at(Q, self.coordinate, values)
+        return Q
 
 
 class Motion:
@@ -169,12 +211,13 @@ class Motion:
     """
 
     def __init__(self, terms: _Terms, weights: Array | None, forces: _Forces | None,
-                 drained: bool):
+                 drained: bool, driven: _InputForces | None = None):
         self.n = terms.n
         self.rows = 2 * terms.n + bool(drained)
         self.drained = drained
         self.constant_mass = terms.constant_mass
         self._terms, self._weights, self._forces = terms, weights, forces
+        self._driven = driven
         self._folded = False
         self._inverse: Array | None = None   # (N, N) shared, or (N, N, n) per state
         stack = self._invert_constant_mass() if terms.constant_mass else None
@@ -230,13 +273,20 @@ class Motion:
         values = stack(Y) if self._weights is None else self._weighted(stack)(Y)
         return _assemble(values, self._terms.upper, self.n)
 
-    def accelerations(self, Y: Array) -> Array:
-        """a (N, n) at states Y (2N, n)."""
+    def accelerations(self, Y: Array, t: float = 0.0) -> Array:
+        """a (N, n) at states Y (2N, n) (and time t, for a driven model's inputs)."""
         N = self.n
         out = np.empty((N, Y.shape[1]))
-        forces = self._forces(Y[:2 * N]) if self._forces else None
-        self._accelerations(Y[:2 * N], forces, out)
+        dissipative = self._forces(Y[:2 * N]) if self._forces else None
+        self._accelerations(Y[:2 * N], self._with_inputs(t, Y[:2 * N], dissipative), out)
         return out
+
+    def _with_inputs(self, t: float, Y: Array, forces: Array | None) -> Array | None:
+        """The dissipative `forces` (N, n) with the inputs' generalized force added."""
+        if self._driven is None:
+            return forces
+        driven = self._driven(t, Y)
+        return driven if forces is None else forces + driven
 
     def _accelerations(self, Y: Array, forces: Array | None, out: Array) -> None:
         values = self._values(Y)
@@ -274,7 +324,8 @@ class Motion:
         N = self.n
         Y = y.reshape(self.rows, -1)
         V = Y[N:2 * N]
-        forces = self._forces(Y[:2 * N]) if self._forces else None
+        dissipative = self._forces(Y[:2 * N]) if self._forces else None
+        forces = self._with_inputs(t, Y[:2 * N], dissipative)
         out = np.empty_like(Y)
         out[:N] = V
         if self._folded and forces is None:   # the values are the accelerations: no call more
@@ -282,7 +333,7 @@ class Motion:
         else:
             self._accelerations(Y[:2 * N], forces, out[N:2 * N])
         if self.drained:
-            out[2 * N] = 0.0 if forces is None else -np.einsum("ij,ij->j", forces, V)
+            out[2 * N] = 0.0 if dissipative is None else -np.einsum("ij,ij->j", dissipative, V)
         return out.ravel()
 
 

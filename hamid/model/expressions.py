@@ -631,14 +631,17 @@ class _CompiledStack(Stack):
 # --- linear split -----------------------------------------------------------------------
 
 def split_linear(tree: ast.expr, variables: Sequence[str], parameters: Sequence[str], *,
-                 where: str = "energy", what: str = "energy") -> tuple[Func, tuple[Func, ...]]:
+                 where: str = "energy", what: str = "energy",
+                 required: Sequence[str] | None = None) -> tuple[Func, tuple[Func, ...]]:
     """Split an energy into its parameter-free part E0 and one basis function per parameter.
 
     Returns ``(E0, (phi_1, ..., phi_p))`` with E = E0 + sum_k theta_k phi_k. Raises a
-    ModelError naming the offending term when E is not linear in the parameters, or has
-    no parameter-free part. With ``what="dissipation"`` (Rayleigh's dissipation function,
-    `hamid.model.dissipation`) the parameter-free part must instead be zero: every dissipative
-    term carries a coefficient to fit.
+    ModelError naming the offending term when E is not linear in the parameters, or when
+    one of the `required` parameters (default: all) does not appear. With
+    ``what="dissipation"`` (Rayleigh's dissipation function, `hamid.model.dissipation`) the
+    parameter-free part must be zero: every dissipative term carries a coefficient to fit.
+    A forcing's virtual work (``what="work"``, `hamid.model.forcing`) may name any of the
+    model's parameters, and needs only its own gains.
     """
     names = [*variables, *parameters]
     _check_size(tree, where)
@@ -648,11 +651,12 @@ def split_linear(tree: ast.expr, variables: Sequence[str], parameters: Sequence[
         E0, phi = _split_symbolic(tree, variables, parameters, where, what)
     else:
         E0, phi = _split_polynomial(terms, variables, parameters, where, what)
-    if what != "energy" and not E0.is_zero():
+    if what == "dissipation" and not E0.is_zero():
         raise ModelError(f"{where}: every term of the {what} needs one of its parameters "
                          "as a factor (it has a parameter-free part)")
+    needed = parameters if required is None else required
     for name, f in zip(parameters, phi, strict=True):
-        if f.is_zero():
+        if name in needed and f.is_zero():
             raise ModelError(f"{where}: parameter {name!r} does not appear in the {what}")
     return E0, phi
 

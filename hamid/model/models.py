@@ -23,6 +23,7 @@ import numpy.typing as npt
 from hamid.errors import ModelError, UsageError
 from hamid.model import expressions
 from hamid.model.dissipation import Dissipation, shorthand_names
+from hamid.model.forcing import Forcing, energy_parameters, forcing_table
 from hamid.model.toml_values import check_keys, number, table
 
 __all__ = ["BUILTINS", "Lagrangian", "Model", "builtin_model", "damping_table",
@@ -128,6 +129,12 @@ class Model:
     phi: tuple[expressions.Func, ...]
     description: str = ""
     dissipation: Dissipation | None = None   # the model file's [damping] function
+    forcing: Forcing | None = None   # the model file's [forcing]: recorded inputs, their work
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """The recorded inputs of a driven model (columns of its recordings); none if free."""
+        return self.forcing.inputs if self.forcing is not None else ()
 
     @property
     def variables(self) -> tuple[str, ...]:
@@ -221,9 +228,11 @@ class Model:
         """The plain description stored in result files and data provenance."""
         own = self.dissipation
         return {"name": self.name, "energy": self.energy, "coordinates": list(self.coordinates),
-                "velocities": list(self.velocities), "parameters": list(self.parameters),
+                "velocities": list(self.velocities),
+                "parameters": list(energy_parameters(self)),
                 "dissipation": None if own is None else
-                {"function": own.function, "parameters": list(own.parameters)}}
+                {"function": own.function, "parameters": list(own.parameters)},
+                **({} if self.forcing is None else {"forcing": self.forcing.info()})}
 
 
 def _check_names(coordinates: Sequence[str], velocities: Sequence[str],
@@ -396,7 +405,8 @@ def _check_lists(spec: Mapping[str, Any], where: str) -> None:
             raise ModelError(f"{where}: {key!r} must be a list of names{found}")
 
 
-_MODEL_FILE_KEYS = ("model", "parameters", "initial", "simulate", "noise", "damping")
+_MODEL_FILE_KEYS = ("model", "parameters", "initial", "simulate", "noise", "damping",
+                    "forcing")
 
 
 def load_model(name_or_path: str | os.PathLike[str]) -> Model:
@@ -420,6 +430,8 @@ def load_model(name_or_path: str | os.PathLike[str]) -> Model:
     if "model" not in document:
         raise ModelError(f"{text}: no [model] table")
     model = model_from_spec(document["model"], where=f"{text}: [model]")
+    if "forcing" in document:
+        model = forcing_table(model, document["forcing"], where=f"{text}: [forcing]")
     return damping_table(model, document.get("damping", {}), where=f"{text}: [damping]")[0]
 
 
@@ -430,6 +442,8 @@ def model_from_info(info: Mapping[str, Any], *, where: str) -> Model:
     model = model_from_expression(str(info.get("name") or "custom"), info["energy"],
                                   info["coordinates"], info["velocities"],
                                   info.get("parameters"), where=where)
+    if info.get("forcing"):
+        model = forcing_table(model, info["forcing"], where=where)
     own = info.get("dissipation")
     if not own:
         return model

@@ -1,0 +1,137 @@
+"""Measured excitation: the virtual work W(q, u) of recorded inputs u on the coordinates.
+
+A model file's ``[forcing]`` table names the inputs (columns of the recording), the work
+and any unknown gains in it. The generalized force on q_i is Q_i = dW/dq_i with the inputs
+held fixed; like the energy, W is linear in the parameters (the energy's and the gains),
+so that Q = Q0 + sum_k theta_k Q_k enters the energy balance and Lagrange's equations as
+columns of the same linear fit (docs/method.md, "Measured excitation").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from hamid.errors import ModelError
+from hamid.model import expressions
+from hamid.model.expressions import Func
+from hamid.model.toml_values import check_keys, table
+
+if TYPE_CHECKING:
+    from hamid.model.models import Model
+
+__all__ = ["FORCING_KEYS", "Forcing", "energy_parameters", "forcing_table"]
+
+# Keys of a [forcing] table; `signals` is read by `hamid.simulate` only.
+FORCING_KEYS = ("inputs", "work", "parameters", "signals")
+
+
+@dataclass(frozen=True, eq=False)
+class Forcing:
+    """The recorded inputs of a model and their virtual work.
+
+    `Q0[i]` and `Q[i][k]` are the parameter-free part of the generalized force on
+    coordinate i and its part per model parameter k (`parameters`: the energy's, then the
+    gains), functions of the state and the inputs side by side (coordinates, velocities,
+    inputs).
+    """
+
+    inputs: tuple[str, ...]
+    work: str
+    gains: tuple[str, ...]
+    parameters: tuple[str, ...]
+    Q0: tuple[Func, ...]
+    Q: tuple[tuple[Func, ...], ...]
+
+    @property
+    def has_known_part(self) -> bool:
+        """Whether the work has a part without a parameter (``F*x``): the recorded force
+        then fixes the energy's scale, and the parameters come out in physical units."""
+        return any(not f.is_zero() for f in self.Q0)
+
+    def parts(self, X: npt.NDArray[np.float64], U: npt.NDArray[np.float64]
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """The generalized force at states X (n, 2N) and inputs U (n, m): its parameter-free
+        part (n, N) and its part per parameter (n, N, P), Q = Q0 + Q_k theta_k."""
+        joined = np.hstack([X, U])
+        n, N = len(joined), len(self.Q0)
+        Q0 = np.zeros((n, N))
+        Q = np.zeros((n, N, len(self.parameters)))
+        for i, f in enumerate(self.Q0):
+            if not f.is_zero():
+                Q0[:, i] = f(joined)
+            for k, g in enumerate(self.Q[i]):
+                if not g.is_zero():
+                    Q[:, i, k] = g(joined)
+        return Q0, Q
+
+    def info(self) -> dict[str, Any]:
+        """The plain description stored in reports (`Model.info`)."""
+        return {"inputs": list(self.inputs), "work": self.work, "parameters": list(self.gains)}
+
+
+def forcing_table(model: Model, value: Any, *, where: str = "[forcing]") -> Model:
+    """The model with the forcing of a ``[forcing]`` table: its inputs and work, and its
+    gains appended to the parameters (with no part in the energy)."""
+    entries = table(value, where=where)
+    check_keys(entries, FORCING_KEYS, where=where)
+    inputs = _names(entries.get("inputs"), "inputs", where)
+    if not inputs:
+        raise ModelError(f"{where}: 'inputs' must list at least one input (a column of the "
+                         "recording)")
+    gains = _names(entries.get("parameters", []), "parameters", where)
+    taken = {*model.coordinates, *model.velocities, *model.parameters}
+    for name in (*inputs, *gains):
+        if name in taken or not name.isidentifier() or name in expressions.FUNCTIONS \
+                or name in expressions.CONSTANTS:
+            raise ModelError(f"{where}: {name!r} cannot be an input or gain name (it is "
+                             "taken by the model, or not a name)")
+    if len(set(inputs) | set(gains)) != len(inputs) + len(gains):
+        raise ModelError(f"{where}: a name is given twice in 'inputs' and 'parameters'")
+    work = entries.get("work")
+    if not isinstance(work, str):
+        raise ModelError(f"{where}: 'work' must be an expression of the coordinates and "
+                         "inputs, e.g. work = \"F*x\"")
+    tree = expressions.parse(work, None, where=f"{where}: work")
+    allowed = [*model.coordinates, *inputs, *model.parameters, *gains]
+    for symbol in expressions.symbols_in_order(tree):
+        if symbol not in allowed:
+            close = difflib.get_close_matches(symbol, allowed, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            velocity = (" velocities may not appear in the work (it is W(q, u); a force "
+                        "that depends on velocity belongs in [damping])"
+                        if symbol in model.velocities else "")
+            raise ModelError(f"{where}: work: unknown symbol {symbol!r}{hint}; it may use "
+                             f"{', '.join(allowed)}{velocity}")
+    parameters = (*model.parameters, *gains)
+    variables = (*model.coordinates, *model.velocities, *inputs)
+    W0, W = expressions.split_linear(tree, variables, parameters, where=f"{where}: work",
+                                     what="work", required=gains)
+    Q0 = tuple(W0.diff(q) for q in model.coordinates)
+    Q = tuple(tuple(w.diff(q) for w in W) for q in model.coordinates)
+    if all(f.is_zero() for f in Q0) and all(g.is_zero() for row in Q for g in row):
+        raise ModelError(f"{where}: work {work!r} does not depend on any coordinate "
+                         f"({', '.join(model.coordinates)}), so it exerts no force")
+    forcing = Forcing(inputs, work, gains, parameters, Q0, Q)
+    zero = Func.combine([model.E0], [0.0])   # a gain has no part in the energy
+    return dataclasses.replace(model, parameters=parameters,
+                               phi=(*model.phi, *(zero for _ in gains)), forcing=forcing)
+
+
+def _names(value: Any, key: str, where: str) -> tuple[str, ...]:
+    if not (isinstance(value, list) and all(isinstance(v, str) for v in value)):
+        found = f", not the string {value[:40]!r}" if isinstance(value, str) else ""
+        raise ModelError(f"{where}: {key!r} must be a list of names{found}")
+    return tuple(value)
+
+
+def energy_parameters(model: Model) -> Sequence[str]:
+    """The model's parameters that are the energy's (the gains of a forcing follow them)."""
+    gains = model.forcing.gains if model.forcing is not None else ()
+    return model.parameters[:len(model.parameters) - len(gains)]
