@@ -22,9 +22,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from hamid import signals
 from hamid.errors import ModelError, UsageError
 from hamid.model.dynamics import Dynamics, Motion
 from hamid.model.expressions import Func
+from hamid.model.forcing import forcing_table
 from hamid.model.models import Model, damping_table, model_from_spec
 from hamid.model.toml_values import check_keys, number, table
 
@@ -37,7 +39,7 @@ __all__ = ["INTEGRATORS", "System", "numbered", "parse_system", "realizations", 
 INTEGRATORS = {"dop853": "DOP853", "rk45": "RK45", "rk23": "RK23", "radau": "Radau",
                "bdf": "BDF", "lsoda": "LSODA"}
 DEFAULT_MAX_SAMPLES = 20_000_000
-_TOP_KEYS = ("model", "parameters", "initial", "simulate", "noise", "damping")
+_TOP_KEYS = ("model", "parameters", "initial", "simulate", "noise", "damping", "forcing")
 _SIMULATE_KEYS = ("t_end", "dt", "method", "rtol", "atol", "seed", "max_samples")
 _ESCAPE_BOUND = 1e8
 
@@ -59,6 +61,11 @@ class System:
     relative_noise: float
     damping: dict[str, float]
     max_samples: int
+    signals: tuple[signals.Signal, ...] = ()   # of the model's inputs, in order
+
+    def inputs(self, t: float) -> npt.NDArray[np.float64]:
+        """u(t) of a driven system's inputs."""
+        return np.array([signal(t) for signal in self.signals], dtype=np.float64)
 
 
 def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | None = None,
@@ -85,6 +92,7 @@ def simulate_realizations(system: str | os.PathLike[str] | Mapping[str, Any],
     is `seed`, else the system's ``[simulate] seed``, else drawn at random: the record that
     ``simulate(system, seed=S + k)`` returns, which its metadata's ``seed`` says.
     """
+    folder = None
     if isinstance(system, Mapping):
         document, where = system, "system"
     else:
@@ -92,18 +100,23 @@ def simulate_realizations(system: str | os.PathLike[str] | Mapping[str, Any],
 
         where = os.fspath(system)
         document = documents.read_toml(where)
+        folder = os.path.dirname(os.path.abspath(where))
     return sampled(document, realizations, where=where, seed=seed,
-                   max_samples=max_samples, progress=progress)
+                   max_samples=max_samples, progress=progress, folder=folder)
 
 
-def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:
-    """Check a system dict (a parsed TOML file) and return it in typed form."""
+def parse_system(system: Mapping[str, Any], *, where: str = "system",
+                 folder: str | None = None) -> System:
+    """Check a system dict (a parsed TOML file) and return it in typed form; `folder` is
+    where the paths of its file signals are relative to (the system file's)."""
     system = table(system, where=where)
     check_keys(system, _TOP_KEYS, where=where)
     if "model" not in system:
         raise ModelError(f"{where}: missing table [model]")
     model = model_from_spec(table(system["model"], where=f"{where}: [model]"),
                             where=f"{where}: [model]")
+    if "forcing" in system:
+        model = forcing_table(model, system["forcing"], where=f"{where}: [forcing]")
 
     params = table(system.get("parameters", {}), where=f"{where}: [parameters]")
     check_keys(params, model.parameters, where=f"{where}: [parameters]")
@@ -153,7 +166,8 @@ def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:
         raise ModelError(f"{where}: [simulate] max_samples must be a positive integer")
 
     noise_table = table(system.get("noise", {}), where=f"{where}: [noise]")
-    check_keys(noise_table, ("relative", *model.variables), where=f"{where}: [noise]")
+    check_keys(noise_table, ("relative", *model.variables, *model.inputs),
+               where=f"{where}: [noise]")
     noise = {c: number(v, where=f"{where}: [noise] {c}", non_negative=True)
              for c, v in noise_table.items() if c != "relative"}
     relative = number(noise_table.get("relative", 0.0), where=f"{where}: [noise] relative",
@@ -167,22 +181,43 @@ def parse_system(system: Mapping[str, Any], *, where: str = "system") -> System:
                          "dissipation function")
 
     return System(model, theta, tuple(initial), t_end, dt, method.lower(), rtol, atol, seed,
-                  noise, relative, damping, max_samples)
+                  noise, relative, damping, max_samples,
+                  _signals(system, model, t_end, where, folder))
+
+
+def _signals(system: Mapping[str, Any], model: Model, t_end: float, where: str,
+             folder: str | None) -> tuple[signals.Signal, ...]:
+    """The signal of each input of a driven system (`hamid.signals`)."""
+    if model.forcing is None:
+        return ()
+    tables = table(table(system["forcing"], where=f"{where}: [forcing]").get("signals", {}),
+                   where=f"{where}: [forcing.signals]")
+    check_keys(tables, model.inputs, where=f"{where}: [forcing.signals]")
+    missing = [name for name in model.inputs if name not in tables]
+    if missing:
+        raise ModelError(f"{where}: [forcing.signals] has no signal for the input(s) "
+                         f"{', '.join(missing)}; give [forcing.signals.{missing[0]}] with "
+                         f"kind = one of {', '.join(signals.KINDS)}")
+    return tuple(signals.signal(tables[name], t_end=t_end, folder=folder,
+                                where=f"{where}: [forcing.signals.{name}]")
+                 for name in model.inputs)
 
 
 def sampled(document: Mapping[str, Any], count: int = 1, *, where: str = "system",
             seed: int | None = None, max_samples: int | None = None,
-            progress: Callable[[float], None] | None = None) -> Iterator[pd.DataFrame]:
+            progress: Callable[[float], None] | None = None,
+            folder: str | None = None) -> Iterator[pd.DataFrame]:
     """The sampled records of a system dict (`hamid.simulate_realizations`), `count`
-    realizations: columns ``trajectory``, ``t``, the coordinates and the velocities;
-    ``attrs["hamid"]`` holds each one's provenance."""
+    realizations: columns ``trajectory``, ``t``, the coordinates and the velocities (and a
+    driven system's inputs); ``attrs["hamid"]`` holds each one's provenance. `folder`: see
+    `parse_system`."""
     import dataclasses
 
     import pandas as pd
 
     from hamid import __version__
 
-    system = parse_system(document, where=where)
+    system = parse_system(document, where=where, folder=folder)
     if max_samples is not None:
         system = dataclasses.replace(system, max_samples=max_samples)
     if count > 1 and not (any(system.noise.values()) or system.relative_noise):
@@ -197,7 +232,8 @@ def sampled(document: Mapping[str, Any], count: int = 1, *, where: str = "system
 def output_values(system: System) -> float:
     """The values a run writes: its samples times the trajectory, time and state columns."""
     n = len(system.model.coordinates)
-    return sample_count(system.t_end, system.dt) * len(system.initial) * (2 * n + 2)
+    return (sample_count(system.t_end, system.dt) * len(system.initial)
+            * (2 * n + 2 + len(system.model.inputs)))
 
 
 def sample_count(t_end: float, dt: float) -> float:
@@ -255,8 +291,10 @@ def realizations(system: System, count: int, *, seed: int | None = None,
     dissipation = own.with_shorthand([name for name, value in system.damping.items()
                                       if value and name not in own.names])
     coefficients = [system.damping[name] for name in dissipation.names]
+    driven = model.forcing is not None
     motion = Dynamics(model, dissipation).at([1.0, *theta, *coefficients],
-                                             drained=any(coefficients))
+                                             drained=any(coefficients) or driven,
+                                             inputs=system.inputs if driven else None)
     start = np.zeros((n_traj, motion.rows))
     start[:, :2 * n] = [[s[v] for v in model.variables] for s in system.initial]
     _check_mass(motion, start[:, :2 * n].T, "initial state of trajectory")
@@ -305,14 +343,20 @@ def realizations(system: System, count: int, *, seed: int | None = None,
     energy = Func.stack([total])(X)[0]
     drained = states[2 * n] if motion.drained else np.zeros((n_traj, 1))
     balance = energy + drained
-    scale = np.maximum(np.abs(energy[:, 0]), np.finfo(float).tiny)
+    # a driven run may start at rest: its balance is to the largest energy it reaches
+    reached = np.abs(energy).max(axis=1) if driven else np.abs(energy[:, 0])
+    scale = np.maximum(reached, np.finfo(float).tiny)
     drift = np.max(np.abs(balance - balance[:, :1]), axis=1) / scale
     lost = drained[:, -1] / scale
 
     clean = X.reshape(2 * n, -1)  # rows of the output: trajectory by trajectory
+    inputs = np.array([signal(times) for signal in system.signals]).reshape(-1, len(times))
     sigma = {v: system.noise[v] if v in system.noise else
              system.relative_noise * float(np.std(clean[i])) if system.relative_noise else 0.0
              for i, v in enumerate(model.variables)}
+    input_sigma = {u: system.noise[u] if u in system.noise else
+                   system.relative_noise * float(np.std(inputs[i]))
+                   if system.relative_noise else 0.0 for i, u in enumerate(model.inputs)}
     seed = system.seed if seed is None else seed
     if seed is None:
         seed = int(np.random.SeedSequence().entropy % 2**32)
@@ -320,12 +364,17 @@ def realizations(system: System, count: int, *, seed: int | None = None,
         columns = {"trajectory": np.repeat(np.arange(1, n_traj + 1), len(times)),
                    "t": np.tile(times, n_traj)}
         columns.update({v: clean[i] for i, v in enumerate(model.variables)})
+        columns.update({u: np.tile(inputs[i], n_traj) for i, u in enumerate(model.inputs)})
+        rng = np.random.default_rng(seed + k)
         if any(sigma.values()):
             # one draw of shape (n_rows, 2N), so a seed gives the same noise as it always has
-            rng = np.random.default_rng(seed + k)
             draw = rng.standard_normal((clean.shape[1], 2 * n))
             columns.update({v: clean[i] + draw[:, i] * sigma[v]
                             for i, v in enumerate(model.variables)})
+        if any(input_sigma.values()):   # drawn after the motion's, which stays as it was
+            draw = rng.standard_normal((clean.shape[1], len(model.inputs)))
+            columns.update({u: columns[u] + draw[:, i] * input_sigma[u]
+                            for i, u in enumerate(model.inputs)})
         yield columns, {
             "model": model.info(),
             "parameters": dict(system.theta),
@@ -335,7 +384,7 @@ def realizations(system: System, count: int, *, seed: int | None = None,
                 {"trajectory": j + 1, "energy": float(energy[j, 0]),
                  "energy_drift": float(drift[j]), "energy_dissipated": float(lost[j])}
                 for j in range(n_traj)],
-            "noise": {v: s for v, s in sigma.items() if s > 0} or None,
+            "noise": {v: s for v, s in {**sigma, **input_sigma}.items() if s > 0} or None,
             "seed": seed + k,
             "integrator": {"method": system.method, "rtol": system.rtol,
                            "atol": system.atol},

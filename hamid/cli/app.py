@@ -258,7 +258,8 @@ def _check_room(config: str, output: str, table_format: str, max_samples: int | 
 
     if output == "-" or not os.path.isdir(os.path.dirname(os.path.abspath(output))):
         return
-    system = simulation.parse_system(documents.read_toml(config), where=config)
+    system = simulation.parse_system(documents.read_toml(config), where=config,
+                                     folder=os.path.dirname(os.path.abspath(config)))
     if max_samples is not None:
         system = dataclasses.replace(system, max_samples=max_samples)
     values = simulation.output_values(system) * copies

@@ -639,12 +639,17 @@ class ResidualSums:
         self.end[j] = t[ends]
         self.max_abs = max(self.max_abs, float(np.max(np.abs(r))))
 
-    def stats(self, labels: tuple[str | int, ...]) -> dict[str, Any]:
+    def stats(self, labels: tuple[str | int, ...], *, driven: bool = False) -> dict[str, Any]:
+        """The summary; residuals are relative to each trajectory's energy level, or for a
+        `driven` fit (whose level is the balance's constant, near 0 for a record that
+        starts at rest) to the spread of the energy's known part along it."""
         n = self.n
         st, stt, sr, srr, str_, sb, sbb, lagged = self.sums.T
         total_squares = float(srr.sum())
         rms = float(np.sqrt(total_squares / n.sum()))
-        mean_level = float(np.mean(np.abs(self.h)))
+        levels = (np.sqrt(np.clip(sbb - sb**2 / n, 0, None) / n) if driven
+                  else np.abs(self.h))
+        mean_level = float(np.mean(levels))
         total = float(np.sum(sbb - sb**2 / n))
         drift = []
         for j, label in enumerate(labels):
@@ -658,7 +663,7 @@ class ResidualSums:
             change = product / spread_u if spread_u > 0 else 0.0
             explained = change**2 * spread_u / spread_r if spread_r > 0 else 0.0
             drift.append({"trajectory": label,
-                          "relative_change": change / abs(self.h[j]) if self.h[j] else None,
+                          "relative_change": change / levels[j] if levels[j] else None,
                           "trend_share": explained})
         return {
             "rms": rms,

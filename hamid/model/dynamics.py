@@ -124,7 +124,8 @@ class Dynamics:
         `weights` has shape (n_weights,), shared by every state, or (n_weights, n_states),
         one column per state (the states passed to the `Motion` must then number n_states).
         With `drained`, the states carry one more row: the energy the damping has drained
-        since the start, whose rate is the power -F.v. A driven model (`Model.forcing`)
+        (less the work the inputs supplied) since the start, whose rate is the power -F.v
+        (F the dissipative and input forces). A driven model (`Model.forcing`)
         needs its `inputs` as a function of time, u(t) of shape (m,) or (m, n_states);
         their generalized force joins the dissipative forces.
         """
@@ -332,8 +333,8 @@ class Motion:
             out[N:2 * N] = self._values(Y[:2 * N])
         else:
             self._accelerations(Y[:2 * N], forces, out[N:2 * N])
-        if self.drained:
-            out[2 * N] = 0.0 if dissipative is None else -np.einsum("ij,ij->j", dissipative, V)
+        if self.drained:   # the energy's balance: drained by damping, supplied by inputs
+            out[2 * N] = 0.0 if forces is None else -np.einsum("ij,ij->j", forces, V)
         return out.ravel()
 
 

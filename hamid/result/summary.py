@@ -75,7 +75,8 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
         parameters.append(ParameterEstimate(
             name, role, float(fit.theta[i]), _finite_or_none(stderr[i]),
             _finite_or_none(low[i]), _finite_or_none(high[i]), truth.get(name), False))
-    stats = {**residuals.stats(provenance.labels), "blocks": fit.block_stats}
+    stats = {**residuals.stats(provenance.labels, driven=model.forcing is not None),
+             "blocks": fit.block_stats}
     method = {
         "kind": plan.kind, "kind_reason": plan.reason, "weak_window": plan.window,
         "damping": list(options.damping),
