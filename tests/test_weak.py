@@ -153,9 +153,23 @@ def test_auto_falls_back_without_time_column(clean_records):
     assert result.method["weak_window"] is None
 
 
-def test_auto_falls_back_for_coarse_sampling(clean_records):
+def test_coarse_sampling_lengthens_the_windows_and_refines(clean_records):
+    """A few samples a period (video, the Silverbox): windows of 20 samples over more than
+    half a period, then the trajectory refinement, which recovers the simulated values."""
     frame = clean_records["duffing"].iloc[::12]
     result = hamid.fit(frame)
+    assert result.method["kind"] == "joint"
+    assert "lengthened to 20" in result.method["kind_reason"]
+    assert result.method["refinement"]["applied"]
+    step = frame["t"].iloc[1] - frame["t"].iloc[0]
+    assert result.method["weak_window"] == pytest.approx(20 * step)
+    assert result.estimates == pytest.approx({"k": 1.0, "k3": 0.5}, rel=1e-6)
+
+
+def test_a_given_window_of_too_few_samples_is_not_lengthened(clean_records):
+    frame = clean_records["duffing"].iloc[::12]
+    step = frame["t"].iloc[1] - frame["t"].iloc[0]
+    result = hamid.fit(frame, weak_window=10 * step)
     assert result.method["kind"] == "energy"
     assert "samples (at least 20 are needed)" in result.method["kind_reason"]
 

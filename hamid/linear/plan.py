@@ -89,18 +89,25 @@ def decide(options: FitOptions, model: Model,
             obstacle = "no oscillation was found in the coordinates to size the windows"
         else:
             window = period / 2
+    how = "given" if weak_window is not None else "half the dominant period"
     if obstacle is None:
         dt = float(np.median([step for _, step in scales]))
         per_window = window / dt
         # within rounding: a window of 1 s at dt = 0.05 s is 19.999999999999996 steps
-        if per_window < design.MIN_SAMPLES_PER_WINDOW * (1 - 1e-9):
+        if per_window < design.MIN_SAMPLES_PER_WINDOW * (1 - 1e-9) and weak_window is None:
+            # coarse sampling (a few samples a period): windows of the fewest samples the
+            # quadrature needs, over more than half a period (the weak form holds over any
+            # window; the refinement then fits the samples themselves)
+            window = design.MIN_SAMPLES_PER_WINDOW * dt
+            how = (f"half the dominant period held {per_window:.3g} samples, lengthened to "
+                   f"{design.MIN_SAMPLES_PER_WINDOW}")
+        elif per_window < design.MIN_SAMPLES_PER_WINDOW * (1 - 1e-9):
             obstacle = (f"a weak-form window of {window:.3g} s holds only {per_window:.3g} "
                         f"samples (at least {design.MIN_SAMPLES_PER_WINDOW} are needed)")
     if obstacle is not None:
         if method != "auto":
             raise UsageError(f"--method {method} is not possible: {obstacle}")
         return FitPlan("energy", f"{obstacle}; fitted the energy rows", None, scales)
-    how = "given" if weak_window is not None else "half the dominant period"
     if method == "auto":
         return FitPlan("joint", f"time column sampled finely enough for weak-form windows "
                        f"of {window:.3g} s ({how})", window, scales)
