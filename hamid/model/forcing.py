@@ -102,7 +102,9 @@ def forcing_table(model: Model, value: Any, *, where: str = "[forcing]") -> Mode
     allowed = [*model.coordinates, *inputs, *model.parameters, *gains]
     for symbol in expressions.symbols_in_order(tree):
         if symbol not in allowed:
-            close = difflib.get_close_matches(symbol, allowed, n=1)
+            lowered = {name.lower(): name for name in allowed}
+            close = [lowered[m] for m in difflib.get_close_matches(symbol.lower(), lowered,
+                                                                   n=1)]
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             velocity = (" velocities may not appear in the work (it is W(q, u); a force "
                         "that depends on velocity belongs in [damping])"

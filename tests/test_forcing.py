@@ -1,0 +1,270 @@
+"""The [forcing] table, the driven equations of motion and the simulated input signals,
+against hand-written equations (solve_ivp) and the signals' formulas."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import hamid
+from hamid.errors import ModelError
+from hamid.model.forcing import forcing_table
+from hamid.model.models import model_from_info, model_from_spec
+from tests.helpers import hamid_command, one_line_error
+
+SYSTEM_TOML = """
+[model]
+coordinates = ["x"]
+velocities = ["v"]
+energy = "m*v**2/2 + k*x**2/2 + k3*x**4/4"
+parameters = ["m", "k", "k3"]
+
+[parameters]
+m = 1.5
+k = 4.0
+k3 = 2.0
+
+[damping]
+c_x = 0.1
+
+[forcing]
+inputs = ["F"]
+work = "F*x"
+
+[forcing.signals.F]
+{signal}
+
+[[initial]]
+x = 0.2
+v = 0.0
+
+[simulate]
+t_end = {t_end}
+dt = 0.01
+"""
+
+DUFFING = {"coordinates": ["x"], "velocities": ["v"],
+           "energy": "m*v**2/2 + k*x**2/2 + k3*x**4/4", "parameters": ["m", "k", "k3"]}
+
+
+def duffing(**forcing):
+    return forcing_table(model_from_spec(DUFFING), {"inputs": ["F"], "work": "F*x", **forcing})
+
+
+def test_the_generalized_force_is_the_works_derivative_split_by_parameter():
+    model = forcing_table(model_from_spec(DUFFING),
+                          {"inputs": ["F"], "work": "b*F*x + F*sin(x) - m*F*x",
+                           "parameters": ["b"]})
+    assert model.parameters == ("m", "k", "k3", "b")
+    assert model.inputs == ("F",)
+    X, U = np.array([[0.3, 1.0], [-1.2, 0.5]]), np.array([[2.0], [-0.7]])
+    Q0, Q = model.forcing.parts(X, U)
+    np.testing.assert_allclose(Q0[:, 0], U[:, 0] * np.cos(X[:, 0]))
+    np.testing.assert_allclose(Q[:, 0, 0], -U[:, 0])        # m
+    np.testing.assert_allclose(Q[:, 0, 1:3], 0.0, atol=0)    # k, k3
+    np.testing.assert_allclose(Q[:, 0, 3], U[:, 0])         # b
+    assert model.forcing.has_known_part
+    # a gain has no part in the energy
+    np.testing.assert_allclose(model.energy_basis(X)[1][:, 3], 0.0, atol=0)
+
+
+def test_a_work_of_gains_only_has_no_known_part():
+    model = forcing_table(model_from_spec(DUFFING),
+                          {"inputs": ["F"], "work": "b*F*x", "parameters": ["b"]})
+    assert not model.forcing.has_known_part
+
+
+def test_a_driven_model_survives_its_report():
+    model = duffing()
+    again = model_from_info(model.info(), where="report")
+    assert again.parameters == model.parameters and again.inputs == ("F",)
+    assert again.forcing.work == "F*x"
+
+
+@pytest.mark.parametrize(("table", "message"), [
+    ({"inputs": ["F"], "work": "F*x + f*x"},
+     "[forcing]: work: unknown symbol 'f' (did you mean 'F'?); it may use x, F, m, k, k3"),
+    ({"inputs": ["F"], "work": "F*v"}, "velocities may not appear in the work"),
+    ({"inputs": ["F"], "work": "b*k*F*x", "parameters": ["b"]}, "is not linear in the parameters"),
+    ({"inputs": ["F"], "work": "F*x", "parameters": ["b"]}, "parameter 'b' does not appear"),
+    ({"inputs": [], "work": "F*x"}, "'inputs' must list at least one input"),
+    ({"inputs": "F", "work": "F*x"}, "'inputs' must be a list of names"),
+    ({"inputs": ["x"], "work": "x"}, "'x' cannot be an input or gain name"),
+    ({"inputs": ["F"], "work": "F"}, "does not depend on any coordinate"),
+    ({"inputs": ["F"], "work": 3}, "'work' must be an expression"),
+    ({"inputs": ["F"], "work": "F*x", "gain": 1}, "gain"),
+])
+def test_a_bad_forcing_table_is_named_in_one_line(table, message):
+    with pytest.raises(ModelError) as error:
+        forcing_table(model_from_spec(DUFFING), table)
+    assert message in str(error.value)
+    assert "\n" not in str(error.value)
+
+
+def _system(signal, *, damping=None, initial=None, t_end=20.0, dt=0.01, noise=None):
+    return {"model": DUFFING, "parameters": {"m": 1.5, "k": 4.0, "k3": 2.0},
+            "forcing": {"inputs": ["F"], "work": "F*x", "signals": {"F": signal}},
+            "damping": damping or {"c_x": 0.1},
+            "initial": [initial or {"x": 0.2, "v": 0.0}],
+            "simulate": {"t_end": t_end, "dt": dt}, **({"noise": noise} if noise else {})}
+
+
+def test_a_driven_duffing_is_simulated_as_scipy_integrates_its_equations():
+    signal = {"kind": "sine", "amplitude": 0.8, "frequency": 0.45, "phase": 0.3}
+    frame = hamid.simulate(_system(signal))
+
+    def equations(t, y):
+        x, v = y
+        force = 0.8 * np.sin(2 * np.pi * 0.45 * t + 0.3)
+        return [v, (force - 4.0 * x - 2.0 * x**3 - 0.1 * v) / 1.5]
+
+    t = frame["t"].to_numpy()
+    exact = solve_ivp(equations, (0, t[-1]), [0.2, 0.0], method="DOP853", t_eval=t,
+                      rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(frame["x"], exact.y[0], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(frame["v"], exact.y[1], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(frame["F"], 0.8 * np.sin(2 * np.pi * 0.45 * t + 0.3),
+                               rtol=0, atol=1e-12)
+
+
+def test_a_two_mass_chain_forced_on_its_second_mass_matches_scipy():
+    system = {
+        "model": {"coordinates": ["x1", "x2"], "velocities": ["v1", "v2"],
+                  "energy": "m1*v1**2/2 + m2*v2**2/2 + k1*x1**2/2 + k2*(x2 - x1)**2/2",
+                  "parameters": ["m1", "m2", "k1", "k2"]},
+        "parameters": {"m1": 1.0, "m2": 0.5, "k1": 3.0, "k2": 2.0},
+        "damping": {"dissipation": "c1*v1**2/2 + c2*(v2 - v1)**2/2",
+                    "parameters": ["c1", "c2"], "c1": 0.05, "c2": 0.03},
+        "forcing": {"inputs": ["F"], "work": "F*x2",
+                    "signals": {"F": {"kind": "sweep", "amplitude": 1.0, "f0": 0.1, "f1": 1.0,
+                                      "duration": 30.0}}},
+        "initial": [{"x1": 0.0, "x2": 0.0, "v1": 0.0, "v2": 0.0}],
+        "simulate": {"t_end": 30.0, "dt": 0.01},
+    }
+    frame = hamid.simulate(system)
+
+    def equations(t, y):
+        x1, x2, v1, v2 = y
+        force = np.sin(2 * np.pi * (0.1 * t + 0.9 / 30.0 * t**2 / 2))
+        a1 = (-3.0 * x1 + 2.0 * (x2 - x1) - 0.05 * v1 + 0.03 * (v2 - v1)) / 1.0
+        a2 = (-2.0 * (x2 - x1) - 0.03 * (v2 - v1) + force) / 0.5
+        return [v1, v2, a1, a2]
+
+    t = frame["t"].to_numpy()
+    exact = solve_ivp(equations, (0, t[-1]), [0, 0, 0, 0], method="DOP853", t_eval=t,
+                      rtol=1e-12, atol=1e-12)
+    for i, name in enumerate(["x1", "x2", "v1", "v2"]):
+        np.testing.assert_allclose(frame[name], exact.y[i], rtol=0, atol=1e-8)
+    assert frame.attrs["hamid"]["trajectories"][0]["energy_drift"] < 1e-8
+
+
+def test_a_sine_driven_linear_oscillator_reaches_its_exact_steady_state():
+    m, k, c, amplitude, f = 2.0, 8.0, 0.8, 0.5, 0.3
+    system = {"model": {"coordinates": ["x"], "velocities": ["v"],
+                        "energy": "m*v**2/2 + k*x**2/2", "parameters": ["m", "k"]},
+              "parameters": {"m": m, "k": k}, "damping": {"c_x": c},
+              "forcing": {"inputs": ["F"], "work": "F*x",
+                          "signals": {"F": {"kind": "sine", "amplitude": amplitude,
+                                            "frequency": f}}},
+              "initial": [{"x": 0.0, "v": 0.0}], "simulate": {"t_end": 100.0, "dt": 0.01}}
+    frame = hamid.simulate(system)
+    w = 2 * np.pi * f
+    response = amplitude / complex(k - m * w**2, c * w)   # x = Im(response e^{iwt})
+    late = frame["t"] > 90   # the transient decays as exp(-c t / 2m): e^-18 by t = 90
+    t = frame["t"][late].to_numpy()
+    np.testing.assert_allclose(frame["x"][late], np.imag(response * np.exp(1j * w * t)),
+                               rtol=0, atol=1e-7)
+
+
+def test_a_sweeps_instantaneous_frequency_goes_from_f0_to_f1():
+    for law in ("linear", "log"):
+        frame = hamid.simulate(_system({"kind": "sweep", "amplitude": 1.0, "f0": 0.2,
+                                        "f1": 2.0, "law": law}, t_end=20.0, dt=0.001))
+        t, u = frame["t"].to_numpy(), frame["F"].to_numpy()
+        crossings = t[1:][np.diff(np.signbit(u)) != 0]
+        period = np.diff(crossings[::2])   # a full period between every other crossing
+        middle = crossings[:-2:2] + period / 2
+        expected = (0.2 + 1.8 * middle / 20 if law == "linear"
+                    else 0.2 * 10 ** (middle / 20))
+        np.testing.assert_allclose(1 / period, expected, rtol=0.02)
+
+
+@pytest.mark.parametrize("kind", ["multisine", "noise"])
+def test_a_multisine_and_noise_have_their_rms_and_stay_in_their_band(kind):
+    frame = hamid.simulate(_system({"kind": kind, "amplitude": 0.7, "band": [0.5, 2.0],
+                                    "seed": 4}, t_end=40.0, dt=0.01))
+    u = frame["F"].to_numpy()[:-1]   # one whole record period: 1/t_end is the grid
+    assert np.sqrt(np.mean(u**2)) == pytest.approx(0.7, rel=1e-6)
+    power = np.abs(np.fft.rfft(u)) ** 2
+    frequencies = np.fft.rfftfreq(len(u), 0.01)
+    inside = (frequencies >= 0.5 - 1e-9) & (frequencies <= 2.0 + 1e-9)
+    assert power[~inside].sum() < 1e-12 * power[inside].sum()
+
+
+def test_a_file_signal_is_a_cubic_spline_through_its_samples(tmp_path):
+    t = np.linspace(0, 12, 601)
+    (tmp_path / "force.csv").write_text(
+        "t,load\n" + "".join(f"{float(a)!r},{float(np.sin(a))!r}\n" for a in t))
+    config = tmp_path / "system.toml"
+    config.write_text(SYSTEM_TOML.format(
+        signal='kind = "file"\npath = "force.csv"\ncolumn = "load"', t_end=10.0))
+    frame = hamid.simulate(config)
+    np.testing.assert_allclose(frame["F"], np.sin(frame["t"]), rtol=0, atol=1e-7)
+
+
+def test_the_inputs_noise_goes_on_its_written_column_only():
+    clean = hamid.simulate(_system({"kind": "sine", "amplitude": 1.0, "frequency": 0.5}))
+    noisy = hamid.simulate(_system({"kind": "sine", "amplitude": 1.0, "frequency": 0.5},
+                                   noise={"F": 0.05}), seed=3)
+    np.testing.assert_array_equal(noisy["x"], clean["x"])
+    assert np.std(noisy["F"] - clean["F"]) == pytest.approx(0.05, rel=0.1)
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"kind": "sinus"}, "kind 'sinus' is not a signal kind (did you mean 'sine'?)"),
+    ({"kind": "sine"}, "missing key 'frequency'"),
+    ({"kind": "multisine", "band": [2.0, 1.0], "frequency": None},
+     "f_lo must be below f_hi"),
+])
+def test_a_bad_signal_is_named_in_one_line(change, message):
+    signal = {"kind": "sine", "amplitude": 1.0, "frequency": 0.5, **change}
+    signal = {k: v for k, v in signal.items() if v is not None}
+    if change.get("kind") == "sine" and len(change) == 1:
+        signal.pop("frequency")
+    with pytest.raises(ModelError) as error:
+        hamid.simulate(_system(signal))
+    assert message in str(error.value) and "\n" not in str(error.value)
+    assert "[forcing.signals.F]" in str(error.value)
+
+
+def test_every_input_needs_a_signal_and_every_signal_an_input():
+    system = _system({"kind": "sine", "amplitude": 1.0, "frequency": 0.5})
+    system["forcing"]["signals"] = {}
+    with pytest.raises(ModelError, match="no signal for the input"):
+        hamid.simulate(system)
+    system["forcing"]["signals"] = {"F": {"kind": "sine", "amplitude": 1, "frequency": 1},
+                                    "G": {"kind": "sine", "amplitude": 1, "frequency": 1}}
+    with pytest.raises(ModelError, match="'G'"):
+        hamid.simulate(system)
+
+
+def test_hamid_simulate_writes_the_input_beside_the_motion(tmp_path):
+    import subprocess
+
+    config = tmp_path / "driven.toml"
+    config.write_text(SYSTEM_TOML.format(
+        signal='kind = "sine"\namplitude = 1.0\nfrequency = 0.5', t_end=5.0))
+    out = tmp_path / "driven.csv"
+    done = subprocess.run([*hamid_command(), "simulate", "--config", str(config), "-o",
+                           str(out)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    header = next(line for line in out.read_text().splitlines()
+                  if line.startswith("trajectory"))
+    assert header.split(",")[-3:] == ["x", "v", "F"]
+    bad = tmp_path / "bad.toml"
+    bad.write_text(SYSTEM_TOML.format(signal='kind = "multisin"\namplitude = 1.0', t_end=5.0))
+    done = subprocess.run([*hamid_command(), "simulate", "--config", str(bad), "-o",
+                           str(tmp_path / "bad.csv")], capture_output=True, text=True)
+    one_line_error(done, 1, "multisin", "did you mean 'multisine'?")
+    assert not (tmp_path / "bad.csv").exists()
