@@ -26,8 +26,7 @@ from hamid import signals
 from hamid.errors import ModelError, UsageError
 from hamid.model.dynamics import Dynamics, Motion
 from hamid.model.expressions import Func
-from hamid.model.forcing import forcing_table
-from hamid.model.models import Model, damping_table, model_from_spec
+from hamid.model.models import Model, damping_table, forcing_table, model_from_spec
 from hamid.model.toml_values import check_keys, number, table
 
 if TYPE_CHECKING:

@@ -9,8 +9,7 @@ from scipy.integrate import solve_ivp
 
 import hamid
 from hamid.errors import ModelError
-from hamid.model.forcing import forcing_table
-from hamid.model.models import model_from_info, model_from_spec
+from hamid.model.models import forcing_table, model_from_info, model_from_spec
 from tests.helpers import hamid_command, one_line_error
 
 SYSTEM_TOML = """

@@ -259,7 +259,8 @@ def resolve_columns(
     for key in mapping:
         if key not in names:
             raise UsageError(
-                f"--columns: {key!r} is not a coordinate, velocity or input of the model "
+                f"--columns: {key!r} is not a coordinate"
+                f"{', velocity or input' if inputs else ' or velocity'} of the model "
                 f"({', '.join(names)})"
             )
     present = set(columns)

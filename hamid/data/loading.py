@@ -19,7 +19,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from hamid.data import column_roles, input_size, measurement, readers
-from hamid.data.records import GAP_STEPS, Records, locate, runs, split_gaps
+from hamid.data.records import GAP_STEPS, Records, check_inputs, locate, runs, split_gaps
 from hamid.errors import DataError, UsageError
 from hamid.linear import design
 from hamid.model.dissipation import shorthand_names
@@ -186,6 +186,8 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
     if arrow is not None:
         arrow.default_memory_pool().release_unused()
     row_sources = tuple((name, int(f)) for name, f in zip(sources, firsts, strict=True))
+    if records.U is not None:
+        check_inputs(records.U, m.inputs, mapping, sources)
     records, file_rows = split_gaps(records, options.gaps, row_sources, notes)
     labels = list(records.labels)
     # from the coordinates, which a derivation of the velocities leaves as they are
@@ -212,8 +214,7 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
     if m.forcing is not None and records.t is None:
         raise UsageError("a [forcing] needs a time column (the input's work is an integral "
                          "over time); name it with --time COL")
-    if m.forcing is not None:
-        data_info["inputs"] = {name: mapping[name] for name in m.inputs}
+    data_info.update({"inputs": {name: mapping[name] for name in m.inputs}} if m.inputs else {})
     return Loaded(m, records, _truth(metadata, m), data_info, tuple(notes),
                   derivation[1] if derivation else None, row_sources, scales, file_rows)
 
@@ -276,8 +277,7 @@ class Reader:
     @property
     def columns(self) -> list[str]:
         """The table's columns that are read."""
-        wanted = [self.mapping[v] for v in (*self.model.variables, *self.model.inputs)
-                  if v in self.mapping]
+        wanted = list(self.mapping.values())   # the model's names' columns
         return list(dict.fromkeys([*wanted, *(c for c in (self.time, self.trajectory) if c)]))
 
     @property

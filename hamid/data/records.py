@@ -3,6 +3,7 @@ the cutting of records read whole at missing values and time gaps."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
 from typing import TYPE_CHECKING, Any
@@ -15,8 +16,8 @@ from hamid.errors import DataError
 if TYPE_CHECKING:
     from hamid.model.models import Model
 
-__all__ = ["GAP_STEPS", "SHORTEST_PIECE", "Recording", "Records", "locate", "medians_by", "ranges",
-           "runs", "split_gaps"]
+__all__ = ["GAP_STEPS", "SHORTEST_PIECE", "Recording", "Records", "check_inputs", "locate",
+           "medians_by", "ranges", "runs", "split_gaps"]
 
 
 @dataclass(frozen=True)
@@ -196,3 +197,29 @@ class Recording:
 
     model: Model
     records: Records
+
+
+# An input missing in more than this share of rows was recorded at another rate.
+_SPARSE_INPUT = 0.3
+
+
+def check_inputs(U: np.ndarray, inputs: tuple[str, ...], mapping: Mapping[str, str],
+                  sources: list[str]) -> None:
+    """A driven fit's inputs must be recorded with the motion: not empty, not constant
+    (it would do the work of a static load, which the motion does not tell from the
+    potential), and sampled at the motion's rate (missing values are gaps, as for the
+    motion, but not every other row)."""
+    where = ", ".join(sources)
+    for i, name in enumerate(inputs):
+        column = U[:, i]
+        missing = np.isnan(column)
+        label = f"{where}: input {name!r} (column {mapping[name]!r})"
+        if missing.all():
+            raise DataError(f"{label} is empty")
+        if missing.mean() > _SPARSE_INPUT:
+            raise DataError(f"{label} is missing in {int(missing.sum()):,} of {len(column):,} "
+                            "rows: recorded at another rate than the motion? Resample it onto "
+                            "the motion's times")
+        if np.nanmin(column) == np.nanmax(column):
+            raise DataError(f"{label} is constant ({np.nanmin(column):g}): a constant input "
+                            "does no work the motion can tell from the potential's")

@@ -640,9 +640,7 @@ def split_linear(tree: ast.expr, variables: Sequence[str], parameters: Sequence[
     one of the `required` parameters (default: all) does not appear. With
     ``what="dissipation"`` (Rayleigh's dissipation function, `hamid.model.dissipation`) the
     parameter-free part must be zero: every dissipative term carries a coefficient to fit.
-    A forcing's virtual work (``what="work"``, `hamid.model.forcing`) may name any of the
-    model's parameters, and needs only its own gains.
-    """
+    A forcing's work (``what="work"``) may name any parameter, and needs only its gains."""
     names = [*variables, *parameters]
     _check_size(tree, where)
     try:

@@ -9,11 +9,10 @@ columns of the same linear fit (docs/method.md, "Measured excitation").
 
 from __future__ import annotations
 
-import dataclasses
 import difflib
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -23,10 +22,7 @@ from hamid.model import expressions
 from hamid.model.expressions import Func
 from hamid.model.toml_values import check_keys, table
 
-if TYPE_CHECKING:
-    from hamid.model.models import Model
-
-__all__ = ["FORCING_KEYS", "Forcing", "energy_parameters", "forcing_table"]
+__all__ = ["FORCING_KEYS", "Forcing", "parse_forcing"]
 
 # Keys of a [forcing] table; `signals` is read by `hamid.simulate` only.
 FORCING_KEYS = ("inputs", "work", "parameters", "signals")
@@ -76,9 +72,10 @@ class Forcing:
         return {"inputs": list(self.inputs), "work": self.work, "parameters": list(self.gains)}
 
 
-def forcing_table(model: Model, value: Any, *, where: str = "[forcing]") -> Model:
-    """The model with the forcing of a ``[forcing]`` table: its inputs and work, and its
-    gains appended to the parameters (with no part in the energy)."""
+def parse_forcing(value: Any, *, coordinates: Sequence[str], velocities: Sequence[str],
+                  parameters: Sequence[str], where: str = "[forcing]") -> Forcing:
+    """The forcing of a ``[forcing]`` table over a model's names; its gains follow the
+    model's `parameters` in `Forcing.parameters`."""
     entries = table(value, where=where)
     check_keys(entries, FORCING_KEYS, where=where)
     inputs = _names(entries.get("inputs"), "inputs", where)
@@ -86,7 +83,7 @@ def forcing_table(model: Model, value: Any, *, where: str = "[forcing]") -> Mode
         raise ModelError(f"{where}: 'inputs' must list at least one input (a column of the "
                          "recording)")
     gains = _names(entries.get("parameters", []), "parameters", where)
-    taken = {*model.coordinates, *model.velocities, *model.parameters}
+    taken = {*coordinates, *velocities, *parameters}
     for name in (*inputs, *gains):
         if name in taken or not name.isidentifier() or name in expressions.FUNCTIONS \
                 or name in expressions.CONSTANTS:
@@ -99,7 +96,7 @@ def forcing_table(model: Model, value: Any, *, where: str = "[forcing]") -> Mode
         raise ModelError(f"{where}: 'work' must be an expression of the coordinates and "
                          "inputs, e.g. work = \"F*x\"")
     tree = expressions.parse(work, None, where=f"{where}: work")
-    allowed = [*model.coordinates, *inputs, *model.parameters, *gains]
+    allowed = [*coordinates, *inputs, *parameters, *gains]
     for symbol in expressions.symbols_in_order(tree):
         if symbol not in allowed:
             lowered = {name.lower(): name for name in allowed}
@@ -108,22 +105,18 @@ def forcing_table(model: Model, value: Any, *, where: str = "[forcing]") -> Mode
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             velocity = (" velocities may not appear in the work (it is W(q, u); a force "
                         "that depends on velocity belongs in [damping])"
-                        if symbol in model.velocities else "")
+                        if symbol in velocities else "")
             raise ModelError(f"{where}: work: unknown symbol {symbol!r}{hint}; it may use "
                              f"{', '.join(allowed)}{velocity}")
-    parameters = (*model.parameters, *gains)
-    variables = (*model.coordinates, *model.velocities, *inputs)
-    W0, W = expressions.split_linear(tree, variables, parameters, where=f"{where}: work",
-                                     what="work", required=gains)
-    Q0 = tuple(W0.diff(q) for q in model.coordinates)
-    Q = tuple(tuple(w.diff(q) for w in W) for q in model.coordinates)
+    every = (*parameters, *gains)
+    W0, W = expressions.split_linear(tree, (*coordinates, *velocities, *inputs), every,
+                                     where=f"{where}: work", what="work", required=gains)
+    Q0 = tuple(W0.diff(q) for q in coordinates)
+    Q = tuple(tuple(w.diff(q) for w in W) for q in coordinates)
     if all(f.is_zero() for f in Q0) and all(g.is_zero() for row in Q for g in row):
         raise ModelError(f"{where}: work {work!r} does not depend on any coordinate "
-                         f"({', '.join(model.coordinates)}), so it exerts no force")
-    forcing = Forcing(inputs, work, gains, parameters, Q0, Q)
-    zero = Func.combine([model.E0], [0.0])   # a gain has no part in the energy
-    return dataclasses.replace(model, parameters=parameters,
-                               phi=(*model.phi, *(zero for _ in gains)), forcing=forcing)
+                         f"({', '.join(coordinates)}), so it exerts no force")
+    return Forcing(inputs, work, gains, every, Q0, Q)
 
 
 def _names(value: Any, key: str, where: str) -> tuple[str, ...]:
@@ -131,9 +124,3 @@ def _names(value: Any, key: str, where: str) -> tuple[str, ...]:
         found = f", not the string {value[:40]!r}" if isinstance(value, str) else ""
         raise ModelError(f"{where}: {key!r} must be a list of names{found}")
     return tuple(value)
-
-
-def energy_parameters(model: Model) -> Sequence[str]:
-    """The model's parameters that are the energy's (the gains of a forcing follow them)."""
-    gains = model.forcing.gains if model.forcing is not None else ()
-    return model.parameters[:len(model.parameters) - len(gains)]

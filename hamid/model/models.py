@@ -23,10 +23,10 @@ import numpy.typing as npt
 from hamid.errors import ModelError, UsageError
 from hamid.model import expressions
 from hamid.model.dissipation import Dissipation, shorthand_names
-from hamid.model.forcing import Forcing, energy_parameters, forcing_table
+from hamid.model.forcing import Forcing, parse_forcing
 from hamid.model.toml_values import check_keys, number, table
 
-__all__ = ["BUILTINS", "Lagrangian", "Model", "builtin_model", "damping_table",
+__all__ = ["BUILTINS", "Lagrangian", "Model", "builtin_model", "damping_table", "forcing_table",
            "model_from_info", "model_from_spec"]
 
 BUILTINS: dict[str, dict[str, Any]] = {
@@ -132,6 +132,12 @@ class Model:
     forcing: Forcing | None = None   # the model file's [forcing]: recorded inputs, their work
 
     @property
+    def energy_parameters(self) -> tuple[str, ...]:
+        """The parameters of the energy (a forcing's gains follow them in `parameters`)."""
+        gains = self.forcing.gains if self.forcing is not None else ()
+        return self.parameters[:len(self.parameters) - len(gains)]
+
+    @property
     def inputs(self) -> tuple[str, ...]:
         """The recorded inputs of a driven model (columns of its recordings); none if free."""
         return self.forcing.inputs if self.forcing is not None else ()
@@ -229,7 +235,7 @@ class Model:
         own = self.dissipation
         return {"name": self.name, "energy": self.energy, "coordinates": list(self.coordinates),
                 "velocities": list(self.velocities),
-                "parameters": list(energy_parameters(self)),
+                "parameters": list(self.energy_parameters),
                 "dissipation": None if own is None else
                 {"function": own.function, "parameters": list(own.parameters)},
                 **({} if self.forcing is None else {"forcing": self.forcing.info()})}
@@ -449,6 +455,18 @@ def model_from_info(info: Mapping[str, Any], *, where: str) -> Model:
         return model
     return damping_table(model, {"dissipation": own["function"],
                                  "parameters": own["parameters"]}, where=where)[0]
+
+
+def forcing_table(model: Model, value: Any, *, where: str = "[forcing]") -> Model:
+    """The model with the forcing of a ``[forcing]`` table (`hamid.model.forcing`): its
+    inputs and work, and its gains appended to the parameters, with no part in the
+    energy."""
+    forcing = parse_forcing(value, coordinates=model.coordinates, velocities=model.velocities,
+                            parameters=model.parameters, where=where)
+    zero = expressions.Func.combine([model.E0], [0.0])
+    return dataclasses.replace(model, parameters=forcing.parameters,
+                               phi=(*model.phi, *(zero for _ in forcing.gains)),
+                               forcing=forcing)
 
 
 def damping_table(model: Model, value: Any, *,
