@@ -168,3 +168,88 @@ def test_with_a_clean_force_the_95_percent_intervals_cover_the_truth(duffing_mod
                    "fifth to a third")
 def test_with_a_noisy_force_the_95_percent_intervals_cover_the_truth(duffing_model):
     assert 0.90 <= _coverage(duffing_model, 0.002) <= 0.98
+
+
+def _run(*args):
+    import subprocess
+
+    from tests.helpers import hamid_command
+
+    return subprocess.run([*hamid_command(), *map(str, args)], capture_output=True, text=True)
+
+
+def test_the_report_names_the_inputs_their_work_and_the_scale(duffing_model, tmp_path):
+    data = tmp_path / "driven.csv"
+    hamid.simulate(duffing_system()).rename(columns={"F": "load"}).to_csv(data, index=False)
+    out = tmp_path / "fit.json"
+    done = _run("fit", data, "--model", duffing_model, "--damping", "viscous",
+                "--columns", "F=load", "-o", out)
+    assert done.returncode == 0, done.stderr
+    import json
+
+    report = json.loads(out.read_text())
+    assert report["data"]["inputs"] == {"F": "load"}
+    assert report["data"]["forcing"]["work"] == "F*x"
+    assert 0.5 < report["data"]["forcing"]["input_work_fraction"] <= 1
+    assert report["method"]["scale"] == {"source": "input", "by": "F*x"}
+    assert report["model"]["forcing"] == {"inputs": ["F"], "work": "F*x", "parameters": []}
+    table = _run("report", out)
+    assert "from the recorded input (work F*x): physical units" in table.stdout
+    assert "F (column load); work F*x" in table.stdout
+
+
+def test_a_free_decay_keeps_its_scale_from_the_energy():
+    result = hamid.fit(hamid.simulate("sample_data/duffing.toml"))
+    assert result.method["scale"]["source"] == "energy"
+
+
+@pytest.mark.parametrize(("change", "words"), [
+    (lambda f: f.drop(columns="F"), ["no column for input 'F'", "--columns F=COL"]),
+    (lambda f: f.assign(F=1.5), ["input 'F'", "is constant"]),
+    (lambda f: f.assign(F=f["F"].where(f.index % 2 == 0)),
+     ["input 'F'", "missing in 4,000 of 8,001 rows", "another rate"]),
+    (lambda f: f.assign(F=np.nan), ["input 'F'", "is empty"]),
+])
+def test_a_bad_input_column_is_named_in_one_line(duffing_model, tmp_path, change, words):
+    from tests.helpers import one_line_error
+
+    data = tmp_path / "driven.csv"
+    change(hamid.simulate(duffing_system())).to_csv(data, index=False)
+    out = tmp_path / "fit.json"
+    done = _run("fit", data, "--model", duffing_model, "--damping", "viscous", "-o", out)
+    one_line_error(done, 1, *words)
+    assert not out.exists()
+
+
+def test_a_few_missing_input_samples_cut_the_record_like_the_motions(duffing_model):
+    data = hamid.simulate(duffing_system())
+    data.loc[[3000, 6000], "F"] = np.nan
+    result = hamid.fit(data, duffing_model, damping="viscous")
+    assert len(result.energy_levels) == 3
+    assert result.estimates == pytest.approx(DUFFING_TRUTH, rel=1e-5)
+
+
+def test_an_input_that_does_no_work_is_a_warning(tmp_path):
+    model = tmp_path / "model.toml"
+    model.write_text('[model]\nbuiltin = "duffing"\n\n[forcing]\ninputs = ["F"]\n'
+                     'work = "b*F*x"\nparameters = ["b"]\n')
+    data = hamid.simulate("sample_data/duffing.toml")
+    data["F"] = 1e-6 * np.random.default_rng(0).standard_normal(len(data))
+    result = hamid.fit(data, model)
+    assert any("makes up" in w and "explains almost nothing" in w for w in result.warnings)
+
+
+def test_a_driven_fit_predicts_a_recording_of_another_input(duffing_model):
+    """Fitted on one multisine, the model predicts the response to a sweep it never saw,
+    from the start state fitted to its first period, to the integration's accuracy."""
+    result = hamid.fit(hamid.simulate(duffing_system()), duffing_model, damping="viscous")
+    other = duffing_system()
+    other["forcing"]["signals"]["F"] = {"kind": "sweep", "amplitude": 1.2, "f0": 0.1,
+                                        "f1": 0.8}
+    other["initial"] = [{"x": 0.3, "v": -0.2}]
+    unseen = hamid.simulate(other)
+    predicted = result.predict(unseen)
+    amplitude = unseen["x"].abs().max()
+    assert predicted.channels.loc["x", "rms"] < 1e-5 * amplitude
+    from_rest = result.predict(unseen, from_rest=True)   # it did not start at rest
+    assert from_rest.channels.loc["x", "rms"] > 100 * predicted.channels.loc["x", "rms"]

@@ -289,8 +289,30 @@ def _method_section(result: Mapping[str, Any]) -> _Section:
                  or "none"))
     fixed = ", ".join(f"{name} = {_num(value)}" for name, value in method["fixed"].items())
     rows.append(("fixed", fixed or "none"))
+    rows += _scale_rows(method.get("scale"), result["data"])
     rows.append(("hamid version", result["hamid_version"]))
     return _Section("Method", tables=(_Table(("setting", "value"), (("", tuple(rows)),), True),))
+
+
+def _scale_rows(scale: Mapping[str, Any] | None, data: Mapping[str, Any]
+                ) -> list[tuple[str, str]]:
+    """Helper: where the energy's scale comes from, and a driven fit's inputs."""
+    rows = []
+    if scale:
+        rows.append(("scale", {
+            "input": f"from the recorded input (work {scale['by']}): physical units",
+            "fixed": f"from the fixed {scale['by']}",
+            "energy": "from the energy's parameter-free part (parameters per unit of it)",
+        }[scale["source"]]))
+    forcing = data.get("forcing")
+    if forcing:
+        columns = ", ".join(f"{name} (column {column})"
+                            for name, column in (data.get("inputs") or {}).items())
+        fraction = forcing["input_work_fraction"]
+        rows.append(("inputs", f"{columns}; work {forcing['work']}"
+                     + ("" if fraction is None else
+                        f", {_num(100 * fraction, '.3g')}% of the energy budget")))
+    return rows
 
 
 def _data_line(data: Mapping[str, Any]) -> str:

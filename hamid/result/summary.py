@@ -211,7 +211,8 @@ def dissipation_summary(model: Model, source: loading.Source, damping: Dissipati
     """Energy lost per trajectory and, for one viscous coordinate, the damping ratio.
 
     The energy lost is the fitted dissipated work over the record divided by the energy
-    above the lowest potential energy seen on the trajectory. Damping needs the records
+    above the lowest potential energy seen on the trajectory (none for a driven fit, whose
+    inputs supply energy as it goes). Damping needs the records
     in memory (`options.FitOptions.chunking`), and so `rows` of every sample.
     """
     if not damping:
@@ -231,7 +232,7 @@ def dissipation_summary(model: Model, source: loading.Source, damping: Dissipati
         available = h[j] - potential[start:stop].min()
         trajectories.append({"trajectory": records.labels[j],
                              "energy_lost_fraction": float(work[stop - 1] / available)
-                             if available > 0 else None})
+                             if available > 0 and model.forcing is None else None})
     scales = source.scales()   # found on loading
     period = design.median_period(scales) if scales else None
     ratio = None
@@ -252,21 +253,24 @@ INPUT_WORK_FLOOR = 0.01
 
 def forcing_summary(model: Model, records: Records,
                     estimates: Mapping[str, float]) -> dict[str, Any] | None:
-    """A driven fit's work and the share of the energy budget the input work makes up: the
-    total variation of the fitted input work along the records over that of the fitted
-    energy (1 when the input alone moves the energy, more when the damping takes some of it
-    away, near 0 when the input explains nothing of it). The report's `data.forcing`."""
+    """A driven fit's work and the share of the energy budget the input work makes up:
+    the total variation of the fitted input work along the records over itself plus the
+    largest energy above the lowest potential seen (near 1 when the input drives the
+    motion, near 0 when it explains nothing of it). The report's `data.forcing`."""
     if model.forcing is None:
         return None
     theta = np.array([estimates[name] for name in model.parameters])
     W0, W = design.input_work(model, records)
     work = W0 + W @ theta
-    energy = model.total_energy(records.X, theta)
+    at_rest = records.X.copy()
+    at_rest[:, len(model.coordinates):] = 0.0
+    available = float(np.max(model.total_energy(records.X, theta))
+                      - np.min(model.total_energy(at_rest, theta)))
     same = records.group[1:] == records.group[:-1]
-    changes = float(np.abs(np.diff(energy))[same].sum())
-    fraction = float(np.abs(np.diff(work))[same].sum()) / changes if changes > 0 else None
+    supplied = float(np.abs(np.diff(work))[same].sum())
+    total = supplied + max(available, 0.0)
     return {"inputs": list(model.forcing.inputs), "work": model.forcing.work,
-            "input_work_fraction": fraction}
+            "input_work_fraction": supplied / total if total > 0 else None}
 
 
 def forcing_warnings(forcing: Mapping[str, Any] | None) -> list[str]:
@@ -276,7 +280,7 @@ def forcing_warnings(forcing: Mapping[str, Any] | None) -> list[str]:
     if fraction is None or fraction >= INPUT_WORK_FLOOR:
         return []
     return [f"the work of the inputs ({', '.join(forcing['inputs'])}; work "
-            f"{forcing['work']!r}) makes up {100 * fraction:.2g}% of the energy's changes: "
+            f"{forcing['work']!r}) makes up {100 * fraction:.2g}% of the energy budget: "
             "the input explains almost nothing of the motion (the right column? the right "
             "work?)"]
 
