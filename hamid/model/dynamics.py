@@ -33,7 +33,6 @@ import numpy.typing as npt
 
 from hamid.model.dissipation import Dissipation
 from hamid.model.expressions import Func, Stack
-from hamid.model.forcing import Forcing
 from hamid.model.models import Model
 
 __all__ = ["Dynamics", "Motion"]
@@ -114,6 +113,20 @@ class Dynamics:
         return len(self._parts) + (len(self.dissipation) if self.dissipation else 0)
 
     @cached_property
+    def _input_parts(self) -> tuple[Stack, npt.NDArray[np.intp], tuple[int | None, ...], int]:
+        """The nonzero parts of the inputs' generalized force (Q0 and each Q_k), compiled
+        once: their stack over (q, v, u), the coordinate of each, and its parameter (None
+        for Q0's parts)."""
+        forcing = self.forcing
+        assert forcing is not None
+        parts = [(i, None, f) for i, f in enumerate(forcing.Q0) if not f.is_zero()]
+        parts += [(i, k, g) for i, row in enumerate(forcing.Q) for k, g in enumerate(row)
+                  if not g.is_zero()]
+        return (Func.stack([f for _, _, f in parts]),
+                np.array([i for i, _, _ in parts], dtype=np.intp),
+                tuple(k for _, k, _ in parts), self.n)
+
+    @cached_property
     def _per_part(self) -> _Terms:
         return _Terms.derive(self._parts, self.coordinates, self.velocities)
 
@@ -137,7 +150,7 @@ class Dynamics:
         if (self.forcing is None) != (inputs is None):
             raise ValueError("a driven model's equations need its inputs, a free one's none")
         forces = None if self.dissipation is None else _Forces(self.dissipation, w[P:])
-        driven = None if inputs is None else _InputForces.of(self.forcing, w[1:P], inputs)
+        driven = None if inputs is None else _InputForces(*self._input_parts, w[1:P], inputs)
         if w.ndim == 1:
             lagrangian = Func.combine(self._parts, [float(x) for x in w[:P]])
             terms = _Terms.derive([lagrangian], self.coordinates, self.velocities)
@@ -157,37 +170,26 @@ class _Forces:
         return self.dissipation.forces_at(Y, self.coefficients)
 
 
-@dataclass(frozen=True)
 class _InputForces:
     """The generalized force of the recorded inputs, Q0 + sum_k theta_k Q_k, at the
     parameters theta (one vector, or a column per state) and the inputs u(t)."""
 
-    stack: Stack                          # the nonzero parts, over (q, v, u)
-    coordinate: npt.NDArray[np.intp]      # the coordinate of each part
-    weight: Array                         # its weight: 1, or theta_k (per state)
-    inputs: Callable[[float], Array]
-    n: int
-
-    @classmethod
-    def of(cls, forcing: Forcing | None, theta: Array,
-           inputs: Callable[[float], Array]) -> _InputForces:
-        assert forcing is not None
-        parts = [(i, None, f) for i, f in enumerate(forcing.Q0) if not f.is_zero()]
-        parts += [(i, k, g) for i, row in enumerate(forcing.Q) for k, g in enumerate(row)
-                  if not g.is_zero()]
+    def __init__(self, stack: Stack, coordinate: npt.NDArray[np.intp],
+                 parameter: tuple[int | None, ...], n: int, theta: Array,
+                 inputs: Callable[[float], Array]):
+        self.stack, self.coordinate, self.n, self.inputs = stack, coordinate, n, inputs
         ones = np.ones(theta.shape[1:])
-        return cls(Func.stack([f for _, _, f in parts]),
-                   np.array([i for i, _, _ in parts], dtype=np.intp),
-                   np.array([ones if k is None else theta[k] for _, k, _ in parts]),
-                   inputs, len(forcing.Q0))
+        weight = np.array([ones if k is None else theta[k] for k in parameter])
+        self.weight = weight.reshape(len(weight), -1)   # (parts, 1 or n_states)
 
     def __call__(self, t: float, Y: Array) -> Array:
         """Q (N, n) at time t and states Y (2N, n)."""
         u = np.asarray(self.inputs(t), dtype=np.float64)
         U = np.broadcast_to(u.reshape(len(u), -1), (len(u), Y.shape[1]))
-        values = self.stack(np.vstack([Y, U])) * self.weight.reshape(len(self.weight), -1)
+        values = self.stack(np.vstack([Y, U])) * self.weight
         Q = np.zeros((self.n, Y.shape[1]))
-        np.add.at(Q, self.coordinate, values)
+        for row, i in enumerate(self.coordinate):
+            Q[i] += values[row]
         return Q
 
 

@@ -98,10 +98,16 @@ class SampledInputs:
             table[:inside, :, b] = (values if alike
                                     else CubicSpline(tau, values, axis=0)(grid[:inside]))
             table[inside:, :, b] = table[inside - 1, :, b]
+        # the spline's pieces, evaluated by hand: scipy's call costs more than the rest of
+        # an integrator stage (tests/benchmarks/driven_refinement.py)
         spline = CubicSpline(grid, table.reshape(len(grid), -1), axis=0)
+        c, knots = spline.c, spline.x
 
         def u(t: float) -> Array:
-            return np.repeat(spline(t).reshape(n_inputs, -1), copies, axis=1)
+            i = min(max(int(np.searchsorted(knots, t, side="right")) - 1, 0), len(knots) - 2)
+            h = t - knots[i]
+            value = ((c[0, i] * h + c[1, i]) * h + c[2, i]) * h + c[3, i]
+            return np.repeat(value.reshape(n_inputs, -1), copies, axis=1)
 
         return u
 

@@ -1,0 +1,83 @@
+"""What the recorded input costs the trajectory refinement, in one process.
+
+Fits a damped Duffing oscillator with a free mass (m = 1.5, k = 4, k3 = 2, c = 0.08, 1%
+noise on the motion, dt = 0.01) twice, as a user would: driven by a multisine force
+(`[forcing]`, the force recorded) and as free decays of as many samples (the mass fixed,
+which free motion needs). Each fit runs in turns `--repeat` times; prints the median time
+per sample of the refinement (the fit's time less that of the same fit with
+``method="joint"``, which stops before refining) and the ratio driven / free, the issue's
+target being at most 1.3.
+
+    python tests/benchmarks/driven_refinement.py [--seconds 200] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import hamid
+
+sys.path.insert(0, str(Path(__file__).parent.parent))
+from test_driven_fit import DUFFING_MODEL, DUFFING_TRUTH, duffing_system  # noqa: E402
+
+FREE_MODEL = DUFFING_MODEL.split("[forcing]")[0]
+
+
+def records(seconds: float) -> tuple:
+    """A driven record and free decays of about the same number of samples."""
+    driven = duffing_system()
+    driven["simulate"] = {"t_end": seconds, "dt": 0.01}
+    free = {key: value for key, value in driven.items() if key != "forcing"}
+    free["initial"] = [{"x": x0, "v": 0.0} for x0 in (0.5, 1.0, 1.5, 2.0)]
+    free["simulate"] = {"t_end": seconds / 4, "dt": 0.01}
+    rng = np.random.default_rng(0)
+    frames = []
+    for system in (driven, free):
+        frame = hamid.simulate(system)
+        for column in ("x", "v"):
+            frame[column] += 0.01 * frame[column].std() * rng.standard_normal(len(frame))
+        frames.append(frame)
+    return tuple(frames)
+
+
+def refinement_seconds(frame, model, **options) -> float:
+    """The fit's time less that of the linear fit alone."""
+    start = time.perf_counter()
+    result = hamid.fit(frame, model, damping="viscous", **options)
+    whole = time.perf_counter() - start
+    assert result.method["refinement"]["applied"], result.warnings
+    start = time.perf_counter()
+    hamid.fit(frame, model, damping="viscous", method="joint", **options)
+    return whole - (time.perf_counter() - start)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=200.0)
+    parser.add_argument("--repeat", type=int, default=3)
+    args = parser.parse_args()
+    driven, free = records(args.seconds)
+    with tempfile.TemporaryDirectory() as folder:
+        driven_model, free_model = Path(folder) / "driven.toml", Path(folder) / "free.toml"
+        driven_model.write_text(DUFFING_MODEL)
+        free_model.write_text(FREE_MODEL)
+        times: dict[str, list[float]] = {"driven": [], "free": []}
+        for _ in range(args.repeat):
+            times["driven"].append(refinement_seconds(driven, driven_model) / len(driven))
+            times["free"].append(refinement_seconds(free, free_model,
+                                                    fix={"m": DUFFING_TRUTH["m"]}) / len(free))
+    median = {key: statistics.median(value) for key, value in times.items()}
+    for key, value in median.items():
+        print(f"{key:7s} refinement {1e6 * value:8.2f} us per sample")
+    print(f"ratio driven / free: {median['driven'] / median['free']:.2f}")
+
+
+if __name__ == "__main__":
+    main()
