@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -336,7 +337,7 @@ def _sources(data: Any) -> list[str]:
     """Helper: the data's names as given (a DataFrame has none)."""
     if input_size.in_memory_table(data) is not None:
         return []
-    return [str(d) for d in ([data] if isinstance(data, str) else data)]
+    return [os.fspath(d) for d in ([data] if isinstance(data, str | os.PathLike) else data)]
 
 
 def _names(data: Any) -> str:

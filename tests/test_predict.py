@@ -243,3 +243,14 @@ def test_errors_are_one_line_and_write_nothing(files, tmp_path, result):
     one_line_error(_run(files["report"], files["data"], "-o", tmp_path / "out.png"), 2,
                    "'.png'")
     assert not out.exists()
+
+
+def test_a_path_object_names_the_data_as_a_string_does(tmp_path):
+    """`FitResult.predict` takes a pathlib.Path as `hamid.fit` does."""
+    from pathlib import Path
+
+    data = tmp_path / "decay.csv"
+    hamid.simulate("sample_data/duffing.toml").to_csv(data, index=False)
+    result = hamid.fit(data)
+    by_path, by_text = result.predict(Path(data)), result.predict(str(data))
+    assert by_path.to_dict()["data"] == by_text.to_dict()["data"] == [str(data)]
