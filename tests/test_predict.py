@@ -251,6 +251,6 @@ def test_a_path_object_names_the_data_as_a_string_does(tmp_path):
 
     data = tmp_path / "decay.csv"
     hamid.simulate("sample_data/duffing.toml").to_csv(data, index=False)
-    result = hamid.fit(data)
+    result = hamid.fit(data, "duffing")
     by_path, by_text = result.predict(Path(data)), result.predict(str(data))
     assert by_path.to_dict()["data"] == by_text.to_dict()["data"] == [str(data)]
