@@ -47,6 +47,7 @@ from hamid.linear import design
 from hamid.model.dynamics import Dynamics, Motion
 from hamid.model.models import model_from_info
 from hamid.options import TIME_UNITS, FitOptions
+from hamid.refine.integration import SampledInputs
 from hamid.refine.trajectory import NOISE_FLOOR, STEP
 
 if TYPE_CHECKING:
@@ -136,12 +137,10 @@ class Integration:
         (`hamid.refine.integration.SampledInputs`); a free model's is this one."""
         if records.U is None:
             return self
-        from scipy.interpolate import CubicSpline
-
         assert records.t is not None
         t = records.t[start:stop]
-        return dataclasses.replace(self, inputs=CubicSpline(t - t[0], records.U[start:stop],
-                                                            axis=0))
+        inputs = SampledInputs([t - t[0]], [records.U[start:stop]])
+        return dataclasses.replace(self, inputs=inputs.path(1, 0.0))
 
     @cached_property
     def motion(self) -> Motion:
