@@ -11,6 +11,7 @@ from hamid.data import input_size, loading
 from hamid.data.records import Recording
 from hamid.executor import one_blas_thread
 from hamid.linear import chunked, estimate, plan
+from hamid.linear.design import RowKind
 from hamid.linear.unknowns import Unknowns
 from hamid.model.models import Model, load_model
 from hamid.options import SAVGOL_ORDER, FitOptions
@@ -164,7 +165,7 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
     linear, fit_plan, rows = step.fit, step.plan, step.rows
     # refine
     fitted, refinement = linear, None
-    if opts.method == "auto" and fit_plan.kind == "joint":
+    if opts.method == "auto" and fit_plan.kind == RowKind.JOINT:
         obstacle = plan.refinement_obstacle(opts, source.whole_bytes())
         if obstacle is None:
             records = source.whole()
@@ -172,8 +173,10 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
             if rows is not None:   # the energy rows of every sample, made again after it
                 rows.release()
             refined, refinement = joint_refinement.refine(
-                linear, m, records, damping_forces, unknowns, fit_plan, given,
-                opts.velocity == "savgol", rows, progress, opts.jobs)
+                linear=linear, model=m, records=records, damping=damping_forces,
+                unknowns=unknowns, plan=fit_plan, sigma=given,
+                derived_velocities=opts.velocity == "savgol", rows=rows, progress=progress,
+                jobs=opts.jobs)
             fitted = refined or linear
             del records
         else:
@@ -186,19 +189,23 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
         fitted = dataclasses.replace(fitted, h_stderr=errors)
     # the checks (those a pass in chunks cannot make said in `checks_skipped`), the result
     noise_check = None if rows is None else estimate.noise_check(
-        source, rows, linear if fitted is linear else None, unknowns, damping_forces, opts, sigma)
-    provenance = summary.Provenance(
-        source.data_info, source.labels, source.truth,
-        source.notes + tuple(plan.window_warnings(fit_plan, source.durations())), noise_info,
-        noise_check, step.skipped)
+        loaded=source, rows=rows, fit=linear if fitted is linear else None, unknowns=unknowns,
+        damping=damping_forces, options=opts, sigma=sigma)
+    notes = source.notes + tuple(plan.window_warnings(fit_plan, source.durations()))
+    provenance = summary.Provenance(data=source.data_info, labels=source.labels,
+                                    truth=source.truth, notes=notes, noise=noise_info,
+                                    noise_check=noise_check, skipped=step.skipped)
+    estimates = unknowns.estimates(fitted.theta)
     result = summary.fit_result(
-        m, unknowns, fitted, residuals, fit_plan, opts, provenance, refinement,
-        dissipation=summary.dissipation_summary(m, source, damping_forces,
-                                                unknowns.estimates(fitted.theta), rows, fitted.h),
+        model=m, unknowns=unknowns, fit=fitted, residuals=residuals, plan=fit_plan,
+        options=opts, provenance=provenance, refinement=refinement,
+        dissipation=summary.dissipation_summary(m, source, damping_forces, estimates, rows,
+                                                fitted.h),
         samples=None if rows is None else summary.samples(rows, fitted, m, unknowns, fit_plan,
-                                                          source.labels), run=run,
-        forcing=m.forcing and summary.forcing_summary(m, source.whole(),
-                                                      unknowns.estimates(fitted.theta)))
+                                                          source.labels),
+        run=run,
+        forcing=None if m.forcing is None else summary.forcing_summary(m, source.whole(),
+                                                                       estimates))
     if rows is None:   # no records in memory, for plot()
         return result
     return dataclasses.replace(result, recording=Recording(m, source.whole()))

@@ -179,9 +179,10 @@ def parse_system(system: Mapping[str, Any], *, where: str = "system",
         raise ModelError(f"{where}: [damping] has no value for {', '.join(missing)} of its "
                          "dissipation function")
 
-    return System(model, theta, tuple(initial), t_end, dt, method.lower(), rtol, atol, seed,
-                  noise, relative, damping, max_samples,
-                  _signals(system, model, t_end, where, folder))
+    return System(model=model, theta=theta, initial=tuple(initial), t_end=t_end, dt=dt,
+                  method=method.lower(), rtol=rtol, atol=atol, seed=seed, noise=noise,
+                  relative_noise=relative, damping=damping, max_samples=max_samples,
+                  signals=_signals(system, model, t_end, where, folder))
 
 
 def _signals(system: Mapping[str, Any], model: Model, t_end: float, where: str,

@@ -253,3 +253,11 @@ def test_a_driven_fit_predicts_a_recording_of_another_input(duffing_model):
     assert predicted.channels.loc["x", "rms"] < 1e-5 * amplitude
     from_rest = result.predict(unseen, from_rest=True)   # it did not start at rest
     assert from_rest.channels.loc["x", "rms"] > 100 * predicted.channels.loc["x", "rms"]
+
+
+def test_a_driven_fit_needs_a_time_column(duffing_model):
+    from hamid.errors import UsageError
+
+    data = hamid.simulate(duffing_system()).drop(columns="t")
+    with pytest.raises(UsageError, match=r"^a \[forcing\] needs a time column"):
+        hamid.fit(data, duffing_model)

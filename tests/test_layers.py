@@ -211,3 +211,37 @@ def test_the_time_units_the_options_offer_are_those_the_reader_converts():
     from hamid.data import column_roles
 
     assert tuple(column_roles.TIME_UNITS) == options.TIME_UNITS
+
+
+# A call passes at most this many arguments by position: beyond it, by keyword, so that
+# the steps hand their work over by name (a swapped pair of 13 positional arguments ran).
+MOST_POSITIONAL = 6
+
+
+def _long_positional_calls(source: str) -> list[int]:
+    """The lines of calls in `source` that pass over MOST_POSITIONAL arguments by
+    position (a starred argument counts as one)."""
+    return [node.lineno for node in ast.walk(ast.parse(source))
+            if isinstance(node, ast.Call) and len(node.args) > MOST_POSITIONAL]
+
+
+def test_no_call_passes_more_than_six_arguments_by_position():
+    found = [f"{path.relative_to(PACKAGE.parent)}:{line}"
+             for path in sorted(PACKAGE.rglob("*.py"))
+             for line in _long_positional_calls(path.read_text())]
+    assert found == []
+
+
+def test_a_call_of_seven_positional_arguments_is_found():
+    assert _long_positional_calls("f(1, 2, 3, 4, 5, 6)\ng(1, 2, 3, 4, 5, 6, 7)\n") == [2]
+
+
+@pytest.mark.parametrize("step", ["LinearFit", "Choice"])
+def test_the_steps_hand_over_keyword_only_dataclasses(step):
+    import dataclasses
+
+    from hamid.linear.estimate import LinearFit
+    from hamid.selection.select_terms import Choice
+
+    kind = {"LinearFit": LinearFit, "Choice": Choice}[step]
+    assert all(field.kw_only for field in dataclasses.fields(kind))

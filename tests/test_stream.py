@@ -406,7 +406,7 @@ def test_what_chunks_skip_is_the_noise_check_whole(noisy_files, tmp_path, monkey
     writing.write_table(with_noise(frame, 0.05, seed=7), path, metadata=frame.attrs["hamid"])
     whole = hamid.fit(path, method="energy", in_memory=True)
     chunks = hamid.fit(path, method="energy", chunk_rows=300)
-    monkeypatch.setattr(estimate, "noise_check", lambda *args: None)
+    monkeypatch.setattr(estimate, "noise_check", lambda *args, **kwargs: None)
     unchecked = hamid.fit(path, method="energy", in_memory=True)
     noise_warnings = set(whole.warnings) - set(unchecked.warnings)
     assert noise_warnings   # the noise check says something of these data

@@ -208,15 +208,14 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
                            mapping, options, units)
     if derivation:
         data_info.update(velocity_window=derivation[0], velocity_order=options.order)
-    if (options.damping or m.dissipation) and records.t is None:
-        raise UsageError("damping needs a time column (the dissipated work is an integral "
-                         "over time); name it with --time COL")
-    if m.forcing is not None and records.t is None:
-        raise UsageError("a [forcing] needs a time column (the input's work is an integral "
-                         "over time); name it with --time COL")
+    if (options.damping or m.dissipation or m.forcing) and records.t is None:
+        what = "damping" if options.damping or m.dissipation else "a [forcing]"
+        raise UsageError(f"{what} needs a time column (its work is an integral over time); "
+                         "name it with --time COL")
     data_info.update({"inputs": {name: mapping[name] for name in m.inputs}} if m.inputs else {})
-    return Loaded(m, records, _truth(metadata, m), data_info, tuple(notes),
-                  derivation[1] if derivation else None, row_sources, scales, file_rows)
+    return Loaded(model=m, records=records, truth=_truth(metadata, m), data_info=data_info,
+                  notes=tuple(notes), velocity_gain=derivation[1] if derivation else None,
+                  row_sources=row_sources, trajectory_scales=scales, file_rows=file_rows)
 
 
 class Reader:

@@ -46,7 +46,7 @@ import numpy.typing as npt
 from hamid.data.records import Records
 from hamid.errors import UsageError
 from hamid.linear import solve
-from hamid.linear.design import Block, Windows
+from hamid.linear.design import Block, RowKind, Windows
 from hamid.model.expressions import Polynomial
 from hamid.model.models import Model
 
@@ -174,7 +174,7 @@ def adjusted_moments(block: Block, model: Model, records: Records, sigma: np.nda
     """
     index = [model.parameters.index(p) for p in parameters]
     known = _known_side(model, fixed)
-    if block.kind == "energy":
+    if block.kind == RowKind.ENERGY:
         phi, minus_E0 = _energy_functions(model, parameters, fixed)
         return _energy_moments(block, phi, minus_E0, windows, records, sigma)
     assert windows is not None

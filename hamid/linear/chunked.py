@@ -33,7 +33,7 @@ from hamid.data.loading import Chunked, Loaded, Source
 from hamid.data.records import Records, runs
 from hamid.errors import DataError
 from hamid.linear import design, estimate, noise_free, solve, uncertainty
-from hamid.linear.design import Block
+from hamid.linear.design import Block, RowKind
 from hamid.linear.estimate import LinearFit, ResidualSums, Rows, Scores
 from hamid.linear.plan import FitPlan
 from hamid.linear.unknowns import Unknowns
@@ -103,7 +103,7 @@ def fit_chunks(source: Chunked, unknowns: Unknowns, plan: FitPlan,
     """The linear fit of the chunks, and the plan (energy rows when `auto` finds too few
     windows)."""
     rows = energy_rows(source, unknowns)
-    if plan.kind != "energy":
+    if plan.kind != RowKind.ENERGY:
         fitted, plan = _windowed(source, rows, plan, unknowns, options)
         if fitted is not None:
             return fitted, plan
@@ -137,11 +137,14 @@ def _energy(source: Chunked, energy_rows: Callable[[Records, int], Block], names
     covariance, description = misfit.widened(c.theta, c.description, solution.inverse)
     stats = residuals.stats(source.labels)
     h_stderr = np.sqrt(np.clip(estimate.level_variance(c, factor.level_means[0]), 0, None))
-    return LinearFit(solution.theta, covariance, description, c.df, scores.h, h_stderr, None,
-                     {"energy": {"n_rows": int(residuals.n.sum()), "rms": stats["rms"],
-                                 "max_abs": stats["max_abs"]}},
-                     solve.factor_conditioning(factor, names, source.labels), None,
-                     factor.level_means, residuals.n.astype(np.int64), residuals=residuals)
+    return LinearFit(theta=solution.theta, covariance=covariance, description=description, df=c.df,
+                     h=scores.h, h_stderr=h_stderr, block_variance=None,
+                     block_stats={"energy": {"n_rows": int(residuals.n.sum()),
+                                             "rms": stats["rms"],
+                                             "max_abs": stats["max_abs"]}},
+                     conditioning=solve.factor_conditioning(factor, names, source.labels),
+                     block_conditions=None, energy_means=factor.level_means,
+                     sizes=residuals.n.astype(np.int64), residuals=residuals)
 
 
 def _windowed(source: Chunked, energy_rows: Callable[[Records, int], Block], plan: FitPlan,
@@ -151,7 +154,8 @@ def _windowed(source: Chunked, energy_rows: Callable[[Records, int], Block], pla
     there are too few windows for `auto`."""
     m, window, kind = source.model, plan.window, plan.kind
     N = len(m.coordinates)
-    layout = ([("energy", 1, True)] if kind == "joint" else []) + [("weak", N, False)]
+    layout = ([(RowKind.ENERGY, 1, True)] if kind == RowKind.JOINT else []
+              ) + [(RowKind.WEAK, N, False)]
     store = _WindowRows(layout, len(unknowns.free), source.table.name)
     totals: dict[int, np.ndarray] = {}   # sums of A, b and the count of each trajectory
     quadrature = estimate.QuadratureError(len(unknowns.free))
@@ -166,7 +170,7 @@ def _windowed(source: Chunked, energy_rows: Callable[[Records, int], Block], pla
             weak = unknowns.hold_fixed(design.weak_block(m, held.records, spans))
             quadrature.add(weak, unknowns.hold_fixed(
                 design.weak_quadrature_error(m, held.records, spans)))
-            store.append([design.window_means(held.rows, spans), weak] if kind == "joint"
+            store.append([design.window_means(held.rows, spans), weak] if kind == RowKind.JOINT
                          else [weak])
         # Keep the samples from the first sample of the next window on.
         keep = int(np.searchsorted(held.records.t, held.origin + held.next * window
@@ -197,13 +201,14 @@ def _windowed(source: Chunked, energy_rows: Callable[[Records, int], Block], pla
             emit(held, ended=True)
         J = len(source.labels)
         plan = plan.check_windows(store.n_windows, unknowns.free_names, J, options)
-        if plan.kind == "energy":
+        if plan.kind == RowKind.ENERGY:
             return None, plan
         sizes = np.array([totals[j][-1] for j in range(J)], dtype=np.int64)
         energy_means = np.array([totals[j][:-1] / totals[j][-1] for j in range(J)])
-        return _fit_windows(store, kind, unknowns.free_names, source.labels, options.cov,
-                            sizes, (energy_means[:, :-1], energy_means[:, -1]),
-                            quadrature), plan
+        return _fit_windows(store=store, kind=kind, names=unknowns.free_names,
+                            labels=source.labels, cov=options.cov, sizes=sizes,
+                            energy_means=(energy_means[:, :-1], energy_means[:, -1]),
+                            quadrature=quadrature), plan
 
 
 class _WindowRows:
@@ -276,8 +281,9 @@ class _WindowRows:
             for kind, rows, has_level in self.layout:
                 values = record[:, column:column + rows * (p + 2)].reshape(n * rows, p + 2)
                 column += rows * (p + 2)
-                blocks.append(Block(kind, values[:, :p], values[:, p], np.repeat(group, rows),
-                                    np.repeat(time, rows), values[:, p + 1], has_level))
+                blocks.append(Block(kind=kind, A=values[:, :p], b=values[:, p],
+                                    group=np.repeat(group, rows), time=np.repeat(time, rows),
+                                    weight=values[:, p + 1], has_level=has_level))
             yield blocks, group
 
 
@@ -335,7 +341,8 @@ def _fit_windows(store: _WindowRows, kind: str, names: list[str],
     joined, solution = solved(scales)
     fit = fits.get(ratio) if cov == "hac" else None
     if fit is None:
-        fit = _window_fit(store, joined, solution, scales, cov, names, J)
+        fit = _window_fit(store=store, joined=joined, solution=solution, scales=scales, cov=cov,
+                          names=names, J=J)
     c = fit.covariance
     means_A = joined.level_means[0]
     h, h_stderr = estimate.fitted_levels(kind, solution.theta, fit.h,
@@ -351,9 +358,10 @@ def _fit_windows(store: _WindowRows, kind: str, names: list[str],
     covariance, description = fit.misfit.widened(c.theta, c.description, solution.inverse)
     shift = quadrature.shift(solution.theta, solution.inverse, scales[-1])   # weak: last
     covariance, description = estimate.with_discretization(covariance, description, shift)
-    return LinearFit(solution.theta, covariance, description, c.df, h, h_stderr,
-                     block_variance, block_stats, cond, each, energy_means, sizes,
-                     discretization=shift)
+    return LinearFit(theta=solution.theta, covariance=covariance, description=description, df=c.df,
+                     h=h, h_stderr=h_stderr, block_variance=block_variance,
+                     block_stats=block_stats, conditioning=cond, block_conditions=each,
+                     energy_means=energy_means, sizes=sizes, discretization=shift)
 
 
 @dataclasses.dataclass(frozen=True)

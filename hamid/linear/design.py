@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -22,15 +23,24 @@ from hamid.model.dissipation import Dissipation
 from hamid.model.expressions import Func
 from hamid.model.models import Model
 
-__all__ = ["Block", "energy_block", "input_work", "median_period",
+__all__ = ["Block", "RowKind", "energy_block", "input_work", "median_period",
            "trajectory_scales", "weak_block", "window_means", "windows"]
+
+
+class RowKind(StrEnum):
+    """Which rows a block holds (energy or weak-form), and which a fit takes (`FitPlan`:
+    those, or both, ``joint``); the report writes them as their text."""
+
+    ENERGY = "energy"
+    WEAK = "weak"
+    JOINT = "joint"
 
 
 @dataclass(frozen=True)
 class Block:
     """Rows  A theta - b (- h_group when `has_level`) = r, with weights and grouping."""
 
-    kind: str
+    kind: RowKind
     A: npt.NDArray[np.float64]
     b: npt.NDArray[np.float64]
     group: npt.NDArray[np.int64]
@@ -44,9 +54,9 @@ class Block:
 
     def slice(self, start: int, stop: int | None) -> Block:
         """Rows start:stop (views)."""
-        return Block(self.kind, self.A[start:stop], self.b[start:stop],
-                     self.group[start:stop], self.time[start:stop], self.weight[start:stop],
-                     self.has_level)
+        return Block(kind=self.kind, A=self.A[start:stop], b=self.b[start:stop],
+                     group=self.group[start:stop], time=self.time[start:stop],
+                     weight=self.weight[start:stop], has_level=self.has_level)
 
 
 def _dissipated_work(records: Records, dissipation: Dissipation) -> npt.NDArray[np.float64]:
@@ -111,7 +121,7 @@ def energy_block(model: Model, records: Records,
         Phi = np.hstack([Phi, _dissipated_work(records, dissipation)])
     time = records.t if records.t is not None else _sample_index(records)
     b = np.negative(E0, out=E0)   # in its row: no other array of the record's length
-    return Block("energy", Phi, b, records.group, time, np.ones(len(E0)), has_level=True)
+    return Block(RowKind.ENERGY, Phi, b, records.group, time, np.ones(len(E0)), has_level=True)
 
 
 def window_means(block: Block, windows: Windows) -> Block:
@@ -325,8 +335,8 @@ class Windows:
         half = ((hi_t - lo_t) / 2)[row]
         s = (t[col] - ((lo_t + hi_t) / 2)[row]) / half
         base = np.clip(1 - s**2, 0.0, None)  # rounding can put s a hair past 1
-        weights = _window_weights(t, np.diff(t), first - a, last - a, row, col,
-                                  self.uneven[lo:hi])
+        weights = _window_weights(t=t, step=np.diff(t), first=first - a, last=last - a, row=row,
+                                  col=col, uneven=self.uneven[lo:hi])
         if self.richardson:
             order = np.where(self.uneven[lo:hi], UNEVEN_ORDER, QUADRATURE_ORDER)[row]
             weights = (_every_other_weights(t, first - a, last - a, row, col,
@@ -448,8 +458,9 @@ def windows_at(records: Records, first: npt.NDArray[np.int64], last: npt.NDArray
     # once for all windows: per block of windows these passes over every sample made the
     # build quadratic in the record's length
     uneven = _uneven_windows(t_all, first, last)
-    return Windows(t_all, (t_all[first] + t_all[last]) / 2, group, length, first, last,
-                   BUMP_ORDER if order is None else order, uneven)
+    return Windows(t=t_all, centre=(t_all[first] + t_all[last]) / 2, group=group, length=length,
+                   first=first, last=last, order=BUMP_ORDER if order is None else order,
+                   uneven=uneven)
 
 
 _WINDOW_BLOCK = 1024   # windows built at once: their temporaries stay small (README, Performance)
@@ -539,7 +550,7 @@ def weak_block(model: Model, records: Records, windows: Windows,
                 for i in range(N):
                     forces[i::N, k] = -(psi @ parts[:, i, k])
         A = np.hstack([A, forces])
-    return Block("weak", A, -integrals[:, 0], np.repeat(windows.group, N),
+    return Block(RowKind.WEAK, A, -integrals[:, 0], np.repeat(windows.group, N),
                  np.repeat(windows.centre, N), np.ones(rows), has_level=False)
 
 
@@ -578,7 +589,7 @@ def row_variance(block: Block, model: Model, records: Records, theta: npt.NDArra
     out: its noise is spread over the whole record.
     """
     s2 = np.asarray(sigma, dtype=np.float64) ** 2
-    if block.kind == "energy":
+    if block.kind == RowKind.ENERGY:
         g = (model.energy_gradient(records.X, theta[:len(model.parameters)]) ** 2) @ s2
         if windows is None:
             return g
@@ -619,7 +630,7 @@ def propagated_covariance(blocks: list[Block], G: npt.NDArray[np.float64], model
     for block in blocks:
         G_block = G[start:start + block.n_rows]
         start += block.n_rows
-        if block.kind == "energy":
+        if block.kind == RowKind.ENERGY:
             spread = G_block if windows is None else windows.means.T @ G_block
             gradient = model.energy_gradient(records.X, theta[:n_energy])
             g += gradient[:, :, None] * spread[:, None, :]
@@ -656,7 +667,7 @@ def _add_work_sensitivity(g: np.ndarray, spread: np.ndarray, records: Records,
 
 def check_weak_rows(block: Block, labels: tuple[str | int, ...]) -> None:
     """Weak-form rows must be finite (the energy's derivatives are, along the records)."""
-    if block.kind != "weak":
+    if block.kind != RowKind.WEAK:
         return
     bad = np.flatnonzero(~np.all(np.isfinite(np.column_stack([block.A, block.b])), axis=1))
     if bad.size:
@@ -698,8 +709,8 @@ def sample_weights(kind: str, blocks: list[Block], n_samples: int, spans: Any) -
     In `joint` the energy rows are window means, so a sample's weight is its share of the
     windows that hold it; in `weak` the energy equations were not fitted (weight 0).
     """
-    if kind == "energy":
+    if kind == RowKind.ENERGY:
         return blocks[0].weight
-    if kind == "weak":
+    if kind == RowKind.WEAK:
         return np.zeros(n_samples)
     return spans.spread(blocks[0].weight)

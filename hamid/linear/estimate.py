@@ -20,7 +20,7 @@ from hamid.data.loading import Loaded
 from hamid.data.records import Records, runs
 from hamid.errors import DataError, FitError
 from hamid.linear import design, noise_free, solve, uncertainty
-from hamid.linear.design import Block, Windows
+from hamid.linear.design import Block, RowKind, Windows
 from hamid.linear.plan import FitPlan
 from hamid.linear.unknowns import Unknowns
 from hamid.model.dissipation import Dissipation
@@ -35,7 +35,7 @@ TINY = 1e-300
 _MAX_ROUNDS = 20
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class LinearFit:
     """A fit's estimates and what the report needs of them, however the rows were read.
 
@@ -374,12 +374,12 @@ def fitted_levels(kind: str, theta: Any, fitted_h: Any, h_var: Any,
     joint fit) the level is the mean fitted energy, without a standard error.
     """
     J = len(fitted_h)
-    h_stderr = np.full(J, np.nan) if kind == "weak" else np.sqrt(np.clip(h_var, 0, None))
-    if kind != "weak" and not np.any(np.isnan(fitted_h)):
+    h_stderr = np.full(J, np.nan) if kind == RowKind.WEAK else np.sqrt(np.clip(h_var, 0, None))
+    if kind != RowKind.WEAK and not np.any(np.isnan(fitted_h)):
         return fitted_h, h_stderr
     means_A, means_b = energy_means
     mean_energy = means_A @ theta - means_b
-    if kind == "weak":
+    if kind == RowKind.WEAK:
         return mean_energy, h_stderr
     return np.where(np.isnan(fitted_h), mean_energy, fitted_h), h_stderr
 
@@ -403,12 +403,12 @@ def rows_of(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: FitP
 
     energy, all_energy = energy_rows()
     design.check_finite(all_energy, loaded.locate, list(unknowns.names))
-    spans = design.windows(records, plan.window) if plan.kind != "energy" else None
+    spans = design.windows(records, plan.window) if plan.kind != RowKind.ENERGY else None
     if spans is not None:
         plan = plan.check_windows(spans.n_windows, names, J, options)
-        spans = spans if plan.kind != "energy" else None
+        spans = spans if plan.kind != RowKind.ENERGY else None
     blocks = [energy] if spans is None else [
-        *([design.window_means(energy, spans)] if plan.kind == "joint" else []),
+        *([design.window_means(energy, spans)] if plan.kind == RowKind.JOINT else []),
         unknowns.hold_fixed(design.weak_block(m, records, spans, damping))]
     design.check_weak_rows(blocks[-1], records.labels)
     return Rows(blocks, spans, energy_rows, (energy, all_energy)), plan
@@ -430,15 +430,17 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
         # Adjusted least squares is unbiased only when no row's weight depends on its
         # own noise: its weights are found at the states of the neighbouring samples.
         blocks, block_variance, rounds = _noise_weighted(
-            blocks, m, _neighbour_states(records) if options.bias_correct else records,
-            spans, damping, sigma, unknowns, J)
+            blocks=blocks, model=m,
+            records=_neighbour_states(records) if options.bias_correct else records, spans=spans,
+            damping=damping, sigma=sigma, unknowns=unknowns, J=J)
     correction, moments, weak = None, None, blocks[-1]   # weak: as weighted, not adjusted
     if options.bias_correct:
         from hamid.linear import adjust
 
         adjust.check_adjustable(m, options.velocity == "savgol", damping)
-        moments = [adjust.adjusted_moments(b, m, records, sigma, spans, names,
-                                           dict(unknowns.fixed)) for b in blocks]
+        moments = [adjust.adjusted_moments(block=b, model=m, records=records, sigma=sigma,
+                                           windows=spans, parameters=names,
+                                           fixed=dict(unknowns.fixed)) for b in blocks]
         blocks = [mo.block for mo in moments]
         correction = (sum(mo.AA for mo in moments), sum(mo.Ab for mo in moments))
     fit = least_squares(blocks, names, J, correction)
@@ -451,8 +453,9 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
         c = covariance(options.cov, fit, blocks, window_group, shares)
         theta_cov, text, df = c.theta, c.description, c.df
         if damping:
-            theta_cov, text = _with_propagated_noise(theta_cov, text, fit, blocks, m, records,
-                                                     sigma, unknowns, spans, damping)
+            theta_cov, text = _with_propagated_noise(
+                theta_cov=theta_cov, text=text, fit=fit, blocks=blocks, model=m, records=records,
+                sigma=sigma, unknowns=unknowns, spans=spans, damping=damping)
         h_var = level_variance(c, fit.centred.level_means_A)
     misfit = noise_free.Misfit(J)
     pieces = np.split(fit.residual, np.cumsum([b.n_rows for b in blocks])[:-1])
@@ -474,9 +477,11 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
     each = ({b.kind: solve.conditioning([b], names, records.labels).condition_number
              for b in blocks} if len(blocks) > 1 else None)
     sizes = np.array([stop - start for start, stop in records.bounds()], dtype=np.int64)
-    linear = LinearFit(fit.theta, theta_cov, text, df, h, h_stderr, block_variance,
-                       block_stats, solve.conditioning(blocks, names, records.labels), each,
-                       (means_A, means_b), sizes, rounds, discretization=shift)
+    linear = LinearFit(theta=fit.theta, covariance=theta_cov, description=text, df=df, h=h,
+                       h_stderr=h_stderr, block_variance=block_variance, block_stats=block_stats,
+                       conditioning=solve.conditioning(blocks, names, records.labels),
+                       block_conditions=each, energy_means=(means_A, means_b), sizes=sizes,
+                       weighting_rounds=rounds, discretization=shift)
     return linear, plan, dataclasses.replace(rows, blocks=blocks)
 
 
@@ -503,7 +508,7 @@ def _bootstrap_covariance(blocks: list[Block], names: list[str], J: int, kind: s
     rows, windows, each with its weak rows and its energy row."""
     p = len(names)
     group = np.concatenate([b.group for b in blocks])
-    if kind == "energy":
+    if kind == RowKind.ENERGY:
         units, unit_group = np.arange(len(group)), group
     else:
         units, unit_group = resampling_units(blocks)
@@ -544,8 +549,9 @@ def _with_propagated_noise(theta_cov: Any, text: str, fit: Solved, blocks: list[
     if sigma is None:
         sigma = measurement.estimate_noise(records.X, records.bounds())
     G = fit.centred.influence(fit.solution.inverse)
-    propagated = design.propagated_covariance(blocks, G, model, records,
-                                              unknowns.full(fit.theta), sigma, spans, damping)
+    propagated = design.propagated_covariance(blocks=blocks, G=G, model=model, records=records,
+                                              theta=unknowns.full(fit.theta), sigma=sigma,
+                                              windows=spans, dissipation=damping)
     return (noise_free.at_least(theta_cov, propagated),
             text + "; each variance at least the one propagated from the measurement noise")
 
@@ -584,8 +590,9 @@ def _noise_weighted(blocks: list[Block], model: Model, records: Records,
         rounds += 1
         weighted = []
         for block in blocks:
-            variance = design.row_variance(block, model, records, unknowns.full(theta), sigma,
-                                           spans, damping)
+            variance = design.row_variance(block=block, model=model, records=records,
+                                           theta=unknowns.full(theta), sigma=sigma, windows=spans,
+                                           dissipation=damping)
             positive = variance[variance > 0]
             floor = 1e-12 * float(np.median(positive)) if positive.size else 1.0
             weighted.append(dataclasses.replace(block,
@@ -741,8 +748,10 @@ def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unk
             block, = rows.blocks
             adjusted = adjust.adjusted_energy(block, m, records, sigma, names, fixed)
         else:
-            moments = [adjust.adjusted_moments(b, m, records, sigma, rows.windows, names,
-                                               fixed) for b in rows.blocks]
+            moments = [adjust.adjusted_moments(block=b, model=m, records=records, sigma=sigma,
+                                               windows=rows.windows, parameters=names,
+                                               fixed=fixed)
+                       for b in rows.blocks]
             adjusted = least_squares([mo.block for mo in moments], names,
                                      records.n_trajectories,
                                      (sum(mo.AA for mo in moments),

@@ -14,6 +14,7 @@ import numpy as np
 
 from hamid.errors import DataError, FitError, UsageError
 from hamid.linear import design
+from hamid.linear.design import RowKind
 from hamid.model.models import Model
 from hamid.options import REFINEMENT_BYTES, FitOptions
 
@@ -34,7 +35,7 @@ class FitPlan:
         the energy rows were asked for and no window needs sizing).
     """
 
-    kind: str
+    kind: RowKind
     reason: str
     window: float | None
     scales: list[tuple[float | None, float]] | None
@@ -46,13 +47,14 @@ class FitPlan:
         Windows are the independent units of the weak and joint errors, so more are needed
         than unknowns (the levels count in joint).
         """
-        needed = len(free_names) + (n_trajectories if self.kind == "joint" else 0) + 1
-        if self.kind == "energy" or n_windows >= needed:
+        needed = len(free_names) + (n_trajectories if self.kind == RowKind.JOINT else 0) + 1
+        if self.kind == RowKind.ENERGY or n_windows >= needed:
             return self
         shortage = (f"the records hold {n_windows} weak-form windows of {self.window:.3g} s, "
                     f"fewer than the {needed} that {needed - 1} unknowns need")
         if options.method == "auto" and options.weak_window is None:
-            return FitPlan("energy", f"{shortage}; fitted the energy rows", None, self.scales)
+            return FitPlan(RowKind.ENERGY, f"{shortage}; fitted the energy rows", None,
+                           self.scales)
         if n_windows == 0:
             raise DataError(f"the records are too short for one weak-form window of "
                             f"{self.window:.4g} s; use --method energy or a shorter "
@@ -76,7 +78,7 @@ def decide(options: FitOptions, model: Model,
     """
     method, weak_window = options.method, options.weak_window
     if method == "energy":
-        return FitPlan("energy", "asked for with --method energy", None, scales)
+        return FitPlan(RowKind.ENERGY, "asked for with --method energy", None, scales)
     obstacle = None
     window = weak_window
     if scales is None:
@@ -107,12 +109,12 @@ def decide(options: FitOptions, model: Model,
     if obstacle is not None:
         if method != "auto":
             raise UsageError(f"--method {method} is not possible: {obstacle}")
-        return FitPlan("energy", f"{obstacle}; fitted the energy rows", None, scales)
+        return FitPlan(RowKind.ENERGY, f"{obstacle}; fitted the energy rows", None, scales)
     if method == "auto":
-        return FitPlan("joint", f"time column sampled finely enough for weak-form windows "
+        return FitPlan(RowKind.JOINT, "time column sampled finely enough for weak-form windows "
                        f"of {window:.3g} s ({how})", window, scales)
-    return FitPlan(method, f"asked for with --method {method}; windows of {window:.3g} s "
-                   f"({how})", window, scales)
+    return FitPlan(RowKind(method), f"asked for with --method {method}; windows of "
+                   f"{window:.3g} s ({how})", window, scales)
 
 
 def window_warnings(fit_plan: FitPlan, durations: list[float] | None) -> list[str]:

@@ -208,7 +208,8 @@ def _problem(
     labels, starts, stops = _group_runs(groups, n)
     if isinstance(df_resid, bool) or not isinstance(df_resid, int | np.integer) or df_resid < 1:
         raise ValueError(f"`df_resid` must be a positive integer, got {df_resid!r}")
-    return _Problem(G, lam, r, w, labels, starts, stops, int(df_resid))
+    return _Problem(G=G, lam=lam, r=r, w=w, labels=labels, starts=starts, stops=stops,
+                    df_resid=int(df_resid))
 
 
 # Rows of trajectories of one length whose scores `ScoreSums.add_runs` takes at once.
@@ -458,8 +459,9 @@ def _by_unit(prob: _Problem, units: npt.ArrayLike) -> _Problem:
     fitted = prob.n - prob.df_resid
     if n_units - fitted < 1:
         raise ValueError(f"{n_units} units leave no degrees of freedom for {fitted} unknowns")
-    return _Problem(sums[:, :prob.p], sums[:, prob.p], np.ones(n_units), np.ones(n_units),
-                    labels, starts, stops, n_units - fitted)
+    return _Problem(G=sums[:, :prob.p], lam=sums[:, prob.p], r=np.ones(n_units),
+                    w=np.ones(n_units), labels=labels, starts=starts, stops=stops,
+                    df_resid=n_units - fitted)
 
 
 def covariance(

@@ -282,8 +282,8 @@ def model_from_expression(name: str, energy: str, coordinates: Sequence[str],
         raise ModelError(f"{where}: the energy has no parameters to fit")
     E0, phi = expressions.split_linear(tree, coordinates + velocities, tuple(parameters),
                                 where=f"{where}: energy")
-    return Model(name, energy, coordinates, velocities, tuple(parameters), E0, phi,
-                 description)
+    return Model(name=name, energy=energy, coordinates=coordinates, velocities=velocities,
+                 parameters=tuple(parameters), E0=E0, phi=phi, description=description)
 
 
 @lru_cache(maxsize=32)

@@ -257,7 +257,7 @@ def integrate(fun: Function, y0: Array, times: Array, rtol: float, atol: Array,
         out[:] = y
         return out
     f = fun(t, y)
-    h_abs = _initial_step(fun, t, y, f, t_end - t, rtol, atol)
+    h_abs = _initial_step(fun=fun, t=t, y=y, f=f, span=t_end - t, rtol=rtol, atol=atol)
     K = np.empty((N_STAGES_EXTENDED, len(y)))
     written = steps = 0
     while t < t_end:
@@ -289,7 +289,8 @@ def integrate(fun: Function, y0: Array, times: Array, rtol: float, atol: Array,
         stop = int(np.searchsorted(times, t_new, side="right"))
         if stop > written:
             x = (times[written:stop] - t) / h
-            _interpolate(_dense(fun, t, y, y_new, f_new, h, K), y, x, out[written:stop])
+            dense = _dense(fun=fun, t=t, y=y, y_new=y_new, f_new=f_new, h=h, K=K)
+            _interpolate(dense, y, x, out[written:stop])
             written = stop
         t, y, f = t_new, y_new, f_new
     return out

@@ -150,8 +150,9 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipati
 
     expected = trajectory.round_values(records, len(unknowns.free))
     with integration.parallel(Workers(jobs or available_cores()), expected):
-        return _refine(linear, model, records, damping, unknowns, plan, sigma,
-                       derived_velocities, rows, progress)
+        return _refine(linear=linear, model=model, records=records, damping=damping,
+                       unknowns=unknowns, plan=plan, sigma=sigma,
+                       derived_velocities=derived_velocities, rows=rows, progress=progress)
 
 
 def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipation,
@@ -167,9 +168,10 @@ def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipat
         period = 2 * plan.window
     theta_linear, free = unknowns.full(linear.theta), list(unknowns.free)
     try:
-        fit = trajectory.refine(model, records, damping, theta_linear, free, period,
-                                noise.weights, progress,
-                                trajectory.Stop(FIRST_WITHIN, HOPELESS * CHI2_LIMIT))
+        fit = trajectory.refine(model=model, records=records, damping=damping,
+                                theta_all=theta_linear, free=free, period=period,
+                                weight=noise.weights, progress=progress,
+                                stop=trajectory.Stop(FIRST_WITHIN, HOPELESS * CHI2_LIMIT))
         within = fit.chi2_per_dof < CHI2_LIMIT
         if not within:
             # fewer segments than the held-out check needs: shorter ones, down to a period
@@ -178,8 +180,8 @@ def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipat
                    and length / 2 >= trajectory.MIN_SEGMENT_PERIODS * period):
                 length /= 2
             fit, noise = _beyond_noise(fit, noise, length, lambda weight: trajectory.fit(
-                model, records, damping, fit.theta, free, length, weight, progress,
-                "reweighted, "), progress)
+                model=model, records=records, damping=damping, theta_all=fit.theta, free=free,
+                length=length, weight=weight, progress=progress, stage="reweighted, "), progress)
             # no level raised in the end: the first fit had stopped far from its minimum
             # (over chaotic motion a first step can misjudge the misfit it heads for)
             within = not noise.any_raised and fit.chi2_per_dof < CHI2_LIMIT

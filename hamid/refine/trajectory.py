@@ -136,10 +136,11 @@ class _Problem:
         # t[i] - t[a] carries the rounding of both times: segments sampled alike then
         # differ in their last bits, and would each add their own times to a batch's grid
         resolution = TIME_ROUNDING * np.finfo(float).eps * float(np.max(np.abs(t)))
-        return cls(Dynamics(model, damping), records, pieces,
-                   [t[a:b] - t[a] for a, b in pieces], [X[a:b] for a, b in pieces],
-                   STEP * np.maximum(records.extent, records.spread), resolution,
-                   weight, length, np.arange(len(pieces)), _segment_inputs(records, pieces))
+        return cls(dynamics=Dynamics(model, damping), records=records, pieces=pieces,
+                   tau=[t[a:b] - t[a] for a, b in pieces], measured=[X[a:b] for a, b in pieces],
+                   x_step=STEP * np.maximum(records.extent, records.spread), resolution=resolution,
+                   weight=weight, length=length, starts=np.arange(len(pieces)),
+                   inputs=_segment_inputs(records, pieces))
 
     def reweighted(self, weight: npt.NDArray[np.float64]) -> _Problem:
         """The same segments under other weights."""
@@ -320,8 +321,9 @@ class SegmentFit:
                          f"{self.segments:,} segments")
 
         with np.errstate(all="ignore"):
-            normal, _, _ = _normal_equations(self.problem, thetas, self.states, (), None,
-                                             self.rtol, batch_done)
+            normal, _, _ = _normal_equations(problem=self.problem, theta=thetas, X0=self.states,
+                                             free=(), theta_step=None, rtol=self.rtol,
+                                             batch_done=batch_done)
             misfit = normal.cost.sum(axis=1)
             try:
                 step = np.linalg.solve(normal.H_xx, normal.g_x[..., None])[..., 0]
@@ -380,8 +382,9 @@ def refine(model: Model, records: Records, damping: Dissipation, theta_all: npt.
     periods = SEGMENT_PERIODS
     while True:
         try:
-            return fit(model, records, damping, theta_all, free, periods * period, weight,
-                       progress, stop=stop)
+            return fit(model=model, records=records, damping=damping, theta_all=theta_all,
+                       free=free, length=periods * period, weight=weight, progress=progress,
+                       stop=stop)
         except RefinementFailed as exc:
             if periods / 2 < MIN_SEGMENT_PERIODS:
                 raise RefinementFailed(f"{exc}, even over segments of {periods:g} period"
@@ -397,8 +400,8 @@ def fit(model: Model, records: Records, damping: Dissipation, theta_all: npt.Arr
     the progress messages. Raises RefinementFailed when it fails."""
     try:
         problem = _Problem.cut(model, records, damping, length, weight)
-        return _fit_segments(problem, np.array(theta_all, float), tuple(free), None,
-                             LOOSE_RTOL, progress, stage, stop)
+        return _fit_segments(problem=problem, theta=np.array(theta_all, float), free=tuple(free),
+                             X0=None, rtol=LOOSE_RTOL, progress=progress, stage=stage, stop=stop)
     except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
         raise RefinementFailed(f"{exc}") from exc
 
@@ -407,8 +410,9 @@ def refit(fit: SegmentFit, weight: npt.NDArray[np.float64],
           progress: Callable[[str], None] | None = None) -> SegmentFit:
     """The same segments fitted again under other weights, from the fit's point."""
     try:
-        return _fit_segments(fit.problem.reweighted(weight), fit.theta, fit.free,
-                             fit.states, fit.rtol, progress, "reweighted, ")
+        return _fit_segments(problem=fit.problem.reweighted(weight), theta=fit.theta,
+                             free=fit.free, X0=fit.states, rtol=fit.rtol, progress=progress,
+                             stage="reweighted, ")
     except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
         raise RefinementFailed(f"{exc}, reweighted") from exc
 
@@ -423,8 +427,9 @@ def join(fit: SegmentFit, count: int, longest: float,
     if problem.groups == fit.groups:
         return None
     try:
-        return _fit_segments(problem, fit.point.theta, fit.free, fit.point.X0, fit.rtol,
-                             progress, "joined, ", evaluated=fit.point)
+        return _fit_segments(problem=problem, theta=fit.point.theta, free=fit.free,
+                             X0=fit.point.X0, rtol=fit.rtol, progress=progress, stage="joined, ",
+                             evaluated=fit.point)
     except (_SegmentFitFailed, np.linalg.LinAlgError) as exc:
         raise RefinementFailed(f"{exc}, over joined segments") from exc
 
@@ -475,7 +480,8 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
             theta_step[theta_step == 0] = STEP   # every start at zero: no scale to go by
             if evaluated is None:
                 evaluated = _Point(theta, X0, *_normal_equations(
-                    problem, theta, X0, free, theta_step, rtol, batch_done))
+                    problem=problem, theta=theta, X0=X0, free=free, theta_step=theta_step,
+                    rtol=rtol, batch_done=batch_done))
             point, evaluated = evaluated, None
             normal, chain = point.normal, None
             if problem.groups < len(problem.pieces):
@@ -525,8 +531,9 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
                     break
     if best is None or (not converged and damping_factor != 0.0):
         raise _SegmentFitFailed(f"Gauss-Newton did not settle in {MAX_ITERATIONS} iterations")
-    fit = SegmentFit(problem, theta, free, X0, best[0], d_theta, iterations, rtol, best[2],
-                     converged and off <= SETTLED)
+    fit = SegmentFit(problem=problem, theta=theta, free=free, states=X0, normal=best[0],
+                     shift=d_theta, iterations=iterations, rtol=rtol, point=best[2],
+                     settled=converged and off <= SETTLED)
     if not np.isfinite(fit.chi2_per_dof) or not np.all(np.isfinite(theta)):
         raise _SegmentFitFailed("the fit diverged")
     return fit
@@ -628,10 +635,13 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
         for k, index in enumerate(free):
             W[1 + index, 1 + n_x + k] += theta_step[k]
         inputs = problem.inputs
-        batches.append(integration.Batch(
-            problem.dynamics, tau[lo:hi], measured[lo:hi], problem.weight, starts, W, steps,
-            tolerance, ends[lo:hi], inputs=None if inputs is None else integration.SampledInputs(
-                inputs.tau[lo:hi], inputs.values[lo:hi])))
+        batches.append(integration.Batch(dynamics=problem.dynamics, tau=tau[lo:hi],
+                                         measured=measured[lo:hi], weight=problem.weight,
+                                         starts=starts, weights=W, steps=steps,
+                                         tolerance=tolerance, ends=ends[lo:hi],
+                                         inputs=None if inputs is None else
+                                         integration.SampledInputs(inputs.tau[lo:hi],
+                                                                   inputs.values[lo:hi])))
     cost = np.zeros((S, n_states))
     H = np.zeros((S, copies - 1, copies - 1))
     g = np.zeros((S, copies - 1))
@@ -699,4 +709,6 @@ def _condensed(problem: _Problem, point: _Point) -> tuple[_Normal, _Chain]:
     H_00, H_0t, H_tt, g_0, g_t, closing = (np.add.reduceat(a, problem.starts, axis=0)
                                            for a in per_segment)
     cost = np.add.reduceat(normal.cost, problem.starts, axis=0)
-    return _Normal(cost, H_tt, g_t, H_00, H_0t, g_0, closing), _Chain(group, P, Q, c)
+    normal_equations = _Normal(cost=cost, H_tt=H_tt, g_t=g_t, H_xx=H_00, H_xt=H_0t, g_x=g_0,
+                               closing=closing)
+    return normal_equations, _Chain(group, P, Q, c)

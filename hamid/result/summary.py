@@ -68,13 +68,17 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
     for k, name in enumerate(unknowns.names):
         role = unknowns.role(k)
         if name in unknowns.fixed:
-            parameters.append(ParameterEstimate(name, role, unknowns.fixed[name], None, None,
-                                                None, truth.get(name), True))
+            parameters.append(ParameterEstimate(name=name, role=role,
+                                                estimate=unknowns.fixed[name], stderr=None,
+                                                ci_low=None, ci_high=None, truth=truth.get(name),
+                                                fixed=True))
             continue
         i, free_index = free_index, free_index + 1
-        parameters.append(ParameterEstimate(
-            name, role, float(fit.theta[i]), _finite_or_none(stderr[i]),
-            _finite_or_none(low[i]), _finite_or_none(high[i]), truth.get(name), False))
+        parameters.append(ParameterEstimate(name=name, role=role, estimate=float(fit.theta[i]),
+                                            stderr=_finite_or_none(stderr[i]),
+                                            ci_low=_finite_or_none(low[i]),
+                                            ci_high=_finite_or_none(high[i]),
+                                            truth=truth.get(name), fixed=False))
     stats = {**residuals.stats(provenance.labels, driven=model.forcing is not None),
              "blocks": fit.block_stats}
     method = {
@@ -101,8 +105,10 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
                    for label, level, error, size in zip(provenance.labels, fit.h, fit.h_stderr,
                                                         fit.sizes, strict=True))
     warnings = [*provenance.notes,
-                *_warnings(parameters, stats, cond, fit.df, options, plan.kind, refinement,
-                           [*options.damping, *(["Rayleigh"] if model.dissipation else [])]),
+                *_warnings(parameters=parameters, stats=stats, cond=cond, df=fit.df,
+                           options=options, kind=plan.kind, refinement=refinement,
+                           damping=[*options.damping,
+                                    *(["Rayleigh"] if model.dissipation else [])]),
                 *_noise_warnings(provenance.noise_check), *forcing_warnings(forcing)]
     return FitResult(
         hamid_version=__version__,

@@ -74,7 +74,7 @@ class SelectOptions:
                              "bic or aic")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Choice:
     """The outcome of the search, in the library's term positions.
 
@@ -270,15 +270,19 @@ def choose(data: Any, options: SelectOptions, *, reading: Mapping[str, Any] | No
     shares = None
     if options.stability:
         check_replicates("--stability", options.stability, len(grid.unit))
-        probability = best_subsets.inclusion(grid, forced, free, options.criterion,
-                                          options.stability, options.seed, progress)
+        probability = best_subsets.inclusion(design=grid, forced=forced, free=free,
+                                             criterion=options.criterion,
+                                             replicates=options.stability, seed=options.seed,
+                                             progress=progress)
         shares = {columns_of[c]: float(p) for c, p in zip(free, probability, strict=True)}
         shares.update({k: 1.0 for k in kept})
         shares = dict(sorted(shares.items()))
     chosen = tuple(sorted(columns_of[c] for c in ranking.chosen.columns
                           if columns_of[c] is not None))
-    return Choice(library, options, chosen, tuple(kept), tuple(collinear), ranking,
-                  tuple(columns_of), shares, fit_plan.kind, grid.n_rows, grid.n_effective)
+    return Choice(library=library, options=options, chosen=chosen, kept=tuple(kept),
+                  collinear=tuple(collinear), ranking=ranking, columns=tuple(columns_of),
+                  inclusion=shares, kind=fit_plan.kind, n_rows=grid.n_rows,
+                  n_effective=grid.n_effective)
 
 
 def _name(library: Library, k: int) -> str:
