@@ -172,15 +172,15 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
             given = sigma if isinstance(opts.noise, Mapping) else None   # not --noise auto
             if rows is not None:   # the energy rows of every sample, made again after it
                 rows.release()
-            refined, refinement = joint_refinement.refine(
+            outcome = joint_refinement.refine(
                 linear=linear, model=m, records=records, damping=damping_forces,
                 unknowns=unknowns, plan=fit_plan, sigma=given,
                 derived_velocities=opts.velocity == "savgol", rows=rows, progress=progress,
                 jobs=opts.jobs)
-            fitted = refined or linear
             del records
         else:
-            refinement = {"applied": False, "reason": obstacle}
+            outcome = joint_refinement.Outcome.refused(obstacle)
+        fitted, refinement = outcome.fit or linear, outcome.report
         fit_plan = fit_plan.refined(refinement)
     residuals = fitted.residuals or estimate.residual_sums(step.energy_pieces(), fitted.theta,
                                                            fitted.h)

@@ -36,7 +36,7 @@ from hamid.model.models import Model
 if TYPE_CHECKING:
     from hamid.refine.trajectory import SegmentFit
 
-__all__ = ["level_errors", "refine"]
+__all__ = ["Outcome", "level_errors", "refine"]
 
 CHI2_LIMIT = 1.5         # weighted misfit per degree of freedom that the noise explains
 HOPELESS = 100           # times that: no use converging at those weights
@@ -122,11 +122,26 @@ class _Noise:
                 for k, name in enumerate(names)}
 
 
+@dataclass(frozen=True, kw_only=True)
+class Outcome:
+    """What the refinement hands back: the refined fit, None when it is not kept, and what
+    the report says of it (`method.refinement`: applied, the reason when not, the fit's
+    segments, misfit, noise, held-out check and lengthening)."""
+
+    fit: LinearFit | None
+    report: dict[str, Any]
+
+    @classmethod
+    def refused(cls, reason: str, **details: Any) -> Outcome:
+        """The refinement not applied, or not kept, and why."""
+        return cls(fit=None, report={"applied": False, "reason": reason, **details})
+
+
 def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipation,
            unknowns: Unknowns, plan: FitPlan, sigma: npt.NDArray[np.float64] | None,
            derived_velocities: bool, rows: Rows | None,
            progress: Callable[[str], None] | None,
-           jobs: int | None = None) -> tuple[LinearFit | None, dict[str, Any]]:
+           jobs: int | None = None) -> Outcome:
     """The refined fit, or None when it is not kept, and what the report says of it.
 
     `sigma` is the noise the user gave (0 where not given), `rows` the linear fit's rows
@@ -142,10 +157,10 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipati
                         ("dissipation", [k for part in damping.kinks for k in part])):
         kink = _crossed_kink(kinks, records)
         if kink is not None:
-            return None, {"applied": False, "reason": (
+            return Outcome.refused(
                 f"the {what} is not smooth where {kink} = 0 (abs, sign or a fractional "
                 "power), and the motion reaches it; integrating its force there takes tiny "
-                "steps without end")}
+                "steps without end")
     from hamid.refine import integration, trajectory
 
     expected = trajectory.round_values(records, len(unknowns.free))
@@ -158,7 +173,7 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipati
 def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipation,
             unknowns: Unknowns, plan: FitPlan, sigma: npt.NDArray[np.float64] | None,
             derived_velocities: bool, rows: Rows | None,
-            progress: Callable[[str], None] | None) -> tuple[LinearFit | None, dict[str, Any]]:
+            progress: Callable[[str], None] | None) -> Outcome:
     """`refine` past its checks, its integrations' workers chosen."""
     from hamid.refine import trajectory  # the integrator and sympy's derivatives: when refined
 
@@ -186,8 +201,7 @@ def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipat
             # (over chaotic motion a first step can misjudge the misfit it heads for)
             within = not noise.any_raised and fit.chi2_per_dof < CHI2_LIMIT
     except trajectory.RefinementFailed as exc:
-        return None, {"applied": False, "reason": f"the integrated model does not fit the "
-                      f"recording: {exc}"}
+        return Outcome.refused(f"the integrated model does not fit the recording: {exc}")
     info: dict[str, Any] = {
         "segments": fit.segments, "segment_seconds": fit.problem.length,
         **_fitted(fit, noise), "noise": noise.report(model.variables),
@@ -213,17 +227,17 @@ def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipat
                   f"{acceptance['held_out_linear']:.5g} per value, t = {acceptance['t']:.3g} "
                   f"over {fit.segments} segments)")
     if reason is not None:
-        return None, {"applied": False, "reason": reason, **info}
+        return Outcome.refused(reason, **info)
     info["lengthening"] = None
     if within:
         try:
             fit, info["lengthening"] = _lengthened(fit, period, progress)
         except trajectory.RefinementFailed as exc:
-            return None, {"applied": False, "reason": f"the integrated model does not fit "
-                          f"the recording: {exc}", **info}
+            return Outcome.refused(f"the integrated model does not fit the recording: {exc}",
+                                   **info)
         if fit.groups == fit.segments:   # the first fit, settled
             info.update(_fitted(fit, noise))
-    return _refined(linear, fit, within), {"applied": True, **info}
+    return Outcome(fit=_refined(linear, fit, within), report={"applied": True, **info})
 
 
 def _fitted(fit: SegmentFit, noise: _Noise) -> dict[str, Any]:
