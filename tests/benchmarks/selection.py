@@ -3,7 +3,7 @@
     python tests/benchmarks/selection.py [--realizations 40] [--noise 0.01 0.03]
                                          [--systems duffing peng-quadratic ...] [--t-end 120]
 
-The systems are those of tests/test_select.py (three built-in models and two with a term
+The systems are those of tests/selection/test_select.py (three built-in models and two with a term
 a poly:N:4 library tempts to include), simulated once over t_end = 120 s (dt = 0.05 s);
 each realization adds white noise of a fraction of each column's spread to positions and
 velocities (`with_noise` of tests/conftest.py), from seeds 0, 1, ... Every method sees the

@@ -1105,6 +1105,6 @@ def test_importing_io_loads_neither_pandas_nor_pyarrow():
         capture_output=True,
         text=True,
         check=True,
-        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+        cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
     )
     assert out.stdout.strip() == "[]"

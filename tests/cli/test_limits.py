@@ -13,7 +13,7 @@ from helpers import duffing_system, one_line_error
 
 from hamid.errors import ModelError
 
-ROOT = Path(__file__).parent.parent
+ROOT = Path(__file__).parents[2]
 DUFFING_CSV = "sample_data/duffing.csv"
 
 

@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 from helpers import duffing_system, one_line_error
 
-ROOT = Path(__file__).parent.parent
+ROOT = Path(__file__).parents[2]
 DUFFING = ROOT / "sample_data" / "duffing.csv"
 
 

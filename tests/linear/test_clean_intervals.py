@@ -21,7 +21,7 @@ import hamid
 from hamid.data.records import Records
 from hamid.linear import design, noise_free
 
-ROOT = Path(__file__).parent.parent
+ROOT = Path(__file__).parents[2]
 SAMPLES = ("duffing.csv", "elastic_pendulum.csv", "elastic_pendulum.parquet",
            "henon_heiles.csv", "peng_quadratic.csv", "peng_quadratic.parquet")
 METHODS = ("auto", "joint", "weak", "energy")

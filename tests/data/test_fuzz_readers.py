@@ -14,7 +14,7 @@ from hamid.errors import HamidError
 from hamid.result.fit_result import FitResult
 from hamid.simulation import parse_system
 
-GOLDEN = json.loads((Path(__file__).parent / "golden" / "duffing_csv-auto.json").read_text())
+GOLDEN = json.loads((Path(__file__).parents[1] / "golden" / "duffing_csv-auto.json").read_text())
 
 # What TOML can hold: scalars of every kind (huge integers too), arrays and tables.
 scalars = (st.booleans() | st.integers() | st.integers(min_value=10**300, max_value=10**400)

@@ -3,8 +3,9 @@
 Each failure is checked as a user sees it, through the command line: the exit status (1 for a
 data, model or numerical error, 2 for a usage error), one short message on standard error
 that names the culprit (file, column, row, TOML key, term, parameter, option), nothing on
-standard output and no traceback. Cases already covered by tests/test_cli.py,
-tests/test_io.py, tests/test_expr.py and tests/test_simulation.py are not repeated here.
+standard output and no traceback. Cases already covered by tests/cli/test_cli.py,
+tests/data/test_readers.py, tests/model/test_expressions.py and tests/test_simulation.py are
+not repeated here.
 
 Most tests run the click group in-process with `CliRunner`; signals and native-library
 output need a real process.
@@ -44,7 +45,7 @@ from hamid.cli.app import cli
 from hamid.errors import ModelError
 from hamid.model.expressions import FUNCTIONS, MAX_LENGTH, parse, to_sympy
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ROOT / "sample_data"
 DUFFING_CSV = str(SAMPLES / "duffing.csv")
 DUFFING_TOML = str(SAMPLES / "duffing.toml")
@@ -970,8 +971,8 @@ def _equal(a, b):
 def test_random_token_strings_parse_like_the_reference_or_are_rejected(text):
     """Text is either rejected, running nothing, or means what Python and sympy say it means.
 
-    tests/test_expr.py checks expressions built from the grammar and grammar expressions with
-    forbidden tokens inserted; here the strings are arbitrary runs of tokens.
+    tests/model/test_expressions.py checks expressions built from the grammar and grammar
+    expressions with forbidden tokens inserted; here the strings are arbitrary runs of tokens.
     """
     calls = []
     with mock.patch.object(os, "system", lambda *a: calls.append(a) or 0), \

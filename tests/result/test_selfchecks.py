@@ -11,7 +11,7 @@ import pytest
 
 import hamid
 
-ROOT = Path(__file__).parent.parent
+ROOT = Path(__file__).parents[2]
 DUFFING = {"model": {"builtin": "duffing"}, "parameters": {"k": 1.0, "k3": 0.5},
            "initial": [{"x": 1.0, "v": 0.0}, {"x": 0.4, "v": 0.3}],
            "simulate": {"dt": 0.05, "seed": 3}}
@@ -73,6 +73,6 @@ def test_a_noise_bias_larger_than_the_errors_names_the_fix():
 @pytest.mark.parametrize("method, relative", [("joint", 0.01), ("energy", 0.002)])
 def test_an_unbiased_fit_gives_no_bias_warning(method, relative):
     """A short record: the joint rows at 1% noise and the energy rows at 0.2% are biased
-    by well under a third of their errors (tests/test_bias.py measures it)."""
+    by well under a third of their errors (tests/linear/test_bias.py measures it)."""
     result = hamid.fit(_noisy(relative, 40.0), method=method)
     assert not _has(result.warnings, "biases")

@@ -37,7 +37,7 @@ from hamid.result.fit_result import FitResult
 
 pytestmark = pytest.mark.skipif(os.name != "posix", reason="POSIX symlinks and hard links")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DUFFING_CSV = ROOT / "sample_data" / "duffing.csv"
 PRECIOUS = b"precious,bytes\n1,2\n"
 NOISY_SYSTEM = ('[model]\nbuiltin = "duffing"\n[parameters]\nk = 1.0\nk3 = 0.5\n'

@@ -1,7 +1,7 @@
 """One set of reading options for every command that reads data (`fit`, `fit --each`,
 `select`, `plot`): recorded in the report (`data.reading`) and used again by `plot`, so that
 a file a data-acquisition system wrote is read alike by all (the same options in each
-command's help: tests/test_option_spec.py)."""
+command's help: tests/cli/test_option_spec.py)."""
 
 from __future__ import annotations
 

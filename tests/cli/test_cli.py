@@ -26,7 +26,7 @@ from scipy import stats
 from hamid import __version__
 from hamid.cli.app import cli
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ROOT / "sample_data"
 DUFFING_TOML = str(SAMPLES / "duffing.toml")
 DUFFING_CSV = str(SAMPLES / "duffing.csv")

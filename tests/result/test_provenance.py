@@ -20,7 +20,7 @@ from hamid.data import readers
 from hamid.errors import DataError
 from hamid.result.fit_result import FitResult
 
-ROOT = Path(__file__).parent.parent
+ROOT = Path(__file__).parents[2]
 SAMPLES = ROOT / "sample_data"
 
 
@@ -204,7 +204,7 @@ def test_a_fifo_as_input_is_read_once_and_not_hashed(tmp_path):
 
     import hamid
 
-    data = (Path(__file__).parent.parent / "sample_data" / "duffing.csv").read_bytes()
+    data = (Path(__file__).parents[2] / "sample_data" / "duffing.csv").read_bytes()
     fifo = tmp_path / "pipe.csv"
     os.mkfifo(fifo)
     writer = threading.Thread(target=lambda: fifo.write_bytes(data))

@@ -41,7 +41,7 @@ from hamid.data import readers, writing
 
 pytestmark = pytest.mark.skipif(os.name != "posix", reason="POSIX files, signals and limits")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DUFFING_CSV = ROOT / "sample_data" / "duffing.csv"
 DUFFING_TOML = ROOT / "sample_data" / "duffing.toml"
 PRECIOUS = b"precious,bytes\n1,2\n"

@@ -20,12 +20,12 @@ from hamid.errors import DataError
 from hamid.result import validation
 from hamid.result.fit_result import FitResult
 
-GOLDEN = sorted((Path(__file__).parent / "golden").glob("*.json"))
+GOLDEN = sorted((Path(__file__).parents[1] / "golden").glob("*.json"))
 HAMID = hamid_command()
 
 
 def _load(name: str) -> dict:
-    return json.loads((Path(__file__).parent / "golden" / name).read_text())
+    return json.loads((Path(__file__).parents[1] / "golden" / name).read_text())
 
 
 @pytest.fixture(scope="module")

@@ -29,7 +29,7 @@ from hamid.data import readers as hio
 from hamid.errors import DataError, ModelError
 from hamid.model import expressions
 
-ROOT = Path(__file__).parent.parent
+ROOT = Path(__file__).parents[2]
 DUFFING = ROOT / "sample_data" / "duffing.csv"
 DUFFING_LINES = DUFFING.read_bytes().count(b"\n")
 

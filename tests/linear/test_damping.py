@@ -15,8 +15,8 @@ from hamid.errors import UsageError
 ROOT = Path(__file__).resolve().parent.parent
 PENDULUM_MODEL = ROOT / "sample_data" / "pendulum.toml"
 PENDULUM_PIECE = ROOT / "sample_data" / "pendulum_encoder.csv"
-# the whole 55 s record at 100 Hz (tests/data/single_pendulum_100hz.SOURCE.md)
-PENDULUM_FULL = ROOT / "tests" / "data" / "single_pendulum_100hz.csv.gz"
+# the whole 55 s record at 100 Hz (tests/files/single_pendulum_100hz.SOURCE.md)
+PENDULUM_FULL = ROOT / "tests" / "files" / "single_pendulum_100hz.csv.gz"
 PUBLISHED_K = 64.22  # Kaheman et al. (2022): a1 g m1 / (m1 a1^2 + I1)
 
 FINE = {"t_end": 30.0, "dt": 0.02}

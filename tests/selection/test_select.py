@@ -26,7 +26,7 @@ from hamid.model.models import builtin_model, load_model
 from hamid.selection import best_subsets, select_terms
 from hamid.selection.library import Library
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ROOT / "sample_data"
 
 # Two systems whose energies a poly:2:4 library would be tempted to fill out: a quartic

@@ -31,7 +31,7 @@ from scipy.integrate import solve_ivp
 import hamid
 from hamid.cli.app import cli
 
-SCHEMAS = Path(__file__).resolve().parents[1] / "hamid" / "schema"
+SCHEMAS = Path(__file__).resolve().parents[2] / "hamid" / "schema"
 TIMEOUT = 600   # bounds a hang only
 K, K3 = DUFFING["parameters"]["k"], DUFFING["parameters"]["k3"]
 T_END, DT = DUFFING["simulate"]["t_end"], DUFFING["simulate"]["dt"]
