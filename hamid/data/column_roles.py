@@ -272,14 +272,18 @@ def resolve_columns(
                 f"columns: {readers.list_columns(columns)})"
             )
     resolved: dict[str, str] = {}
-    for coordinate in coordinates:
-        column = mapping.get(coordinate, index.get(coordinate, coordinate))
+    # coordinates and inputs: by --columns, else their name (before a unit suffix)
+    named = [(name, "coordinate", "") for name in coordinates] + [
+        (name, "input", " of the model's [forcing]") for name in inputs]
+    for name, kind, owner_text in named:
+        column = mapping.get(name, index.get(name, name))
         if column not in present:
+            hint = f"; map it with --columns {name}=COL" if kind == "input" else ""
             raise DataError(
-                f"{source}: no column for coordinate {coordinate!r} "
-                f"(columns: {readers.list_columns(columns)})"
+                f"{source}: no column for {kind} {name!r}{owner_text} "
+                f"(columns: {readers.list_columns(columns)}){hint}"
             )
-        resolved[coordinate] = column
+        resolved[name] = column
     # No velocities: they will be derived from the positions.
     for coordinate, velocity in zip(coordinates if velocities else (), velocities, strict=True):
         if velocity in mapping:
@@ -299,14 +303,6 @@ def resolve_columns(
                 f"{velocity}=COL, or derive velocities with --velocity savgol"
             )
         resolved[velocity] = found
-    for name in inputs:
-        column = mapping.get(name, index.get(name, name))
-        if column not in present:
-            raise DataError(
-                f"{source}: no column for input {name!r} of the model's [forcing] (columns: "
-                f"{readers.list_columns(columns)}); map it with --columns {name}=COL"
-            )
-        resolved[name] = column
     owner: dict[str, str] = {}
     for model_name, column in resolved.items():
         if column in owner:
