@@ -143,7 +143,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
     if isinstance(data, list | tuple) and len(data) == 1:
         data = data[0]
     with input_size.spooled(data) as readable, one_blas_thread():   # stdin spooled to a file
-        chunks = opts.chunking(readable, loading.dissipative(model))
+        chunks = opts.chunking(readable, loading.in_memory_only(model))
         run = summary.run_provenance(data, opts)   # inputs hashed before they are read
         return _fit(readable, model, opts, chunks, run, progress)
 

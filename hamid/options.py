@@ -285,17 +285,15 @@ class FitOptions:
         """Whether rows are weighted by the measurement noise (--noise)."""
         return self.noise not in (None, "none")
 
-    def chunking(self, data: Any, dissipative: bool = False) -> int | None:
+    def chunking(self, data: Any, model_obstacle: str = "") -> int | None:
         """The rows per chunk when `data` is read in chunks, or None to read it whole.
 
         A file that takes over `STREAM_BYTES` once decoded (`hamid.data.input_size.decoded_bytes`,
         whatever its size on disk) is read in chunks when the options allow it;
         `chunk_rows` asks for chunks, which is an error when they are not possible. A model
-        with its own dissipation function (`dissipative`) needs the data in memory.
+        may need the data in memory, `model_obstacle` saying why (`loading.in_memory_only`).
         """
-        obstacle = self._needs_memory(data) or (
-            "the model's dissipation function or forcing needs the data in memory"
-            if dissipative else "")
+        obstacle = self._needs_memory(data) or model_obstacle
         if self.chunk_rows is not None and (obstacle or self.in_memory):
             raise UsageError(f"--chunk-rows: "
                              f"{obstacle or 'in_memory asks for the data in memory'}")

@@ -261,3 +261,12 @@ def test_a_driven_fit_needs_a_time_column(duffing_model):
     data = hamid.simulate(duffing_system()).drop(columns="t")
     with pytest.raises(UsageError, match=r"^a \[forcing\] needs a time column"):
         hamid.fit(data, duffing_model)
+
+
+def test_a_driven_fit_is_refused_in_chunks(duffing_model, tmp_path):
+    from hamid.errors import UsageError
+
+    data = tmp_path / "driven.csv"
+    hamid.simulate(duffing_system()).to_csv(data, index=False)
+    with pytest.raises(UsageError, match="the model's forcing needs the data in memory"):
+        hamid.fit(data, duffing_model, chunk_rows=500)

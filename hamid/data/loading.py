@@ -609,13 +609,14 @@ def _units(names: list[str], mapping: Mapping[str, str], time: str | None,
     return {"time": time, "time_unit": time_unit, "scale": scale, "notes": notes}
 
 
-def dissipative(model: str | os.PathLike[str] | Model | None) -> bool:
-    """Whether a model given to a fit has its own dissipation function or a forcing (and so
-    needs the data in memory: their integrals between the samples are not made in chunks)."""
+def in_memory_only(model: str | os.PathLike[str] | Model | None) -> str:
+    """Why a model given to a fit needs the data in memory (its own dissipation function, a
+    forcing: their integrals between the samples are not made in chunks), or ""."""
     if isinstance(model, str | os.PathLike) and os.fspath(model).endswith(".toml"):
         model = load_model(model)
-    return isinstance(model, Model) and (model.dissipation is not None
-                                         or model.forcing is not None)
+    part = ("" if not isinstance(model, Model) else "dissipation function"
+            if model.dissipation is not None else "forcing" if model.forcing else "")
+    return f"the model's {part} needs the data in memory" if part else ""
 
 
 def _settle_model(model: str | os.PathLike[str] | Model | None,
