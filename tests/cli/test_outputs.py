@@ -17,7 +17,7 @@ import pytest
 
 from hamid.report.formats import FORMATS, render
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 DUFFING_CSV = ROOT / "sample_data" / "duffing.csv"
 FAST = ("--method", "energy")   # the quickest fit: these tests are about the outputs
 

@@ -12,7 +12,7 @@ from conftest import DUFFING, PENG, coverage, with_noise
 import hamid
 from hamid.errors import UsageError
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 PENDULUM_MODEL = ROOT / "sample_data" / "pendulum.toml"
 PENDULUM_PIECE = ROOT / "sample_data" / "pendulum_encoder.csv"
 # the whole 55 s record at 100 Hz (tests/files/single_pendulum_100hz.SOURCE.md)

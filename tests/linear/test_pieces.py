@@ -142,7 +142,8 @@ def test_a_joint_fit_in_memory_peaks_under_4_5_times_its_decoded_data(clean_reco
     adjusted = []   # the blocks whose adjusted moments the noise check makes
     making = adjust.adjusted_moments
     monkeypatch.setattr(adjust, "adjusted_moments",
-                        lambda block, *args: adjusted.append(block.kind) or making(block, *args))
+                        lambda block, **given: adjusted.append(block.kind)
+                        or making(block=block, **given))
     decoded = 8 * n * len(columns)
     result, peak = _traced(columns, "joint")
     assert n > 8 * solve.PIECE_ROWS and result.samples is not None

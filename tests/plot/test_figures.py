@@ -33,7 +33,7 @@ from matplotlib.collections import PathCollection, PolyCollection  # noqa: E402
 from matplotlib.contour import ContourSet  # noqa: E402
 from matplotlib.image import imread  # noqa: E402
 
-SAMPLE = Path(__file__).resolve().parent.parent / "sample_data" / "henon_heiles.csv"
+SAMPLE = Path(__file__).resolve().parents[2] / "sample_data" / "henon_heiles.csv"
 
 
 @pytest.fixture(scope="module")

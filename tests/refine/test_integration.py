@@ -24,7 +24,7 @@ from hamid.model.dynamics import Dynamics
 from hamid.model.models import load_model
 from hamid.refine import dop853, integration, trajectory
 
-SAMPLES = Path(__file__).resolve().parent.parent / "sample_data"
+SAMPLES = Path(__file__).resolve().parents[2] / "sample_data"
 OMEGA = np.linspace(0.5, 3.0, 40)   # one pendulum per column, each its own frequency
 
 

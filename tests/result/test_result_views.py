@@ -17,7 +17,7 @@ import hamid
 from hamid.errors import DataError, UsageError
 from hamid.result.fit_result import FitResult
 
-SAMPLE = Path(__file__).resolve().parent.parent / "sample_data" / "henon_heiles.csv"
+SAMPLE = Path(__file__).resolve().parents[2] / "sample_data" / "henon_heiles.csv"
 
 
 @pytest.fixture(scope="module")
