@@ -7,15 +7,18 @@ response to a known input:
 - ``sine``: amplitude (peak), frequency (Hz), phase (rad, default 0);
 - ``sweep``: amplitude (peak), f0, f1 (Hz), duration (s, default the run's t_end), law
   ``"linear"`` or ``"log"``: a phase-continuous chirp, the instantaneous frequency going
-  from f0 at t = 0 to f1 at t = duration (scipy.signal.chirp's formulas);
-- ``multisine``: amplitude (the RMS of the whole signal), band = [f_lo, f_hi] (Hz), seed:
-  equal components at every frequency k / t_end in the band, random phases;
+  from f0 at t = 0 to f1 at t = duration, and on by the same law after it
+  (scipy.signal.chirp's formulas);
+- ``multisine``: amplitude (the RMS of the whole signal), band = [f_lo, f_hi] (Hz), seed
+  (default 0): equal components at every frequency k / t_end in the band, random phases;
 - ``noise``: amplitude (RMS), band, seed: band-limited noise as a sum of sines at the
   frequencies k / t_end in the band with Rayleigh amplitudes and random phases (a
   Gaussian process's spectral representation), scaled to the RMS asked for;
-- ``file``: path (relative to the system file), column, and the file's time column (t
-  or time, as in a recording): a cubic spline through the samples, which must cover the
-  run.
+- ``file``: path (relative to the system file), column, and the file's time column
+  (default t or time, as in a recording; a unit suffix such as time_ms is converted to
+  seconds): a cubic spline (not-a-knot) through the samples, which must cover the run. A
+  cubic spline, not a hold or a line, so that the input is smooth between samples, as a
+  band-limited DAQ signal is, and the integrator's error control sees no kinks.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from hamid.errors import ModelError
+from hamid.errors import HamidError, ModelError
 from hamid.model.toml_values import check_keys, number, table
 
 __all__ = ["KINDS", "MAX_COMPONENTS", "signal"]
@@ -144,15 +147,19 @@ def _from_file(entry: Mapping[str, Any], t_end: float, where: str,
     if not isinstance(path, str) or not isinstance(column, str):
         raise ModelError(f"{where}: path and column must be text")
     full = os.path.join(folder or ".", path)
-    frame, _ = readers.read_columns(full, name=path)
-    names = [str(c) for c in frame]
-    time = entry.get("time") or column_roles.default_time_column(names)
-    for wanted in (column, time):
-        if wanted is None or wanted not in names:
-            raise ModelError(f"{where}: {path} has no column {wanted or 't'!r} (columns: "
-                             f"{', '.join(names)})")
-    t = readers.numeric_values(readers.column_values(frame[time]), time, path)
-    values = readers.numeric_values(readers.column_values(frame[column]), column, path)
+    try:   # the reader's message (no such file, not a number, a gap) named by the key
+        frame, _ = readers.read_columns(full, name=path)
+        names = [str(c) for c in frame]
+        time = entry.get("time") or column_roles.default_time_column(names)
+        for wanted in (column, time):
+            if wanted is None or wanted not in names:
+                raise ModelError(f"{path} has no column {wanted or 't'!r} (columns: "
+                                 f"{', '.join(names)})")
+        t = readers.numeric_values(readers.column_values(frame[time]), time, path) \
+            * column_roles.time_scale(time)[0]   # time_ms, Time [us]: in seconds
+        values = readers.numeric_values(readers.column_values(frame[column]), column, path)
+    except HamidError as error:
+        raise ModelError(f"{where}: {error}") from None
     if len(t) < 4 or not np.all(np.diff(t) > 0):
         raise ModelError(f"{where}: {path}: the times must increase, at least 4 samples")
     if t[0] > 0 or t[-1] < t_end:

@@ -7,8 +7,10 @@ balance") by `hamid.model.dynamics`:
 
     M(q) a = dL/dq - (d/dq (dL/dv)) v + F,      M = d2L/dv2,
 
-so nothing is written per model. All trajectories are integrated together as one
-vectorised system.
+so nothing is written per model, and F gains a driven system's generalized force
+Q(q, u(t)) = dW/dq (`[forcing]`, `hamid.model.forcing`) with its inputs' signals u(t)
+evaluated exactly at every step (`[forcing.signals.NAME]`, `hamid.signals`). All
+trajectories are integrated together as one vectorised system.
 """
 
 from __future__ import annotations
@@ -72,9 +74,11 @@ def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | 
              progress: Callable[[float], None] | None = None) -> pd.DataFrame:
     """Simulate the system of a TOML file (or its dict) and return the sampled record.
 
-    The returned frame has columns ``trajectory``, ``t``, the coordinates and the
-    velocities; ``frame.attrs["hamid"]`` holds its provenance (model, true parameters,
-    initial states, energy drift, noise, seed, integrator, version).
+    The returned frame has columns ``trajectory``, ``t``, the coordinates, the velocities
+    and a driven system's inputs (each with its own ``[noise]``, on the written column
+    only); ``frame.attrs["hamid"]`` holds its provenance (model, true parameters, initial
+    states, energy drift, noise, seed, integrator, version). A file signal's path is
+    relative to the system file's folder, or for a dict to the current directory.
     """
     return next(simulate_realizations(system, 1, seed=seed, max_samples=max_samples,
                                       progress=progress))

@@ -83,14 +83,14 @@ def parse_forcing(value: Any, *, coordinates: Sequence[str], velocities: Sequenc
         raise ModelError(f"{where}: 'inputs' must list at least one input (a column of the "
                          "recording)")
     gains = _names(entries.get("parameters", []), "parameters", where)
-    taken = {*coordinates, *velocities, *parameters}
     for name in (*inputs, *gains):
-        if name in taken or not name.isidentifier() or name in expressions.FUNCTIONS \
-                or name in expressions.CONSTANTS:
-            raise ModelError(f"{where}: {name!r} cannot be an input or gain name (it is "
-                             "taken by the model, or not a name)")
-    if len(set(inputs) | set(gains)) != len(inputs) + len(gains):
-        raise ModelError(f"{where}: a name is given twice in 'inputs' and 'parameters'")
+        taken = _taken_by(name, coordinates=coordinates, velocities=velocities,
+                          parameters=parameters)
+        if taken:
+            raise ModelError(f"{where}: {name!r} cannot be an input or gain name: {taken}")
+    twice = sorted({name for name in (*inputs, *gains) if (*inputs, *gains).count(name) > 1})
+    if twice:
+        raise ModelError(f"{where}: {twice[0]!r} is given twice in 'inputs' and 'parameters'")
     work = entries.get("work")
     if not isinstance(work, str):
         raise ModelError(f"{where}: 'work' must be an expression of the coordinates and "
@@ -103,7 +103,7 @@ def parse_forcing(value: Any, *, coordinates: Sequence[str], velocities: Sequenc
             close = [lowered[m] for m in difflib.get_close_matches(symbol.lower(), lowered,
                                                                    n=1)]
             hint = f" (did you mean {close[0]!r}?)" if close else ""
-            velocity = (" velocities may not appear in the work (it is W(q, u); a force "
+            velocity = ("; velocities may not appear in the work (it is W(q, u); a force "
                         "that depends on velocity belongs in [damping])"
                         if symbol in velocities else "")
             raise ModelError(f"{where}: work: unknown symbol {symbol!r}{hint}; it may use "
@@ -117,6 +117,18 @@ def parse_forcing(value: Any, *, coordinates: Sequence[str], velocities: Sequenc
         raise ModelError(f"{where}: work {work!r} does not depend on any coordinate "
                          f"({', '.join(coordinates)}), so it exerts no force")
     return Forcing(inputs, work, gains, every, Q0, Q)
+
+
+def _taken_by(name: str, *, coordinates: Sequence[str], velocities: Sequence[str],
+              parameters: Sequence[str]) -> str:
+    """What already owns `name` in the model or the parser ('' if nothing does)."""
+    for owner, names in (("a coordinate", coordinates), ("a velocity", velocities),
+                         ("a parameter of the model", parameters),
+                         ("a function", expressions.FUNCTIONS),
+                         ("a constant", expressions.CONSTANTS)):
+        if name in names:
+            return f"it is {owner}"
+    return "" if name.isidentifier() else "it is not a name (letters, digits, _)"
 
 
 def _names(value: Any, key: str, where: str) -> tuple[str, ...]:

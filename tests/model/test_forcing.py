@@ -84,12 +84,24 @@ def test_a_driven_model_survives_its_report():
 @pytest.mark.parametrize(("table", "message"), [
     ({"inputs": ["F"], "work": "F*x + f*x"},
      "[forcing]: work: unknown symbol 'f' (did you mean 'F'?); it may use x, F, m, k, k3"),
-    ({"inputs": ["F"], "work": "F*v"}, "velocities may not appear in the work"),
-    ({"inputs": ["F"], "work": "b*k*F*x", "parameters": ["b"]}, "is not linear in the parameters"),
+    ({"inputs": ["F"], "work": "F*v"},
+     "it may use x, F, m, k, k3; velocities may not appear in the work"),
+    ({"inputs": ["F"], "work": "b*k*F*x", "parameters": ["b"]},
+     "work term 'x*F*k*b' is not linear in the parameters (k, b)"),
+    ({"inputs": ["F"], "work": "sin(b*F)*x", "parameters": ["b"]},
+     "work term 'x*sin(F*b)' is not linear in the parameters (b)"),
     ({"inputs": ["F"], "work": "F*x", "parameters": ["b"]}, "parameter 'b' does not appear"),
     ({"inputs": [], "work": "F*x"}, "'inputs' must list at least one input"),
     ({"inputs": "F", "work": "F*x"}, "'inputs' must be a list of names"),
-    ({"inputs": ["x"], "work": "x"}, "'x' cannot be an input or gain name"),
+    ({"inputs": ["x"], "work": "x"}, "'x' cannot be an input or gain name: it is a coordinate"),
+    ({"inputs": ["v"], "work": "x"}, "'v' cannot be an input or gain name: it is a velocity"),
+    ({"inputs": ["k"], "work": "k*x"}, "'k' cannot be an input or gain name: it is a parameter"),
+    ({"inputs": ["F"], "work": "m*F*x", "parameters": ["m"]},
+     "'m' cannot be an input or gain name: it is a parameter of the model"),
+    ({"inputs": ["sin"], "work": "x"}, "'sin' cannot be an input or gain name: it is a function"),
+    ({"inputs": ["2F"], "work": "x"}, "'2F' cannot be an input or gain name: it is not a name"),
+    ({"inputs": ["F", "F"], "work": "F*x"}, "'F' is given twice in 'inputs' and 'parameters'"),
+    ({"inputs": ["F"], "work": "b*F*x", "parameters": ["F"]}, "'F' is given twice"),
     ({"inputs": ["F"], "work": "F"}, "does not depend on any coordinate"),
     ({"inputs": ["F"], "work": 3}, "'work' must be an expression"),
     ({"inputs": ["F"], "work": "F*x", "gain": 1}, "gain"),
@@ -210,6 +222,35 @@ def test_a_file_signal_is_a_cubic_spline_through_its_samples(tmp_path):
         signal='kind = "file"\npath = "force.csv"\ncolumn = "load"', t_end=10.0))
     frame = hamid.simulate(config)
     np.testing.assert_allclose(frame["F"], np.sin(frame["t"]), rtol=0, atol=1e-7)
+    # a time column in milliseconds is read in seconds
+    (tmp_path / "force.csv").write_text(
+        "time_ms,load\n" + "".join(f"{float(1000 * a)!r},{float(np.sin(a))!r}\n" for a in t))
+    frame = hamid.simulate(config)
+    np.testing.assert_allclose(frame["F"], np.sin(frame["t"]), rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize(("signal", "message"), [
+    ('path = "gone.csv"\ncolumn = "load"', "[forcing.signals.F]: "),
+    ('path = "force.csv"\ncolumn = "lod"',
+     "[forcing.signals.F]: force.csv has no column 'lod' (columns: t, load, word)"),
+    ('path = "force.csv"\ncolumn = "word"',
+     "[forcing.signals.F]: force.csv: column 'word', row 1: 'w' is not a number"),
+    ('path = "short.csv"\ncolumn = "load"',
+     "[forcing.signals.F]: short.csv covers t = 0 to 5 s, not the run's 0 to 10 s"),
+    ('path = "force.csv"\ncolumn = "load"\ntime = "s"',
+     "[forcing.signals.F]: force.csv has no column 's'"),
+])
+def test_a_bad_file_signal_is_named_by_its_key(tmp_path, signal, message):
+    (tmp_path / "force.csv").write_text("t,load,word\n" + "".join(
+        f"{a:g},1.0,w\n" for a in np.linspace(0, 12, 25)))
+    (tmp_path / "short.csv").write_text("t,load\n" + "".join(
+        f"{a:g},1.0\n" for a in np.linspace(0, 5, 11)))
+    config = tmp_path / "system.toml"
+    config.write_text(SYSTEM_TOML.format(signal=f'kind = "file"\n{signal}', t_end=10.0))
+    with pytest.raises(ModelError) as error:
+        hamid.simulate(config)
+    assert message in str(error.value) and "\n" not in str(error.value)
+    assert str(error.value).startswith(str(config))
 
 
 def test_the_inputs_noise_goes_on_its_written_column_only():
@@ -225,6 +266,22 @@ def test_the_inputs_noise_goes_on_its_written_column_only():
     ({"kind": "sine"}, "missing key 'frequency'"),
     ({"kind": "multisine", "band": [2.0, 1.0], "frequency": None},
      "f_lo must be below f_hi"),
+    ({"amplitude": -1.0}, "[forcing.signals.F] amplitude: must not be negative"),
+    ({"amplitude": "big"}, "[forcing.signals.F] amplitude: expected a number"),
+    ({"frequency": 0.0}, "[forcing.signals.F] frequency: must be positive"),
+    ({"phase": float("nan")}, "[forcing.signals.F] phase: expected a finite number"),
+    ({"freq": 2.0}, "unknown key 'freq'; did you mean 'frequency'?"),
+    ({"kind": "sweep", "f0": 0.1, "f1": 1.0, "law": "exp", "frequency": None},
+     "law 'exp' is not 'linear' or 'log'"),
+    ({"kind": "sweep", "f0": 0.1, "frequency": None}, "missing key 'f1'"),
+    ({"kind": "sweep", "f0": 0.1, "f1": 1.0, "duration": 0.0, "frequency": None},
+     "[forcing.signals.F] duration: must be positive"),
+    ({"kind": "noise", "band": [0.5, 2.0], "seed": 1.5, "frequency": None},
+     "seed must be a non-negative integer"),
+    ({"kind": "noise", "band": "0.5-2", "frequency": None}, "band must be [f_lo, f_hi] in Hz"),
+    ({"kind": "multisine", "band": [0.01, 0.02], "frequency": None},
+     "holds no frequency of the run's grid (multiples of 1/t_end = 0.05 Hz)"),
+    ({"kind": "noise", "band": [0.0, 500.0], "frequency": None}, "more than 2,000; narrow it"),
 ])
 def test_a_bad_signal_is_named_in_one_line(change, message):
     signal = {"kind": "sine", "amplitude": 1.0, "frequency": 0.5, **change}
@@ -266,4 +323,10 @@ def test_hamid_simulate_writes_the_input_beside_the_motion(tmp_path):
     done = subprocess.run([*hamid_command(), "simulate", "--config", str(bad), "-o",
                            str(tmp_path / "bad.csv")], capture_output=True, text=True)
     one_line_error(done, 1, "multisin", "did you mean 'multisine'?")
+    assert not (tmp_path / "bad.csv").exists()
+    bad.write_text(SYSTEM_TOML.format(signal='kind = "file"\npath = "gone.csv"\n'
+                                      'column = "load"', t_end=5.0))
+    done = subprocess.run([*hamid_command(), "simulate", "--config", str(bad), "-o",
+                           str(tmp_path / "bad.csv")], capture_output=True, text=True)
+    one_line_error(done, 1, "[forcing.signals.F]", "gone.csv: no such file")
     assert not (tmp_path / "bad.csv").exists()
