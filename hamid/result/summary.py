@@ -230,8 +230,7 @@ def dissipation_summary(model: Model, source: loading.Source, damping: Dissipati
     work = energy_rows.A[:, n_energy:] @ coefficients if energy_rows.A.shape[1] > n_energy \
         else np.zeros(energy_rows.n_rows)
     theta = [estimates[name] for name in model.parameters]
-    at_rest = records.X.copy()
-    at_rest[:, len(model.coordinates):] = 0.0
+    at_rest = _at_rest(model, records)
     potential = model.total_energy(at_rest, theta)
     trajectories = []
     for j, (start, stop) in enumerate(records.bounds()):
@@ -257,6 +256,13 @@ def dissipation_summary(model: Model, source: loading.Source, damping: Dissipati
 INPUT_WORK_FLOOR = 0.01
 
 
+def _at_rest(model: Model, records: Records) -> np.ndarray:
+    """The recorded positions with every velocity zero: where the energy is the potential."""
+    at_rest = records.X.copy()
+    at_rest[:, len(model.coordinates):] = 0.0
+    return at_rest
+
+
 def forcing_summary(model: Model, records: Records,
                     estimates: Mapping[str, float]) -> dict[str, Any] | None:
     """A driven fit's work and the share of the energy budget the input work makes up:
@@ -268,8 +274,7 @@ def forcing_summary(model: Model, records: Records,
     theta = np.array([estimates[name] for name in model.parameters])
     W0, W = design.input_work(model, records)
     work = W0 + W @ theta
-    at_rest = records.X.copy()
-    at_rest[:, len(model.coordinates):] = 0.0
+    at_rest = _at_rest(model, records)
     available = float(np.max(model.total_energy(records.X, theta))
                       - np.min(model.total_energy(at_rest, theta)))
     same = records.group[1:] == records.group[:-1]
