@@ -181,7 +181,7 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
         else:
             outcome = joint_refinement.Outcome.refused(obstacle)
         fitted, refinement = outcome.fit or linear, outcome.report
-        fit_plan = fit_plan.refined(refinement)
+        fit_plan = fit_plan.refined(outcome.reason)
     residuals = fitted.residuals or estimate.residual_sums(step.energy_pieces(), fitted.theta,
                                                            fitted.h)
     if fitted is not linear:

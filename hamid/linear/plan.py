@@ -8,7 +8,6 @@ too few weak-form windows.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -62,10 +61,11 @@ class FitPlan:
         raise FitError(f"cannot determine {', '.join(free_names)}: {shortage}; use "
                        "--method energy or a shorter --weak-window")
 
-    def refined(self, info: dict[str, Any]) -> FitPlan:
-        """The plan with what the refinement did added to its reason."""
-        note = ("; refined by fitting the integrated trajectories" if info["applied"]
-                else f"; not refined by fitting trajectories: {info['reason']}")
+    def refined(self, refused: str | None) -> FitPlan:
+        """The plan with what the refinement did added to its reason: refined, or not and
+        why (`refused`)."""
+        note = ("; refined by fitting the integrated trajectories" if refused is None
+                else f"; not refined by fitting trajectories: {refused}")
         return FitPlan(self.kind, self.reason + note, self.window, self.scales)
 
 

@@ -32,11 +32,18 @@ from hamid.linear.unknowns import Unknowns
 from hamid.model.dissipation import Dissipation
 from hamid.model.expressions import Func
 from hamid.model.models import Model
+from hamid.refine.outcome import (
+    AcceptanceInfo,
+    LengtheningInfo,
+    NoiseLevel,
+    Outcome,
+    RefinementInfo,
+)
 
 if TYPE_CHECKING:
     from hamid.refine.trajectory import SegmentFit
 
-__all__ = ["Outcome", "level_errors", "refine"]
+__all__ = ["level_errors", "refine"]
 
 CHI2_LIMIT = 1.5         # weighted misfit per degree of freedom that the noise explains
 HOPELESS = 100           # times that: no use converging at those weights
@@ -113,31 +120,16 @@ class _Noise:
         return bool(np.all(np.abs(other.levels - self.levels)
                            <= REWEIGHT_SETTLED * self.levels))
 
-    def report(self, names: tuple[str, ...]) -> dict[str, dict[str, Any]]:
+    def report(self, names: tuple[str, ...]) -> dict[str, NoiseLevel]:
         """Variable -> the level used (None: no weight) and where it came from."""
         source = np.where(self.given, "given", np.where(self.levels > self.base,
                                                         "residuals", "differences"))
-        return {name: {"sigma": float(self.levels[k]), "source": str(source[k])}
-                if self.used[k] else {"sigma": None, "source": "derived"}
+        return {name: NoiseLevel(sigma=float(self.levels[k]), source=str(source[k]))
+                if self.used[k] else NoiseLevel(sigma=None, source="derived")
                 for k, name in enumerate(names)}
 
 
-@dataclass(frozen=True, kw_only=True)
-class Outcome:
-    """What the refinement hands back: the refined fit, None when it is not kept, and what
-    the report says of it (`method.refinement`: applied, the reason when not, the fit's
-    segments, misfit, noise, held-out check and lengthening)."""
-
-    fit: LinearFit | None
-    report: dict[str, Any]
-
-    @classmethod
-    def refused(cls, reason: str, **details: Any) -> Outcome:
-        """The refinement not applied, or not kept, and why."""
-        return cls(fit=None, report={"applied": False, "reason": reason, **details})
-
-
-def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipation,
+def refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissipation,
            unknowns: Unknowns, plan: FitPlan, sigma: npt.NDArray[np.float64] | None,
            derived_velocities: bool, rows: Rows | None,
            progress: Callable[[str], None] | None,
@@ -170,7 +162,7 @@ def refine(linear: LinearFit, model: Model, records: Records, damping: Dissipati
                        derived_velocities=derived_velocities, rows=rows, progress=progress)
 
 
-def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipation,
+def _refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissipation,
             unknowns: Unknowns, plan: FitPlan, sigma: npt.NDArray[np.float64] | None,
             derived_velocities: bool, rows: Rows | None,
             progress: Callable[[str], None] | None) -> Outcome:
@@ -212,7 +204,7 @@ def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipat
     if fit.segments >= CHECKED_SEGMENTS:
         acceptance = _held_out(fit, theta_linear, unknowns, records.n_trajectories, rows,
                                progress)
-    info["acceptance"] = acceptance or {"rule": "noise"}
+    info["acceptance"] = acceptance or AcceptanceInfo(rule="noise")
     reason = None
     if acceptance is None and not within:
         reason = beyond + (
@@ -237,7 +229,7 @@ def _refine(linear: LinearFit, model: Model, records: Records, damping: Dissipat
                                    **info)
         if fit.groups == fit.segments:   # the first fit, settled
             info.update(_fitted(fit, noise))
-    return Outcome(fit=_refined(linear, fit, within), report={"applied": True, **info})
+    return Outcome(fit=_refined(linear, fit, within), report=RefinementInfo(applied=True, **info))
 
 
 def _fitted(fit: SegmentFit, noise: _Noise) -> dict[str, Any]:
@@ -247,7 +239,7 @@ def _fitted(fit: SegmentFit, noise: _Noise) -> dict[str, Any]:
 
 
 def _lengthened(fit: SegmentFit, period: float, progress: Callable[[str], None] | None
-                ) -> tuple[SegmentFit, dict[str, Any]]:
+                ) -> tuple[SegmentFit, LengtheningInfo]:
     """The fit over longer segments, neighbours joined, while what the joining adds to the
     misfit is what the noise explains, or the fit settled (`trajectory.settle`) when none
     are; and what the report says of it.
@@ -299,11 +291,11 @@ def _lengthened(fit: SegmentFit, period: float, progress: Callable[[str], None] 
     return fit, _lengthening(fit, rounds, stopped)
 
 
-def _lengthening(fit: SegmentFit, rounds: int, stopped: str) -> dict[str, Any]:
+def _lengthening(fit: SegmentFit, rounds: int, stopped: str) -> LengtheningInfo:
     """What the report says of the lengthening that ended at `fit`."""
-    return {"segments": fit.groups, "segment_seconds": fit.problem.span, "rounds": rounds,
-            "iterations": fit.iterations if rounds else 0, "chi2_per_dof": fit.chi2_per_dof,
-            "stopped": stopped}
+    return LengtheningInfo(segments=fit.groups, segment_seconds=fit.problem.span,
+                           rounds=rounds, iterations=fit.iterations if rounds else 0,
+                           chi2_per_dof=fit.chi2_per_dof, stopped=stopped)
 
 
 def _beyond_noise(fit: SegmentFit, noise: _Noise, length: float,
@@ -366,7 +358,7 @@ def _refined(linear: LinearFit, fit: SegmentFit, within: bool) -> LinearFit:
 
 def _held_out(fit: SegmentFit, theta_linear: npt.NDArray[np.float64], unknowns: Unknowns,
               n_trajectories: int, rows: Rows | None,
-              progress: Callable[[str], None] | None) -> dict[str, Any] | None:
+              progress: Callable[[str], None] | None) -> AcceptanceInfo | None:
     """How the refined and the linear parameters predict segments held out of their fits,
     or None when the refits cannot be made.
 
@@ -400,10 +392,10 @@ def _held_out(fit: SegmentFit, theta_linear: npt.NDArray[np.float64], unknowns: 
     difference = refined - predicted
     spread = float(np.std(difference, ddof=1))
     t = float(np.mean(difference)) / spread * np.sqrt(S) if spread > 0 else 0.0
-    return {"rule": "held-out", "folds": K, "linear_refitted": refitted,
-            "held_out_linear": float(predicted.sum() / values),
-            "held_out_refined": float(refined.sum() / values),
-            "t": float(t), "t_limit": uncertainty.t_quantile(S - 1, HELD_OUT_LEVEL)}
+    return AcceptanceInfo(rule="held-out", folds=K, linear_refitted=refitted,
+                          held_out_linear=float(predicted.sum() / values),
+                          held_out_refined=float(refined.sum() / values), t=float(t),
+                          t_limit=uncertainty.t_quantile(S - 1, HELD_OUT_LEVEL))
 
 
 def _linear_without(rows: Rows, unknowns: Unknowns, n_trajectories: int,

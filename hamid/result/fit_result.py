@@ -3,7 +3,8 @@
 `FitResult.to_dict()` is the JSON report of schema ``hamid.fit/1``, described key by key
 in docs/output.md and as a JSON Schema in hamid/schema/fit-1.json; `FitResult.from_dict`
 checks a loaded report against that schema before building the result. The TypedDicts
-below are the dict parts of a result, as the fit builds them.
+below are the dict parts of a result, as the fit builds them; those of the trajectory
+refinement (`RefinementInfo` and its parts) are the refinement's own (`hamid.refine.outcome`).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any, Literal, NotRequired, TypedDict
 
+from hamid.refine.outcome import AcceptanceInfo, LengtheningInfo, NoiseLevel, RefinementInfo
 from hamid.result.validation import SCHEMA
 
 if TYPE_CHECKING:
@@ -72,52 +74,6 @@ class DataInfo(TypedDict):
     velocity_window: NotRequired[int]   # with savgol: the filter's window, in samples
     velocity_order: NotRequired[int]    # and its polynomial order
     reading: NotRequired[dict[str, Any]]  # the reading options given (docs/output.md)
-
-
-class NoiseLevel(TypedDict):
-    """The noise one variable was weighted by in the trajectory refinement."""
-
-    sigma: float | None                  # None: not weighted (derived velocities)
-    source: Literal["given", "differences", "residuals", "derived"]
-
-
-class AcceptanceInfo(TypedDict):
-    """Why the refinement was kept or not: its held-out check against the linear fit."""
-
-    rule: Literal["held-out", "noise"]
-    folds: NotRequired[int]              # the rest with the held-out rule
-    linear_refitted: NotRequired[bool]
-    held_out_linear: NotRequired[float]
-    held_out_refined: NotRequired[float]
-    t: NotRequired[float]
-    t_limit: NotRequired[float]
-
-
-class LengtheningInfo(TypedDict):
-    """The refinement's segments once lengthened (neighbours joined) within the noise."""
-
-    segments: int
-    segment_seconds: float               # the longest segment
-    rounds: int                          # joins kept
-    iterations: int                      # Gauss-Newton iterations of the last one kept
-    chi2_per_dof: float
-    stopped: Literal["whole", "longest", "misfit", "failed", "unstable", "clean"]
-
-
-class RefinementInfo(TypedDict):
-    """Whether the trajectory refinement of `auto` ran; its figures, or why not."""
-
-    applied: bool
-    reason: NotRequired[str]             # when not applied
-    segments: NotRequired[int]           # the rest when applied (or fitted and refused)
-    segment_seconds: NotRequired[float]
-    iterations: NotRequired[int]
-    chi2_per_dof: NotRequired[float]
-    noise_chi2_per_dof: NotRequired[float]
-    noise: NotRequired[dict[str, NoiseLevel]]
-    covariance: NotRequired[Literal["misfit-scaled", "sandwich"]]
-    acceptance: NotRequired[AcceptanceInfo]
-    lengthening: NotRequired[LengtheningInfo | None]
 
 
 class MethodInfo(TypedDict):

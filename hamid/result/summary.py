@@ -17,12 +17,14 @@ from hamid.data import input_size, loading, readers
 from hamid.data.records import Records
 from hamid.errors import DataError
 from hamid.linear import design, uncertainty
+from hamid.linear.design import RowKind
 from hamid.linear.estimate import LinearFit, NoiseCheck, ResidualSums, Rows
 from hamid.linear.plan import FitPlan
 from hamid.linear.unknowns import Unknowns
 from hamid.model.dissipation import Dissipation
 from hamid.model.models import Model
 from hamid.options import FitOptions, percent
+from hamid.refine.outcome import RefinementInfo
 from hamid.result.fit_result import (
     EnergyLevel,
     FitResult,
@@ -54,7 +56,7 @@ class Provenance:
 
 def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: ResidualSums,
                plan: FitPlan, options: FitOptions, provenance: Provenance,
-               refinement: dict[str, Any] | None, dissipation: dict[str, Any] | None = None,
+               refinement: RefinementInfo | None, dissipation: dict[str, Any] | None = None,
                samples: dict[str, Any] | None = None,
                run: ProvenanceInfo | None = None,
                forcing: dict[str, Any] | None = None) -> FitResult:
@@ -297,8 +299,8 @@ def forcing_warnings(forcing: Mapping[str, Any] | None) -> list[str]:
 
 
 def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: Any,
-              df: int, options: FitOptions, kind: str,
-              refinement: dict[str, Any] | None, damping: list[str]) -> list[str]:
+              df: int, options: FitOptions, kind: RowKind,
+              refinement: RefinementInfo | None, damping: list[str]) -> list[str]:
     """Plain-words warnings about the fit; `damping` names its kinds of dissipation."""
     level, cov = options.level, options.cov
     notes = []
@@ -325,7 +327,7 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
             notes.append(f"{p.name} is not significantly different from zero "
                          f"(its {percent(level)} interval contains 0)")
     autocorrelation = stats["lag1_autocorrelation"]
-    if cov in ("classical", "hc") and kind != "energy":
+    if cov in ("classical", "hc") and kind != RowKind.ENERGY:
         notes.append(f"--cov {cov} treats overlapping weak-form windows as independent and "
                      "understates the errors; use --cov hac")
     elif cov in ("classical", "hc") and autocorrelation is not None and autocorrelation > 0.5:
@@ -341,7 +343,7 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
 _ROUNDING, _LOW_R_SQUARED, _HIGH_AUTOCORRELATION = 1e-6, 0.5, 0.9
 
 
-def _misfit(stats: dict[str, Any], refinement: dict[str, Any] | None) -> list[str]:
+def _misfit(stats: dict[str, Any], refinement: RefinementInfo | None) -> list[str]:
     """Warnings that the model probably does not fit the recording."""
     notes = _refinement_notes(refinement)
     relative, r_squared = stats["relative_rms"], stats["r_squared"]
@@ -359,7 +361,7 @@ def _misfit(stats: dict[str, Any], refinement: dict[str, Any] | None) -> list[st
     return notes
 
 
-def _refinement_notes(refinement: dict[str, Any] | None) -> list[str]:
+def _refinement_notes(refinement: RefinementInfo | None) -> list[str]:
     """Why the trajectory refinement was not kept, or, when it was kept although its misfit
     exceeds the noise, what it weighted by and why it was kept."""
     if refinement is None:

@@ -146,7 +146,7 @@ def collinear(A: FloatArray, order: Sequence[int]) -> list[tuple[int, list[int]]
     return dropped
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Candidate:
     """A scored subset: its columns, criterion value, residual variance per row relative
     to that of the whole library, and margin: by how much a subset of fewer columns may
@@ -159,7 +159,7 @@ class Candidate:
     margin: float
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Ranking:
     """The best subsets, best first, the one chosen, and how they were found."""
 
@@ -189,7 +189,8 @@ def search(design: Design, forced: Sequence[int], free: Sequence[int],
     ranked = sorted(found, key=lambda c: (c.score, len(c.columns)))
     chosen = min((c for c in ranked if c.score <= ranked[0].score + ranked[0].margin),
                  key=lambda c: (len(c.columns), c.score))
-    return Ranking(tuple(ranked[:SHOWN]), chosen, exhaustive, count)
+    return Ranking(candidates=tuple(ranked[:SHOWN]), chosen=chosen, exhaustive=exhaustive,
+                   evaluated=count)
 
 
 def _scorer(design: Design, criterion: str) -> Scorer:
@@ -294,8 +295,9 @@ def _exhaustive(score: Scorer, forced: Sequence[int],
                                                    (len(chosen), len(forced))), chosen])
         values, variances, margins = score(subsets)
         best = np.argsort(values, kind="stable")[:SHOWN]
-        found += [Candidate(tuple(sorted(subsets[i].tolist())), float(values[i]),
-                            float(variances[i]), float(margins[i])) for i in best]
+        found += [Candidate(columns=tuple(sorted(subsets[i].tolist())), score=float(values[i]),
+                            variance=float(variances[i]), margin=float(margins[i]))
+                  for i in best]
         count += len(subsets)
     return found, count
 
@@ -311,8 +313,9 @@ def _stepwise(score: Scorer, forced: Sequence[int],
         for _, same in itertools.groupby(new, key=len):
             group = list(same)
             scored = score(np.array(group, dtype=np.intp).reshape(len(group), -1))
-            seen.update({s: Candidate(s, *map(float, values))
-                         for s, *values in zip(group, *scored, strict=True)})
+            seen.update({s: Candidate(columns=s, score=float(value), variance=float(variance),
+                                      margin=float(margin))
+                         for s, value, variance, margin in zip(group, *scored, strict=True)})
 
     current = tuple(sorted(forced))
     if not current:
