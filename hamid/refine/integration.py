@@ -81,33 +81,43 @@ class SampledInputs:
 
     tau: Sequence[Array]
     values: Sequence[Array]
+    # each segment's perturbations of its inputs (draws, m, n_inputs), one copy each
+    draws: Sequence[Array] | None = None
+
+    @property
+    def n_draws(self) -> int:
+        return 0 if self.draws is None else len(self.draws[0])
 
     def path(self, copies: int, resolution: float) -> Callable[[float], Array]:
         """u(t) of every integrated state, (n_inputs, B * copies), each segment's inputs
-        repeated for its copies (the states' order in `blocks`); times closer than
-        `resolution` are one (`common_times`)."""
+        repeated for its copies (the states' order in `blocks`), its last `n_draws` copies
+        each with its perturbed inputs; times closer than `resolution` are one
+        (`common_times`)."""
         from scipy.interpolate import CubicSpline
 
         grid, _ = common_times(list(self.tau), resolution)
-        n_inputs = self.values[0].shape[1]
-        table = np.empty((len(grid), n_inputs, len(self.tau)))
+        n_inputs, n_draws = self.values[0].shape[1], self.n_draws
+        table = np.empty((len(grid), n_inputs, len(self.tau), 1 + n_draws))
         for b, (tau, values) in enumerate(zip(self.tau, self.values, strict=True)):
             inside = int(np.searchsorted(grid, tau[-1], side="right"))
             alike = inside == len(tau) and np.allclose(tau, grid[:inside], rtol=0,
                                                        atol=resolution)
-            table[:inside, :, b] = (values if alike
-                                    else CubicSpline(tau, values, axis=0)(grid[:inside]))
+            variants = values[:, :, None] + (0 if self.draws is None else np.concatenate(
+                [np.zeros((1, *values.shape)), self.draws[b]]).transpose(1, 2, 0))
+            table[:inside, :, b] = (variants if alike
+                                    else CubicSpline(tau, variants, axis=0)(grid[:inside]))
             table[inside:, :, b] = table[inside - 1, :, b]
         # the spline's pieces, evaluated by hand: scipy's call costs more than the rest of
         # an integrator stage (tests/benchmarks/driven_refinement.py)
         spline = CubicSpline(grid, table.reshape(len(grid), -1), axis=0)
         c, knots = spline.c, spline.x
+        pick = np.concatenate([np.zeros(copies - n_draws, np.intp), 1 + np.arange(n_draws)])
 
         def u(t: float) -> Array:
             i = min(max(int(np.searchsorted(knots, t, side="right")) - 1, 0), len(knots) - 2)
             h = t - knots[i]
             value = ((c[0, i] * h + c[1, i]) * h + c[2, i]) * h + c[3, i]
-            return np.repeat(value.reshape(n_inputs, -1), copies, axis=1)
+            return value.reshape(n_inputs, -1, 1 + n_draws)[:, :, pick].reshape(n_inputs, -1)
 
         return u
 
@@ -121,6 +131,8 @@ class Batch:
     first, by which its difference from the first is divided. `ends`, if given, are a time
     of each segment (from its start, none before its samples) whose state and derivatives
     `blocks` returns too, without a residual (multiple shooting's continuity conditions).
+    The inputs' draws (`SampledInputs.draws`), if any, are the last copies, as the first
+    but for their inputs: `blocks` returns what each moves the scores and the end states by.
     """
 
     dynamics: Dynamics
@@ -188,13 +200,17 @@ class Blocks:
     """A batch's segments reduced: `cost` (B, 2N), each variable's weighted squared
     residuals; `H` (B, c, c) and `g` (B, c), J'J and J'r of each segment's Jacobian by its
     c perturbed copies (empty when there are none); with the batch's `ends`, `end` (B, 2N)
-    each segment's state there and `E` (B, 2N, c) its derivatives by the copies."""
+    each segment's state there and `E` (B, 2N, c) its derivatives by the copies; with the
+    inputs' draws, what each changes g and `end` by (to first order, as J is unchanged)."""
 
     cost: Array
     H: Array
     g: Array
     end: Array | None = None
     E: Array | None = None
+    # with the inputs' draws: each draw's change of g (B, c, draws) and of `end` (B, 2N, draws)
+    g_draws: Array | None = None
+    end_draws: Array | None = None
 
 
 def blocks(batch: Batch) -> Blocks:
@@ -221,8 +237,10 @@ def blocks(batch: Batch) -> Blocks:
     if not np.all(np.isfinite(values)):
         raise IntegrationFailed("the integrated motion is not finite")
     values = values.reshape(len(grid), n_states, B, copies)
-    weight, steps, c = batch.weight, batch.steps, copies - 1
+    n_draws = 0 if batch.inputs is None else batch.inputs.n_draws
+    weight, steps, c = batch.weight, batch.steps, copies - 1 - n_draws
     cost, H, g = np.empty((B, n_states)), np.empty((B, c, c)), np.empty((B, c))
+    g_draws = np.empty((B, c, n_draws))
     offsets = np.cumsum([0, *map(len, batch.tau)])
     for lo, hi in _alike(where, offsets):
         # neighbouring segments sampled alike: (m, 2N, G, copies) gathered at once
@@ -234,17 +252,21 @@ def blocks(batch: Batch) -> Blocks:
             continue
         # each variable's forward differences (G, 2N, c, m), weighed and divided by the
         # steps once their products are summed
-        D = (Y[..., 1:] - Y[..., :1]).transpose(2, 1, 3, 0)
+        D = (Y[..., 1:1 + c] - Y[..., :1]).transpose(2, 1, 3, 0)
         products = np.matmul(D, D.transpose(0, 1, 3, 2))                        # (G, 2N, c, c)
         H[lo:hi] = np.einsum("gscd,s->gcd", products, weight**2) / np.outer(steps, steps)
         scores = np.matmul(D, residual.transpose(2, 1, 0)[..., None])[..., 0]   # (G, 2N, c)
         g[lo:hi] = np.einsum("gsc,s->gc", scores, weight) / steps
+        if n_draws:   # each draw's residual less the first copy's: -(its motion less that)
+            moved = np.matmul(D, (Y[..., 1 + c:] - Y[..., :1]).transpose(2, 1, 0, 3))
+            g_draws[lo:hi] = -np.einsum("gscr,s->gcr", moved, weight**2) / steps[:, None]
     offset = offsets[-1]
     if batch.ends is None:
-        return Blocks(cost, H, g)
+        return Blocks(cost, H, g, g_draws=g_draws)
     at_ends = values[where[offset:], :, np.arange(B)]               # (B, 2N, copies)
     end = at_ends[..., 0]
-    return Blocks(cost, H, g, end, (at_ends[..., 1:] - end[..., None]) / batch.steps)
+    return Blocks(cost, H, g, end, (at_ends[..., 1:1 + c] - end[..., None]) / batch.steps,
+                  g_draws, at_ends[..., 1 + c:] - end[..., None])
 
 
 def _alike(where: npt.NDArray[np.intp], offsets: npt.NDArray[np.intp]

@@ -54,6 +54,9 @@ REWEIGHT_SETTLED = 0.1   # relative change of every noise level that ends them s
 HELD_OUT_LEVEL = 0.95    # refused when the refinement predicts worse beyond this bound
 LENGTHEN_LEVEL = 0.99    # segments joined while the misfit a join adds is below this F point
 LONGEST_PERIODS = 32     # dominant periods: longer segments would integrate one after another
+# Perturbations of the recorded inputs that the covariance their noise adds is drawn from
+# (`SegmentFit.input_shifts`): its relative error is about sqrt(2 / INPUT_DRAWS).
+INPUT_DRAWS = 24
 CLEAN_CHI2 = 1e-6        # misfit per dof below which it is the integrator's error, not noise
 # Standard errors from its minimum within which the first fit stops: the joined fit goes on
 # from its last point (to trajectory.SETTLED), and one not joined is settled at the end.
@@ -229,7 +232,13 @@ def _refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissi
                                    **info)
         if fit.groups == fit.segments:   # the first fit, settled
             info.update(_fitted(fit, noise))
-    return Outcome(fit=_refined(linear, fit, within), report=RefinementInfo(applied=True, **info))
+    inputs_sigma = None
+    if records.U is not None:
+        inputs_sigma = measurement.estimate_noise(records.U, records.bounds())
+        info["noise"] |= {name: NoiseLevel(sigma=float(level), source="differences")
+                          for name, level in zip(model.inputs, inputs_sigma, strict=True)}
+    return Outcome(fit=_refined(linear, fit, within, inputs_sigma),
+                   report=RefinementInfo(applied=True, **info))
 
 
 def _fitted(fit: SegmentFit, noise: _Noise) -> dict[str, Any]:
@@ -326,11 +335,16 @@ def _beyond_noise(fit: SegmentFit, noise: _Noise, length: float,
     return fit, raised
 
 
-def _refined(linear: LinearFit, fit: SegmentFit, within: bool) -> LinearFit:
+def _refined(linear: LinearFit, fit: SegmentFit, within: bool,
+             inputs_sigma: npt.NDArray[np.float64] | None) -> LinearFit:
     """The linear fit with the refined parameters and their covariance: misfit-scaled
     Gauss-Newton when the noise explains the misfit (on noise-free data, scaled by the
     whole misfit), else the sandwich over segments (with its degrees of freedom,
-    segments less parameters)."""
+    segments less parameters).
+
+    A driven fit's misfit-scaled covariance gains what the noise of its recorded inputs
+    (`inputs_sigma`, from their differences) puts into the parameters through the
+    integrated motion; the sandwich holds it already (an error shared within segments)."""
     theta = fit.theta[list(fit.free)]
     if within and fit.chi2_per_dof < CLEAN_CHI2:
         # The misfit is the integrators' error (this fit's and the record's own): smooth,
@@ -344,6 +358,10 @@ def _refined(linear: LinearFit, fit: SegmentFit, within: bool) -> LinearFit:
         covariance, df = fit.covariance("scaled"), fit.dof
         description = ("Gauss-Newton covariance of the trajectory fit, scaled by its misfit "
                        f"per degree of freedom ({fit.chi2_per_dof:.3g})")
+        if inputs_sigma is not None:
+            covariance = covariance + _inputs_covariance(fit, inputs_sigma)
+            description += (", plus the inputs' noise carried through the integrated motion "
+                            f"({INPUT_DRAWS} draws)")
     else:
         covariance, df = fit.covariance("sandwich"), max(fit.segments - len(theta), 1)
         description = (f"sandwich covariance of the trajectory fit over its {fit.segments} "
@@ -354,6 +372,18 @@ def _refined(linear: LinearFit, fit: SegmentFit, within: bool) -> LinearFit:
         linear, theta=theta, covariance=covariance, description=description, df=df,
         h=means_A @ theta - means_b, h_stderr=np.full(len(means_b), np.nan), residuals=None,
         discretization=None)
+
+
+def _inputs_covariance(fit: SegmentFit, sigma: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """The covariance that white noise of std `sigma` on the recorded inputs (one per
+    input) puts into the free parameters through the integrated motion: the second
+    moment of the fit's first-order response (`SegmentFit.input_shifts`) over
+    INPUT_DRAWS seeded draws of the noise (a fit gives one covariance)."""
+    records = fit.problem.records
+    assert records.U is not None
+    noise = sigma * np.random.default_rng(0).standard_normal((INPUT_DRAWS, *records.U.shape))
+    shifts = fit.input_shifts(noise)
+    return shifts.T @ shifts / INPUT_DRAWS
 
 
 def _held_out(fit: SegmentFit, theta_linear: npt.NDArray[np.float64], unknowns: Unknowns,

@@ -39,7 +39,7 @@ import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -268,10 +268,9 @@ class SegmentFit:
         the misfit at the final parameters plus d, the state refitted, is
         misfit - 2 score.d + d.schur.d. The scores sum to zero once converged."""
         normal = self.normal
-        inverse = np.linalg.inv(normal.H_xx)
-        schur = normal.H_tt - np.einsum("sak,sab,sbl->skl", normal.H_xt, inverse, normal.H_xt)
-        score = normal.g_t - np.einsum("sak,sab,sb->sk", normal.H_xt, inverse, normal.g_x)
-        misfit = normal.misfit - np.einsum("sa,sab,sb->s", normal.g_x, inverse, normal.g_x)
+        score, schur = _scores(normal)
+        misfit = normal.misfit - np.einsum("sa,sab,sb->s", normal.g_x,
+                                           np.linalg.inv(normal.H_xx), normal.g_x)
         # from the point the equations were made at to the final one
         shift = self.shift
         misfit = misfit - 2 * score @ shift + np.einsum("k,skl,l->s", shift, schur, shift)
@@ -287,6 +286,39 @@ class SegmentFit:
             return inverse * self.chi2_per_dof
         S, p = score.shape
         return inverse @ (score.T @ score) @ inverse * S / max(S - p, 1)
+
+    def input_shifts(self, noise: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """How much each perturbation of the recorded inputs moves the free parameters
+        (draws, p), to first order: the Gauss-Newton step it calls for from the fit's last
+        point, the states refitted. `noise` (draws, n_samples, n_inputs) is added to the
+        records' inputs.
+
+        The fit integrates the inputs as recorded, so their noise drives the integrated
+        motion: an error shared along each group of segments that the residuals' scale
+        does not see. The perturbed inputs are integrated as more copies of each segment
+        beside its Jacobian's, at little cost where the segments are many or short."""
+        problem, point = self.problem, self.point
+        records = problem.records
+        assert problem.inputs is not None
+        perturbed = dataclasses.replace(problem, inputs=dataclasses.replace(
+            problem.inputs, draws=[noise[:, a:b] for a, b in _input_rows(records,
+                                                                         problem.pieces)]))
+        with np.errstate(all="ignore"):
+            normal, _, E, responses = _normal_equations(
+                problem=perturbed, theta=point.theta, X0=point.X0, free=self.free,
+                theta_step=_theta_step(point.theta[list(self.free)]), rtol=self.rtol,
+                batch_done=lambda done: None)
+            n_x = normal.H_xx.shape[1]
+            inverse = np.linalg.inv(_scores(self.normal)[1].sum(axis=0))
+            shifts = np.empty((len(noise), len(self.free)))
+            for r in range(len(noise)):
+                moved = dataclasses.replace(normal, g_x=responses.g[:, :n_x, r],
+                                            g_t=responses.g[:, n_x:, r])
+                if problem.groups < len(problem.pieces):   # the gaps moved by the end states
+                    moved, _ = _condensed(problem, _Point(point.theta, np.zeros_like(point.X0),
+                                                          moved, responses.end[..., r], E))
+                shifts[r] = inverse @ _scores(moved)[0].sum(axis=0)
+        return shifts
 
     def held_out_folds(self, folds: npt.NDArray[np.intp]
                        ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
@@ -321,7 +353,7 @@ class SegmentFit:
                          f"{self.segments:,} segments")
 
         with np.errstate(all="ignore"):
-            normal, _, _ = _normal_equations(problem=self.problem, theta=thetas, X0=self.states,
+            normal, _, _, _ = _normal_equations(problem=self.problem, theta=thetas, X0=self.states,
                                              free=(), theta_step=None, rtol=self.rtol,
                                              batch_done=batch_done)
             misfit = normal.cost.sum(axis=1)
@@ -348,16 +380,21 @@ def _segments(records: Records, t: npt.NDArray[np.float64],
     return pieces
 
 
+def _input_rows(records: Records, pieces: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Each segment's rows of inputs: through the next sample of its trajectory, where a
+    tie compares its end."""
+    group = records.group
+    return [(a, b + 1 if b < len(group) and group[b] == group[a] else b) for a, b in pieces]
+
+
 def _segment_inputs(records: Records, pieces: list[tuple[int, int]]
                     ) -> integration.SampledInputs | None:
-    """Each segment's recorded inputs, through the next sample of its trajectory (where a
-    tie compares its end), or None for a free model."""
+    """Each segment's recorded inputs (`_input_rows`), or None for a free model."""
     if records.U is None:
         return None
     assert records.t is not None
-    t, group = records.t, records.group
-    rows = [(a, b + 1 if b < len(group) and group[b] == group[a] else b) for a, b in pieces]
-    return integration.SampledInputs([t[a:c] - t[a] for a, c in rows],
+    rows = _input_rows(records, pieces)
+    return integration.SampledInputs([records.t[a:c] - records.t[a] for a, c in rows],
                                      [records.U[a:c] for a, c in rows])
 
 
@@ -446,6 +483,20 @@ def settle(fit: SegmentFit, progress: Callable[[str], None] | None = None) -> Se
         raise RefinementFailed(f"{exc}, fitted on") from exc
 
 
+def _theta_step(free_theta: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """The forward-difference step of each free parameter at `free_theta`."""
+    step = STEP * np.maximum(np.abs(free_theta), 1e-3 * np.abs(free_theta).max())
+    step[step == 0] = STEP   # every start at zero: no scale to go by
+    return step
+
+
+def _scores(normal: _Normal) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Each group's score (G, p) and Schur complement (G, p, p), its state eliminated."""
+    inverse = np.linalg.inv(normal.H_xx)
+    return (normal.g_t - np.einsum("sak,sab,sb->sk", normal.H_xt, inverse, normal.g_x),
+            normal.H_tt - np.einsum("sak,sab,sbl->skl", normal.H_xt, inverse, normal.H_xt))
+
+
 class _SegmentFitFailed(Exception):
     """One segment length did not give a fit; the reason is the text."""
 
@@ -475,13 +526,11 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
 
     with np.errstate(all="ignore"):
         for _ in range(MAX_ITERATIONS):
-            free_theta = theta[free_list]
-            theta_step = STEP * np.maximum(np.abs(free_theta), 1e-3 * np.abs(free_theta).max())
-            theta_step[theta_step == 0] = STEP   # every start at zero: no scale to go by
+            theta_step = _theta_step(theta[free_list])
             if evaluated is None:
                 evaluated = _Point(theta, X0, *_normal_equations(
                     problem=problem, theta=theta, X0=X0, free=free, theta_step=theta_step,
-                    rtol=rtol, batch_done=batch_done))
+                    rtol=rtol, batch_done=batch_done)[:3])
             point, evaluated = evaluated, None
             normal, chain = point.normal, None
             if problem.groups < len(problem.pieces):
@@ -601,10 +650,12 @@ def round_values(records: Records, n_free: int) -> int:
 def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, ...],
                       theta_step: Any, rtol: float, batch_done: Callable[[int], None],
                       derivatives: bool = True
-                      ) -> tuple[_Normal, npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+                      ) -> tuple[_Normal, npt.NDArray[np.float64], npt.NDArray[np.float64],
+                                 _Responses]:
     """Residuals and forward-difference Jacobians of every segment, into _Normal; each
     one's state at its end time (`_Problem.end_times`, S, 2N) and that state's derivatives
-    (S, 2N, 2N + p).
+    (S, 2N, 2N + p); with the inputs' draws (`SampledInputs.draws`), what each moves the
+    scores and those states by (otherwise of none).
 
     `theta` holds every parameter, shared (P,) or one row per segment (S, P). The segments
     are cut into batches of about equal size, as many as keep each within MAX_BATCH
@@ -617,7 +668,9 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
     tau, measured = problem.tau, problem.measured
     S, n_states, p = len(tau), X0.shape[1], len(free)
     n_x = n_states if derivatives else 0
-    copies = 1 + n_x + p
+    inputs = problem.inputs
+    n_draws = 0 if inputs is None else inputs.n_draws
+    copies = 1 + n_x + p + n_draws
     rows = np.broadcast_to(theta, (S, np.shape(theta)[-1]))
     parameters = np.concatenate([np.ones((S, 1)), rows], axis=1).T     # (1 + P, S)
     x_step = problem.x_step
@@ -634,30 +687,41 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
         W = np.repeat(parameters[:, None, lo:hi], copies, axis=1)  # (1 + P, copies, B)
         for k, index in enumerate(free):
             W[1 + index, 1 + n_x + k] += theta_step[k]
-        inputs = problem.inputs
         batches.append(integration.Batch(dynamics=problem.dynamics, tau=tau[lo:hi],
                                          measured=measured[lo:hi], weight=problem.weight,
                                          starts=starts, weights=W, steps=steps,
                                          tolerance=tolerance, ends=ends[lo:hi],
                                          inputs=None if inputs is None else
-                                         integration.SampledInputs(inputs.tau[lo:hi],
-                                                                   inputs.values[lo:hi])))
-    cost = np.zeros((S, n_states))
-    H = np.zeros((S, copies - 1, copies - 1))
-    g = np.zeros((S, copies - 1))
-    end, E = np.zeros((S, n_states)), np.zeros((S, n_states, copies - 1))
+                                         integration.SampledInputs(
+                                             inputs.tau[lo:hi], inputs.values[lo:hi],
+                                             None if inputs.draws is None
+                                             else inputs.draws[lo:hi])))
+    c = copies - 1 - n_draws
+    cost, H, g = np.zeros((S, n_states)), np.zeros((S, c, c)), np.zeros((S, c))
+    end, E = np.zeros((S, n_states)), np.zeros((S, n_states, c))
+    responses = _Responses(np.zeros((S, c, n_draws)), np.zeros((S, n_states, n_draws)))
     try:
         for lo, hi, blocks in zip(edges[:-1], edges[1:], integration.run(batches),
                                   strict=True):
             cost[lo:hi], H[lo:hi], g[lo:hi] = blocks.cost, blocks.H, blocks.g
             end[lo:hi], E[lo:hi] = blocks.end, blocks.E
+            if n_draws:
+                responses.g[lo:hi], responses.end[lo:hi] = blocks.g_draws, blocks.end_draws
             batch_done(int(hi))
     except integration.IntegrationFailed as exc:
         raise _SegmentFitFailed(str(exc)) from exc
     # each block its own array: numpy's sums over strided views round otherwise
     return _Normal(cost, *map(np.ascontiguousarray, (H[:, n_x:, n_x:], g[:, n_x:],
                                                      H[:, :n_x, :n_x], H[:, :n_x, n_x:],
-                                                     g[:, :n_x]))), end, E
+                                                     g[:, :n_x]))), end, E, responses
+
+
+class _Responses(NamedTuple):
+    """What each draw of the inputs moves every segment's scores (S, 2N + p, draws) and
+    end state (S, 2N, draws) by."""
+
+    g: npt.NDArray[np.float64]
+    end: npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)

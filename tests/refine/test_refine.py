@@ -496,9 +496,9 @@ def test_the_refined_fit_is_settled_whether_joined_or_not(monkeypatch):
     reported = []
     made = joint_refinement._refined
 
-    def seen(linear, fit, within):
+    def seen(linear, fit, within, inputs_sigma):
         reported.append(fit)
-        return made(linear, fit, within)
+        return made(linear, fit, within, inputs_sigma)
     monkeypatch.setattr(joint_refinement, "_refined", seen)
     frame = with_noise(hamid.simulate(PENG), 0.01, seed=1)
     joined = hamid.fit(frame)

@@ -402,3 +402,59 @@ def test_a_fit_stopped_sooner_is_settled_from_where_it_stopped():
     assert on.iterations == settled.iterations
     assert np.all(np.abs(on.theta[free] - settled.theta[free]) < 1e-6 * errors)
     assert trajectory.settle(settled) is settled
+
+
+DRIVEN_DUFFING = """
+[model]
+coordinates = ["x"]
+velocities = ["v"]
+energy = "m*v**2/2 + k*x**2/2 + k3*x**4/4"
+parameters = ["m", "k", "k3"]
+
+[forcing]
+inputs = ["F"]
+work = "F*x"
+"""
+
+
+@pytest.mark.parametrize("tied", [False, True])
+def test_the_inputs_noise_moves_the_parameters_as_a_fit_on_the_noisy_inputs_does(
+        tmp_path, tied):
+    """`input_shifts`, the first-order response of the parameters to a perturbation of
+    the recorded inputs, against the fit run again (to its minimum) on the perturbed
+    inputs: over segments fitted each on its own, and over segments tied into one."""
+    import tomllib
+
+    from hamid.data.records import Records
+
+    truth = {"m": 1.5, "k": 4.0, "k3": 2.0, "c_x": 0.08}
+    system = {**tomllib.loads(DRIVEN_DUFFING), "parameters": {"m": 1.5, "k": 4.0, "k3": 2.0},
+              "damping": {"c_x": 0.08}, "initial": [{"x": 0.0, "v": 0.0}],
+              "simulate": {"t_end": 30.0, "dt": 0.02}}
+    system["forcing"]["signals"] = {"F": {"kind": "multisine", "amplitude": 1.0,
+                                          "band": [0.05, 1.0], "seed": 3}}
+    frame = with_noise(hamid.simulate(system), 0.01, seed=4)
+    path = tmp_path / "driven.toml"
+    path.write_text(DRIVEN_DUFFING)
+    model = hamid.load_model(path)
+    damping = model.dissipative(["viscous"])
+    X, U = frame[["x", "v"]].to_numpy(), frame[["F"]].to_numpy()
+    t, group = frame["t"].to_numpy(), np.zeros(len(frame), int)
+    weight = 1 / (0.01 * frame[["x", "v"]].std().to_numpy())
+
+    def fitted(inputs):
+        records = Records(X, t, group, (1,), U=inputs)
+        fit = trajectory.fit(model, records, damping, list(truth.values()), [0, 1, 2, 3], 7.5,
+                             weight)
+        return trajectory.settle(trajectory.join(fit, 100, np.inf)) if tied else fit
+
+    fit = fitted(U)
+    assert fit.segments == 4 and fit.groups == (1 if tied else 4)
+    noise = 0.01 * U.std() * np.random.default_rng(6).standard_normal((1, *U.shape))
+    moved = fitted(U + noise[0]).theta - fit.theta
+    errors = np.sqrt(np.diag(fit.covariance("scaled")))
+    # the response is of the size of the errors; first order, it misses by a few percent
+    assert np.all(np.abs(moved) > 0.1 * errors), moved / errors
+    shifts = fit.input_shifts(noise)[0]
+    assert np.all(np.abs(shifts - moved) <= 0.05 * np.abs(moved) + 0.02 * errors), (
+        shifts / errors, moved / errors)
