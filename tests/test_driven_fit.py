@@ -162,10 +162,7 @@ def test_with_a_clean_force_the_95_percent_intervals_cover_the_truth(duffing_mod
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the force's own noise is not yet propagated into the "
-                   "refinement's covariance: 0.2% of noise on the force leaves 357 of 400 "
-                   "intervals covering (89%), the errors of m, k and c_x understated by a "
-                   "fifth to a third")
+@pytest.mark.slow
 def test_with_a_noisy_force_the_95_percent_intervals_cover_the_truth(duffing_model):
     assert 0.90 <= _coverage(duffing_model, 0.002) <= 0.98
 

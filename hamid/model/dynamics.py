@@ -177,20 +177,29 @@ class _InputForces:
     def __init__(self, stack: Stack, coordinate: npt.NDArray[np.intp],
                  parameter: tuple[int | None, ...], n: int, theta: Array,
                  inputs: Callable[[float], Array]):
-        self.stack, self.coordinate, self.n, self.inputs = stack, coordinate, n, inputs
+        self.stack, self.inputs = stack, inputs
         ones = np.ones(theta.shape[1:])
         weight = np.array([ones if k is None else theta[k] for k in parameter])
-        self.weight = weight.reshape(len(weight), -1)   # (parts, 1 or n_states)
+        weight = weight.reshape(len(weight), -1)   # (parts, 1 or n_states)
+        # each part into its coordinate's row: with weights shared by every state, folded in
+        scatter = (np.arange(n)[:, None] == coordinate[None]).astype(np.float64)
+        self.shared = weight.shape[1] == 1
+        self.scatter = scatter * weight[:, 0] if self.shared else scatter
+        self.weight = weight
+        self._arguments: Array | None = None   # (q, v, u) of the last call's shape, reused
 
     def __call__(self, t: float, Y: Array) -> Array:
         """Q (N, n) at time t and states Y (2N, n)."""
-        u = np.asarray(self.inputs(t), dtype=np.float64)
-        U = np.broadcast_to(u.reshape(len(u), -1), (len(u), Y.shape[1]))
-        values = self.stack(np.vstack([Y, U])) * self.weight
-        Q = np.zeros((self.n, Y.shape[1]))
-        for row, i in enumerate(self.coordinate):
-            Q[i] += values[row]
-        return Q
+        u = self.inputs(t)
+        if u.ndim == 1:
+            u = u[:, None]
+        arguments = self._arguments
+        if arguments is None or arguments.shape != (len(Y) + len(u), Y.shape[1]):
+            arguments = self._arguments = np.empty((len(Y) + len(u), Y.shape[1]))
+        arguments[:len(Y)] = Y
+        arguments[len(Y):] = u
+        values = self.stack(arguments)
+        return self.scatter @ (values if self.shared else values * self.weight)
 
 
 class Motion:

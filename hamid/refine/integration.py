@@ -14,6 +14,7 @@ so neither do the results.
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import contextvars
 import copyreg
@@ -110,13 +111,20 @@ class SampledInputs:
         # the spline's pieces, evaluated by hand: scipy's call costs more than the rest of
         # an integrator stage (tests/benchmarks/driven_refinement.py)
         spline = CubicSpline(grid, table.reshape(len(grid), -1), axis=0)
-        c, knots = spline.c, spline.x
+        knots, c = spline.x, np.ascontiguousarray(spline.c.transpose(1, 0, 2))  # (pieces, 4, k)
         pick = np.concatenate([np.zeros(copies - n_draws, np.intp), 1 + np.arange(n_draws)])
+        bounds = knots.tolist()
+        last = len(bounds) - 2
+        piece = [0]   # the last call's: the integrator's next time is mostly in it
 
         def u(t: float) -> Array:
-            i = min(max(int(np.searchsorted(knots, t, side="right")) - 1, 0), len(knots) - 2)
-            h = t - knots[i]
-            value = ((c[0, i] * h + c[1, i]) * h + c[2, i]) * h + c[3, i]
+            i = piece[0]
+            if not bounds[i] <= t < bounds[i + 1]:
+                i = piece[0] = min(max(bisect.bisect_right(bounds, t) - 1, 0), last)
+            h = t - bounds[i]
+            value = np.array([h * h * h, h * h, h, 1.0]) @ c[i]
+            if not n_draws:
+                return np.repeat(value.reshape(n_inputs, -1), copies, axis=1)
             return value.reshape(n_inputs, -1, 1 + n_draws)[:, :, pick].reshape(n_inputs, -1)
 
         return u
