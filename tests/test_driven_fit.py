@@ -162,7 +162,6 @@ def test_with_a_clean_force_the_95_percent_intervals_cover_the_truth(duffing_mod
 
 
 @pytest.mark.slow
-@pytest.mark.slow
 def test_with_a_noisy_force_the_95_percent_intervals_cover_the_truth(duffing_model):
     assert 0.90 <= _coverage(duffing_model, 0.002) <= 0.98
 
