@@ -15,6 +15,7 @@ trajectories are integrated together as one vectorised system.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from collections.abc import Callable, Iterator, Mapping
@@ -26,6 +27,7 @@ import numpy.typing as npt
 
 from hamid import signals
 from hamid.errors import ModelError, UsageError
+from hamid.model.dissipation import Dissipation
 from hamid.model.dynamics import Dynamics, Motion
 from hamid.model.expressions import Func
 from hamid.model.models import Model, damping_table, forcing_table, model_from_spec
@@ -43,6 +45,9 @@ DEFAULT_MAX_SAMPLES = 20_000_000
 _TOP_KEYS = ("model", "parameters", "initial", "simulate", "noise", "damping", "forcing")
 _SIMULATE_KEYS = ("t_end", "dt", "method", "rtol", "atol", "seed", "max_samples")
 _ESCAPE_BOUND = 1e8
+# Integrator steps within one sample interval that stop a run: far beyond a smooth
+# motion's (a few), taken where a force jumps back and forth (friction at rest)
+STUCK_STEPS = 5_000
 
 
 @dataclass(frozen=True)
@@ -269,6 +274,17 @@ def run(system: System, *, seed: int | None = None,
     return next(realizations(system, 1, seed=seed, progress=progress))
 
 
+def _stuck(t: float, dissipation: Dissipation) -> str:
+    """Why the integration stopped at time t, in one line."""
+    text = (f"the integrator took {STUCK_STEPS:,} steps within one sample at t = {t:.6g}: "
+            "the motion is stiff or its force jumps there")
+    if dissipation.reversals:
+        text += (" (friction that changes sign with the velocity holds a mass at rest, "
+                 "which the simulator does not model: it integrates sliding only; "
+                 "shorten t_end to before the motion stops)")
+    return text
+
+
 def realizations(system: System, count: int, *, seed: int | None = None,
                  progress: Callable[[float], None] | None = None
                  ) -> Iterator[tuple[dict[str, np.ndarray], dict[str, Any]]]:
@@ -304,9 +320,15 @@ def realizations(system: System, count: int, *, seed: int | None = None,
     _check_mass(motion, start[:, :2 * n].T, "initial state of trajectory")
     _check_finite_start(motion, start, system)
 
-    def escape(t: float, y: np.ndarray) -> float:
+    steps, checked = itertools.count(1), [0.0]   # the time at the last check
+
+    def escape(t: float, y: np.ndarray) -> float:   # called once per step
         if progress is not None:
             progress(min(t / times[-1], 1.0) if times[-1] > 0 else 1.0)
+        if next(steps) % STUCK_STEPS == 0:
+            if t - checked[0] < system.dt:
+                raise ModelError(_stuck(t, dissipation))
+            checked[0] = t
         return _ESCAPE_BOUND - np.max(np.abs(y[:2 * n * n_traj]), initial=0.0)
 
     escape.terminal = True  # type: ignore[attr-defined]

@@ -97,6 +97,22 @@ def test_a_two_mass_chain_forced_on_its_second_mass_is_recovered(chain_model):
         assert result.estimates[name] == pytest.approx(value, rel=1e-5), name
 
 
+def test_a_driven_duffing_with_coulomb_friction_is_recovered_through_its_reversals(
+        duffing_model):
+    """A machine's friction, crossed at every reversal of the drive: the refinement
+    integrates it rounded (`method.refinement.smoothing`), to within what the rounding's
+    stated force error allows on clean data."""
+    system = duffing_system()
+    system["damping"] = {"c_x": 0.08, "mu_x": 0.05}
+    data = hamid.simulate(system)
+    assert np.count_nonzero(np.diff(np.sign(data["v"])) != 0) > 40
+    result = hamid.fit(data, duffing_model, damping="viscous,coulomb")
+    [smoothing] = result.method["refinement"]["smoothing"]
+    assert smoothing["mean_force_error"] < 1e-3
+    for name, value in {**DUFFING_TRUTH, "mu_x": 0.05}.items():
+        assert result.estimates[name] == pytest.approx(value, rel=2e-4), name
+
+
 def _noisy(clean, rng, motion=0.01, force=0.002):
     """The clean record with white noise of the given share of each column's spread."""
     noisy = clean.copy()

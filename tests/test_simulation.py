@@ -653,3 +653,42 @@ def test_mass_matrix_not_positive_definite_names_the_trajectory(model, parameter
     with pytest.raises(ModelError, match=rf"not positive definite at the initial state of "
                                          rf"trajectory {label}\b"):
         simulate(system)
+
+
+def test_friction_that_holds_the_mass_at_rest_stops_the_run_with_the_reason(tmp_path):
+    """Coulomb friction larger than the spring's force at a stop: the exact law's force
+    jumps back and forth and the integrator would crawl on for ever; the run stops within
+    one sample's worth of steps and says why, in one line, also on the command line."""
+    import subprocess
+
+    from hamid.errors import ModelError
+    from tests.helpers import hamid_command, one_line_error
+
+    system = {"model": DUFFING, "parameters": {"k": 1.0, "k3": 0.5},
+              "initial": [{"x": 1.0, "v": 0.0}], "damping": {"c_x": 0.02, "mu_x": 0.04},
+              "simulate": {"t_end": 40.0, "dt": 0.05}}
+    with pytest.raises(ModelError, match=r"within one sample at t = \d+\.\d+.*holds a mass "
+                                         r"at rest.*shorten t_end"):
+        hamid.simulate(system)
+    config = tmp_path / "stick.toml"
+    config.write_text("""
+[model]
+builtin = "duffing"
+[parameters]
+k = 1.0
+k3 = 0.5
+[damping]
+c_x = 0.02
+mu_x = 0.04
+[[initial]]
+x = 1.0
+v = 0.0
+[simulate]
+t_end = 40.0
+dt = 0.05
+""")
+    out = tmp_path / "stick.csv"
+    done = subprocess.run([*hamid_command(), "simulate", "--config", str(config), "-o",
+                           str(out)], capture_output=True, text=True)
+    one_line_error(done, 1, "holds a mass at rest", "shorten t_end")
+    assert not out.exists()

@@ -145,9 +145,6 @@ def refinement_obstacle(options: FitOptions, records_bytes: int | None = None) -
     `records_bytes` is the size of the records that a fit read in chunks would hold in
     memory for the refinement (None for a fit in memory).
     """
-    if "coulomb" in options.damping:
-        return ("Coulomb friction makes the motion jump at every stop, which the trajectory "
-                "fit's integration and differences do not follow")
     if options.cov != "hac":
         return (f"the trajectory fit has a covariance of its own, and --cov {options.cov} "
                 "asks for that of the linear fit")

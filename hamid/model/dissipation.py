@@ -19,6 +19,7 @@ dissipation, however it was written.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -162,6 +163,38 @@ class Dissipation:
         slopes = np.einsum("nic,ni->nc", self.force_slopes(X, c), X[:, self.n:])
         slopes[:, self.n:] += self.force_parts(X) @ c
         return slopes
+
+    @cached_property
+    def reversals(self) -> tuple[expressions.Func, ...]:
+        """The arguments of abs in R, each a function of the state whose sign change
+        reverses a force of constant size (friction's): `smoothed` rounds them."""
+        import sympy
+
+        found = [node.args[0] for part in self.parts if isinstance(part, expressions.Symbolic)
+                 for node in sympy.preorder_traversal(part.expression)
+                 if isinstance(node, sympy.Abs)]
+        return tuple(expressions.Symbolic(self.variables, f) for f in dict.fromkeys(found))
+
+    def smoothed(self, widths: Sequence[float]) -> Dissipation:
+        """This R with each reversal g (`reversals`) rounded over its width w:
+        abs(g) -> sqrt(g**2 + w**2), whose slope g / sqrt(g**2 + w**2) rounds sign(g).
+
+        The forces then differ from the exact ones by at most their coefficient where
+        |g| < w, and by about a coefficient times w**2 / (2 g**2) beyond: a law the
+        trajectory refinement's integrator can step through, where a force that jumps
+        at every reversal makes it take tiny steps without end."""
+        import sympy
+
+        rounded = {f.expression: w for f, w in zip(self.reversals, widths, strict=True)}
+
+        def smooth(expression: sympy.Expr) -> sympy.Expr:
+            return expression.replace(
+                sympy.Abs, lambda g: sympy.sqrt(g**2 + sympy.Float(rounded[g])**2))
+
+        parts = tuple(expressions.Symbolic(part.variables, smooth(part.expression))
+                      if isinstance(part, expressions.Symbolic) else part
+                      for part in self.parts)
+        return dataclasses.replace(self, parts=parts)
 
     @cached_property
     def kinks(self) -> tuple[tuple[expressions.Func, ...], ...]:

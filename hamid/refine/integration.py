@@ -274,7 +274,7 @@ def blocks(batch: Batch) -> Blocks:
     at_ends = values[where[offset:], :, np.arange(B)]               # (B, 2N, copies)
     end = at_ends[..., 0]
     return Blocks(cost, H, g, end, (at_ends[..., 1:1 + c] - end[..., None]) / batch.steps,
-                  g_draws, at_ends[..., 1 + c:] - end[..., None])
+                  g_draws=g_draws, end_draws=at_ends[..., 1 + c:] - end[..., None])
 
 
 def _alike(where: npt.NDArray[np.intp], offsets: npt.NDArray[np.intp]

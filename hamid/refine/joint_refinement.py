@@ -38,6 +38,7 @@ from hamid.refine.outcome import (
     NoiseLevel,
     Outcome,
     RefinementInfo,
+    SmoothingInfo,
 )
 
 if TYPE_CHECKING:
@@ -57,6 +58,9 @@ LONGEST_PERIODS = 32     # dominant periods: longer segments would integrate one
 # Perturbations of the recorded inputs that the covariance their noise adds is drawn from
 # (`SegmentFit.input_shifts`): its relative error is about sqrt(2 / INPUT_DRAWS).
 INPUT_DRAWS = 24
+# A friction force's reversal is rounded over this share of its argument's root mean
+# square (`_smoothed`): the force's mean error is then about that share of its size
+SMOOTHING = 1e-3
 CLEAN_CHI2 = 1e-6        # misfit per dof below which it is the integrator's error, not noise
 # Standard errors from its minimum within which the first fit stops: the joined fit goes on
 # from its last point (to trajectory.SETTLED), and one not joined is settled at the end.
@@ -148,8 +152,10 @@ def refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissip
     enough to gain by it (`hamid.refine.integration`); the processes then start at once and last
     the whole refinement.
     """
+    reversals = {str(g.expression) for g in damping.reversals}
     for what, kinks in (("energy", model.kinks),
-                        ("dissipation", [k for part in damping.kinks for k in part])):
+                        ("dissipation", [k for part in damping.kinks for k in part
+                                         if str(k.expression) not in reversals])):
         kink = _crossed_kink(kinks, records)
         if kink is not None:
             return Outcome.refused(
@@ -172,6 +178,7 @@ def _refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissi
     """`refine` past its checks, its integrations' workers chosen."""
     from hamid.refine import trajectory  # the integrator and sympy's derivatives: when refined
 
+    damping, smoothing = _smoothed(damping, records)
     noise = _Noise.of(records, sigma, len(model.coordinates), derived_velocities)
     period = design.median_period(plan.scales)
     if period is None:   # windows given with --weak-window, no period found
@@ -200,7 +207,8 @@ def _refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissi
     info: dict[str, Any] = {
         "segments": fit.segments, "segment_seconds": fit.problem.length,
         **_fitted(fit, noise), "noise": noise.report(model.variables),
-        "covariance": "misfit-scaled" if within else "sandwich"}
+        "covariance": "misfit-scaled" if within else "sandwich",
+        **({"smoothing": smoothing} if smoothing else {})}
     beyond = (f"the integrated model misses the recording by {noise.misfit(fit):.3g} times the "
               "noise variance, and ")
     acceptance = None
@@ -457,6 +465,24 @@ def level_errors(fit: LinearFit, residuals: ResidualSums) -> npt.NDArray[np.floa
     n, squares = residuals.n, residuals.sums[:, 3]
     mean_noise = squares / np.maximum(n * (n - 1), 1)
     return np.sqrt(np.einsum("jk,kl,jl->j", means_A, fit.covariance, means_A) + mean_noise)
+
+
+def _smoothed(damping: Dissipation, records: Records
+              ) -> tuple[Dissipation, list[SmoothingInfo]]:
+    """The dissipation the refinement integrates: each reversal g of a friction force
+    (`Dissipation.reversals`) rounded over SMOOTHING times its root mean square over the
+    records (`Dissipation.smoothed`), and what the report says of each: the width, and the
+    friction force's error relative to its size, at most 1 and on average over the
+    records' samples (they are where the recording and the model are compared)."""
+    if not damping.reversals:
+        return damping, []
+    values = [g(records.X) for g in damping.reversals]
+    widths = [SMOOTHING * float(np.sqrt(np.mean(np.square(g)))) for g in values]
+    report = [SmoothingInfo(reversal=str(g.expression).replace("Abs(", "abs("), width=w,
+                            mean_force_error=float(np.mean(np.abs(
+                                np.sign(value) - value / np.hypot(value, w)))))
+              for g, value, w in zip(damping.reversals, values, widths, strict=True)]
+    return damping.smoothed(widths), report
 
 
 def _crossed_kink(kinks: Sequence[Func], records: Records) -> str | None:

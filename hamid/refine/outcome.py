@@ -13,7 +13,8 @@ from typing import TYPE_CHECKING, Any, Literal, NotRequired, TypedDict
 if TYPE_CHECKING:
     from hamid.linear.estimate import LinearFit
 
-__all__ = ["AcceptanceInfo", "LengtheningInfo", "NoiseLevel", "Outcome", "RefinementInfo"]
+__all__ = ["AcceptanceInfo", "LengtheningInfo", "NoiseLevel", "Outcome", "RefinementInfo",
+           "SmoothingInfo"]
 
 
 class NoiseLevel(TypedDict):
@@ -46,6 +47,15 @@ class LengtheningInfo(TypedDict):
     stopped: Literal["whole", "longest", "misfit", "failed", "unstable", "clean"]
 
 
+class SmoothingInfo(TypedDict):
+    """A friction force's reversal as the refinement integrates it: rounded over `width`
+    of its argument, the force's error relative to its size on average over the samples."""
+
+    reversal: str            # the argument whose sign the force follows, e.g. "v"
+    width: float
+    mean_force_error: float
+
+
 class RefinementInfo(TypedDict):
     """Whether the trajectory refinement of `auto` ran; its figures, or why not."""
 
@@ -59,6 +69,7 @@ class RefinementInfo(TypedDict):
     noise: NotRequired[dict[str, NoiseLevel]]
     covariance: NotRequired[Literal["misfit-scaled", "sandwich"]]
     acceptance: NotRequired[AcceptanceInfo]
+    smoothing: NotRequired[list[SmoothingInfo]]   # friction's reversals rounded, if any
     # present once the fit passed its check; None: not lengthened (beyond the noise, or failed)
     lengthening: NotRequired[LengtheningInfo | None]
 

@@ -176,16 +176,43 @@ def test_chunks_are_refused_with_a_dissipation_function(chain):
         hamid.fit(chain / "chain.csv", chain / "chain.toml", chunk_rows=500)
 
 
-def test_refinement_stands_aside_for_friction_with_a_kink(chain, tmp_path):
+def test_friction_in_the_dissipation_is_refined_through_its_reversals_rounded(chain,
+                                                                              tmp_path):
+    """A friction term abs(v1) the motion reverses through: the refinement integrates it
+    rounded and says so; the data have none, and none is found."""
     path = tmp_path / "coulomb.toml"
     path.write_text(CHAIN_MODEL.replace('"c1*v1**2/2 + c2*(v2 - v1)**2/2"',
                                         '"c1*v1**2/2 + c2*(v2 - v1)**2/2 + m*abs(v1)"')
                     .replace('["c1", "c2"]', '["c1", "c2", "m"]'))
     result = hamid.fit(chain / "chain.csv", path)
     refinement = result.method["refinement"]
-    assert refinement["applied"] is False
-    assert "dissipation is not smooth where v1 = 0" in refinement["reason"]
+    assert refinement["applied"] is True
+    [smoothing] = refinement["smoothing"]
+    assert smoothing["reversal"] == "v1" and 0 < smoothing["mean_force_error"] < 0.01
     assert result.estimates["m"] == pytest.approx(0.0, abs=1e-6)
+    for name, value in {"k1": K1, "k2": K2, "c1": C1, "c2": C2}.items():
+        assert result.estimates[name] == pytest.approx(value, rel=1e-5), name
+
+
+def test_the_rounded_friction_law_and_its_error():
+    """abs(g) -> sqrt(g**2 + w**2): the force -mu g / sqrt(g**2 + w**2), written out."""
+    from hamid.model.dissipation import Dissipation
+
+    exact = Dissipation.build(["x"], ["v"], shorthand=["c_x", "mu_x"])
+    assert [str(g.expression) for g in exact.reversals] == ["v"]
+    rounded = exact.smoothed([0.01])
+    Y = np.array([[0.3, 0.3, 0.3, 0.3], [0.0, 0.005, -0.02, 3.0]])
+    c, mu, w = 0.2, 0.5, 0.01
+    v = Y[1]
+    assert rounded.forces_at(Y, np.array([c, mu]))[0] == pytest.approx(
+        -c * v - mu * v / np.sqrt(v**2 + w**2), rel=1e-12, abs=1e-15)
+    # within the width the force is off by at most mu; far beyond it by mu w^2 / (2 v^2)
+    error = rounded.forces_at(Y, np.array([0.0, mu]))[0] - exact.forces_at(Y, np.array(
+        [0.0, mu]))[0]
+    assert np.all(np.abs(error[1:]) <= mu)
+    assert abs(error[3]) == pytest.approx(mu * w**2 / (2 * 3.0**2), rel=1e-3)
+    cubic = Dissipation.build(["x"], ["v"], function="d*abs(v)**3/3", parameters=["d"])
+    assert str(cubic.smoothed([0.1]).parts[0].expression) == "v**2*sqrt(v**2 + 0.01)/3"
 
 
 def test_cli_reports_the_joint_friction(chain):
