@@ -93,16 +93,37 @@ def savgol_velocities(Q: npt.NDArray[np.float64], t: npt.NDArray[np.float64],
             raise DataError(f"a trajectory of {b - a} samples is shorter than the "
                             f"Savitzky-Golay window of {window}; use a smaller --window")
         step = np.diff(t_j)
-        dt = float(np.mean(step))
-        if not np.allclose(step, dt, rtol=1e-6, atol=0):
-            row = int(np.argmax(np.abs(step - dt) > 1e-6 * dt)) + a + 2
-            raise DataError(f"--velocity savgol needs evenly sampled times; the time step "
-                            f"changes at row {row} ({step.min():g} to {step.max():g})")
+        dt = float(np.median(step))
         V[a:b] = savgol_filter(Q[a:b], window, order, deriv=1, delta=dt, axis=0,
                                mode="interp")
+        uneven = np.abs(step - dt) > 1e-6 * dt
+        if uneven.any():   # missing frames, or uneven sampling: those windows fitted anew
+            V[a:b] = _uneven_windows(Q[a:b], t_j, uneven, V[a:b], window, order)
         gain = max(gain, float(np.linalg.norm(savgol_coeffs(window, order, deriv=1,
                                                             delta=dt))))
     return V, gain
+
+
+def _uneven_windows(Q: npt.NDArray[np.float64], t: npt.NDArray[np.float64],
+                    uneven: npt.NDArray[np.bool_], V: npt.NDArray[np.float64], window: int,
+                    order: int) -> npt.NDArray[np.float64]:
+    """V with the derivative at every sample whose window spans an uneven step taken from
+    the polynomial of `order` fitted by least squares to that window's samples at their own
+    times: what the Savitzky-Golay filter computes on even sampling (the same windows,
+    shifted inside the trajectory at its ends as the filter's "interp" mode does)."""
+    n, half = len(t), window // 2
+    low = np.clip(np.arange(n) - half, 0, n - window)
+    spanned = np.concatenate([[0], np.cumsum(uneven)])   # uneven steps before each row
+    redo = np.flatnonzero(spanned[low + window - 1] - spanned[low] > 0)
+    V = V.copy()
+    for chunk in np.array_split(redo, max(1, len(redo) // 4096)):
+        rows = low[chunk, None] + np.arange(window)                  # (k, window)
+        offset = t[rows] - t[chunk, None]
+        scale = np.max(np.abs(offset), axis=1, keepdims=True)
+        basis = (offset / scale)[..., None] ** np.arange(order + 1)  # (k, window, order+1)
+        slope = np.linalg.pinv(basis)[:, 1]                           # (k, window)
+        V[chunk] = np.einsum("kw,kwc->kc", slope, Q[rows]) / scale
+    return V
 
 
 def _savgol_error(window: int, order: int) -> float:

@@ -111,11 +111,15 @@ SHORTEST_PIECE = 3   # pieces of fewer samples are dropped
 
 def split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int], ...],
                notes: list[str]) -> tuple[Records, Any]:
-    """Cut the trajectories at rows with a missing value (dropped) and at time steps over
+    """Drop the rows with a missing value and cut the trajectories at time steps over
     `GAP_STEPS` times their trajectory's median step, into trajectories of their own (each
-    with its own energy level); nothing is interpolated. With ``gaps="error"`` a time gap is
-    an error (missing values already are). Returns the records and, when rows were dropped,
-    the row read of each row kept."""
+    with its own energy level); nothing is interpolated. A few rows missing within a
+    trajectory are just missing: it goes on across them (a step of a few samples, as if
+    the rows had never been written), where a cut would add an energy level and cost the
+    damping's standard error several times over. Without a time column every dropped row
+    cuts. With ``gaps="error"`` a time gap between recorded rows is an error (missing
+    values already are). Returns the records and, when rows were dropped, the row read of
+    each row kept."""
     missing = np.isnan(records.X).any(axis=1)
     if records.U is not None:
         missing |= np.isnan(records.U).any(axis=1)
@@ -125,9 +129,9 @@ def split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int], 
     group, t = records.group, records.t
     whole = len(kept) == len(group)   # no copies of the columns when nothing is missing
     cut = np.zeros(len(kept), dtype=bool)
-    if not whole:
+    if not whole and t is None:   # no time to go on by
         cut[1:] = (kept[1:] - kept[:-1] > 1) & (group[kept[1:]] == group[kept[:-1]])
-    n_gaps = 0
+    n_gaps = n_bridged = 0
     if t is not None and len(kept) > 1:
         tk, gk = (t, group) if whole else (t[kept], group[kept])
         steps = np.diff(tk)
@@ -143,16 +147,24 @@ def split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int], 
             raise DataError(f"{source}: row {row}: time does not increase across the missing "
                             "values before it; sort the file by trajectory then time")
         gap = same & (steps > limit)
-        if gap.any() and gaps == "error":
-            source, row = locate(row_sources, int(kept[np.argmax(gap) + 1]))
-            raise DataError(f"{source}: row {row}: a time gap of {steps[np.argmax(gap)]:g} s "
+        if (gap & adjacent).any() and gaps == "error":
+            first = int(np.argmax(gap & adjacent))
+            source, row = locate(row_sources, int(kept[first + 1]))
+            raise DataError(f"{source}: row {row}: a time gap of {steps[first]:g} s "
                             f"(over {GAP_STEPS:g} times the median step); give --gaps split "
                             "to fit the pieces as separate trajectories")
-        n_gaps = int(gap.sum())
+        n_gaps = int((gap & adjacent).sum())
+        n_bridged = int((same & ~adjacent & ~gap).sum())
         cut[1:] |= gap
     n_dropouts = int(cut.sum()) - n_gaps
     if not cut.any() and not missing.any():
         return records, None
+    if not cut.any():   # rows missing, every trajectory going on across them
+        notes.append(f"{int(missing.sum())} row(s) with missing values dropped; the "
+                     f"trajectories go on across the {n_bridged} place(s) they leave (none "
+                     f"over {GAP_STEPS:g} times the median step), nothing interpolated")
+        return Records(records.X[kept], None if t is None else t[kept], group[kept],
+                       records.labels, None if records.U is None else records.U[kept]), kept
     start = np.ones(len(kept), dtype=bool)
     start[1:] = cut[1:] | (group[kept[1:]] != group[kept[:-1]])
     piece = np.cumsum(start) - 1
@@ -174,8 +186,11 @@ def split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int], 
         label = records.labels[j]
         labels.append(label if count[j] == 1 else f"{label}/{seen[j]}")
     new_group = np.searchsorted(pieces, piece).astype(np.int64)
+    bridged = (f"; they go on across {n_bridged} shorter run(s) of missing values"
+               if n_bridged else "")
     notes.append(f"{n_dropouts + n_gaps} cut(s) in the trajectories ({n_dropouts} at missing "
-                 f"values, {n_gaps} at time gaps over {GAP_STEPS:g} times the median step): "
+                 f"values, {n_gaps} at time gaps over {GAP_STEPS:g} times the median "
+                 f"step{bridged}): "
                  f"{len(labels)} trajectories fitted, each with its own energy level; "
                  f"{int(missing.sum())} row(s) with missing values and "
                  f"{int((~keep_rows).sum())} row(s) in pieces under {SHORTEST_PIECE} samples "

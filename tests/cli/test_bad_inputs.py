@@ -177,8 +177,10 @@ DATA_ERRORS = {
     "NaN in a time column": ("data.csv", _write_csv(DUFFING_ROWS.replace("0.2,", "NaN,")),
                              ["--gaps", "error"], 1,
                              ["data.csv", "column 't'", "row 3", "missing"]),
-    "NaN cutting what is left too short": (
-        "data.csv", _write_csv(DUFFING_ROWS.replace("0.2,", "NaN,")), [], 1,
+    "NaN cutting what is left too short": (   # 5 rows missing: a step of 6, over GAP_STEPS
+        "data.csv", _write_csv("t,x,v\n0,1,0\n0.1,0.995,-0.1\n" + "".join(
+            f"{t},NaN,0\n" for t in (0.2, 0.3, 0.4, 0.5, 0.6)) + "0.7,0.8,-0.7\n0.8,0.79,-0.8\n"),
+        [], 1,
         ["data.csv", "no piece of 3 samples or more", "--gaps error"]),
     "duplicated column, CSV": ("data.csv", _write_csv("t,x,v,x\n0,1,0,1\n0.1,1,0,1\n"), [], 1,
                                ["data.csv", "duplicated column", "'x'"]),

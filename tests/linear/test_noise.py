@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import PENG, with_noise
+from conftest import DUFFING, PENG, with_noise
 
 import hamid
 from hamid.data.measurement import estimate_noise
-from hamid.errors import DataError, UsageError
+from hamid.errors import UsageError
 
 VARIABLES = ["u1", "u2", "v1", "v2"]
 
@@ -97,10 +97,39 @@ def test_velocities_from_slightly_noisy_positions(clean_records):
     assert result.estimates == pytest.approx(PENG["parameters"], rel=0.05)
 
 
-def test_savgol_needs_even_sampling(clean_records):
-    frame = clean_records["duffing"].drop(index=[5])
-    with pytest.raises(DataError, match="evenly sampled times; the time step changes at row"):
-        hamid.fit(frame, velocity="savgol")
+def test_savgol_windows_over_missing_frames_fit_the_polynomial_at_the_samples_times():
+    """Where a window spans missing frames (or uneven steps), the derivative is that of
+    the least-squares polynomial through the window's samples at their own times: on even
+    windows the same as scipy's Savitzky-Golay filter, and as accurate across the gaps."""
+    from scipy.signal import savgol_filter
+
+    from hamid.data.measurement import savgol_velocities
+
+    t = np.arange(0, 20, 0.05)
+    Q = np.column_stack([np.sin(1.3 * t), np.cos(0.7 * t)])
+    exact = np.column_stack([1.3 * np.cos(1.3 * t), -0.7 * np.sin(0.7 * t)])
+    V, _ = savgol_velocities(Q, t, [(0, len(t))], window=21, order=4)
+    scipy_filter = savgol_filter(Q, 21, 4, deriv=1, delta=0.05, axis=0, mode="interp")
+    assert np.max(np.abs(V - scipy_filter)) < 1e-12
+    kept = np.setdiff1d(np.arange(len(t)), [5, 100, 101, 250, 393])
+    holed, _ = savgol_velocities(Q[kept], t[kept], [(0, len(kept))], window=21, order=4)
+    worst = np.max(np.abs(V - exact))
+    assert np.max(np.abs(holed - exact[kept])) <= 1.5 * worst
+    jittered = t + 0.01 * np.random.default_rng(1).uniform(-1, 1, len(t)) * 0.05
+    V_jittered, _ = savgol_velocities(np.column_stack([np.sin(1.3 * jittered),
+                                                       np.cos(0.7 * jittered)]),
+                                      jittered, [(0, len(t))], window=21, order=4)
+    assert np.max(np.abs(V_jittered - np.column_stack([1.3 * np.cos(1.3 * jittered),
+                                                       -0.7 * np.sin(0.7 * jittered)]))
+                  ) <= 1.5 * worst
+
+
+def test_savgol_fits_a_record_with_missing_frames(clean_records):
+    frame = with_noise(clean_records["duffing"], 0.001, seed=4)
+    frame.loc[[40, 200, 201], "x"] = np.nan
+    result = hamid.fit(frame.drop(columns="v"), velocity="savgol")
+    assert result.estimates == pytest.approx(DUFFING["parameters"], rel=0.02)
+    assert result.to_dict()["data"]["n_trajectories"] == 2
 
 
 @pytest.mark.parametrize("window, message", [(8, "must be odd"), (5, "larger than --order")])
