@@ -26,6 +26,7 @@ from hamid.cli import console, option_groups
 from hamid.cli.predict_command import predict
 from hamid.cli.select_command import select
 from hamid.errors import DataError, HamidError, UsageError
+from hamid.safe_text import counted
 
 if TYPE_CHECKING:
     from hamid.data import writing
@@ -234,7 +235,8 @@ def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_met
             meta = frame.attrs["hamid"]
             writing.write_table(frame, name, format=fmt, metadata=None if no_meta else meta)
     drift = max(t["energy_drift"] for t in meta["trajectories"])
-    stderr.print(f"simulated {len(meta['trajectories'])} trajectories, {len(frame)} samples "
+    stderr.print(f"simulated {counted(len(meta['trajectories']), 'trajectory', 'trajectories')}, "
+                 f"{counted(len(frame), 'sample', 'samples')} "
                  f"(t = 0..{frame['t'].iloc[-1]:g}, dt = {meta['dt']:g}); "
                  f"largest relative energy drift {drift:.2g}"
                  + ("" if not meta["damping"] else " (energy plus dissipated work)")
@@ -370,7 +372,8 @@ def fit(data: tuple[str, ...], model: str | None, strict: bool, fmt: str | None,
     for note in notes:
         click.echo(console.printable(note), err=True)
     if strict and result.warnings:
-        click.echo(f"error: --strict: the fit has {len(result.warnings)} warning(s)", err=True)
+        click.echo(f"error: --strict: the fit has "
+                   f"{counted(len(result.warnings), 'warning', 'warnings')}", err=True)
         raise click.exceptions.Exit(3)
 
 

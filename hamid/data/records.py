@@ -12,6 +12,7 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid.errors import DataError
+from hamid.safe_text import counted
 
 if TYPE_CHECKING:
     from hamid.model.models import Model
@@ -174,11 +175,13 @@ def split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int], 
         label = records.labels[j]
         labels.append(label if count[j] == 1 else f"{label}/{seen[j]}")
     new_group = np.searchsorted(pieces, piece).astype(np.int64)
-    notes.append(f"{n_dropouts + n_gaps} cut(s) in the trajectories ({n_dropouts} at missing "
-                 f"values, {n_gaps} at time gaps over {GAP_STEPS:g} times the median step): "
-                 f"{len(labels)} trajectories fitted, each with its own energy level; "
-                 f"{int(missing.sum())} row(s) with missing values and "
-                 f"{int((~keep_rows).sum())} row(s) in pieces under {SHORTEST_PIECE} samples "
+    notes.append(f"{counted(n_dropouts + n_gaps, 'cut', 'cuts')} in the trajectories "
+                 f"({n_dropouts} at missing values, {n_gaps} at time gaps over {GAP_STEPS:g} "
+                 "times the median step): "
+                 f"{counted(len(labels), 'trajectory', 'trajectories')} fitted, each with its "
+                 f"own energy level; {counted(int(missing.sum()), 'row', 'rows')} with missing "
+                 f"values and {counted(int((~keep_rows).sum()), 'row', 'rows')} in pieces under "
+                 f"{SHORTEST_PIECE} samples "
                  "dropped, nothing interpolated (--gaps error refuses instead)")
     return Records(records.X[kept], None if t is None else t[kept], new_group,
                    tuple(labels), None if records.U is None else records.U[kept]), kept

@@ -17,6 +17,7 @@ from hamid.data import documents, readers
 from hamid.errors import DataError, HamidError, UsageError
 from hamid.report import formats
 from hamid.result.fit_result import FitResult
+from hamid.result.wording import method_name
 
 __all__ = ["COMPARISON_FORMATS", "ROW_COLUMNS", "Compared", "load", "parameter_rows", "record",
            "render"]
@@ -99,7 +100,8 @@ def render(compared: Sequence[Compared], format: str, *, color: bool = False) ->
     parameters = [(name, [_cell(c.outcome, name) for c in compared]) for name in names]
     summary = [("samples", [_summary(c.outcome, lambda f: f"{f.data['n_samples']:,}")
                             for c in compared]),
-               ("method", [_summary(c.outcome, lambda f: f.method["kind"]) for c in compared]),
+               ("method", [_summary(c.outcome, lambda f: method_name(f.method))
+                           for c in compared]),
                ("warnings", [_summary(c.outcome, lambda f: str(len(f.warnings)))
                              for c in compared])]
     errors = [f"error: {c.outcome}" for c in compared if isinstance(c.outcome, HamidError)]

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any, Literal, NotRequired, TypedDict
 
 from hamid.refine.outcome import AcceptanceInfo, LengtheningInfo, NoiseLevel, RefinementInfo
 from hamid.result.validation import SCHEMA
+from hamid.result.wording import method_name
 
 if TYPE_CHECKING:
     import numpy.typing as npt
@@ -236,9 +237,7 @@ class FitResult:
     checks_skipped: tuple[SkippedCheck, ...] = field(default=())
 
     def __repr__(self) -> str:
-        refined = (self.method.get("refinement") or {}).get("applied")
-        return (f"FitResult(model={self.model['name']!r}, method="
-                f"{self.method['kind'] + (' refined' if refined else '')!r}, "
+        return (f"FitResult(model={self.model['name']!r}, method={method_name(self.method)!r}, "
                 f"estimates={self.estimates!r}, warnings={len(self.warnings)})")
 
     def summary(self) -> str:

@@ -33,6 +33,7 @@ from hamid.result.fit_result import (
     ProvenanceInfo,
     plain_data,
 )
+from hamid.result.wording import drift_words
 
 __all__ = ["Provenance", "dissipation_summary", "fit_result", "run_provenance", "samples"]
 
@@ -110,7 +111,8 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
                 *_warnings(parameters=parameters, stats=stats, cond=cond, df=fit.df,
                            options=options, kind=plan.kind, refinement=refinement,
                            damping=[*options.damping,
-                                    *(["Rayleigh"] if model.dissipation else [])]),
+                                    *(["Rayleigh"] if model.dissipation else [])],
+                           driven=model.forcing is not None),
                 *_noise_warnings(provenance.noise_check), *forcing_warnings(forcing)]
     return FitResult(
         hamid_version=__version__,
@@ -300,19 +302,23 @@ def forcing_warnings(forcing: Mapping[str, Any] | None) -> list[str]:
 
 def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: Any,
               df: int, options: FitOptions, kind: RowKind,
-              refinement: RefinementInfo | None, damping: list[str]) -> list[str]:
-    """Plain-words warnings about the fit; `damping` names its kinds of dissipation."""
+              refinement: RefinementInfo | None, damping: list[str], driven: bool
+              ) -> list[str]:
+    """Plain-words warnings about the fit; `damping` names its kinds of dissipation, and
+    `driven` says the energy's drift is against its spread, not its level."""
     level, cov = options.level, options.cov
     notes = []
     for d in stats["drift"]:
         change = d["relative_change"]
         if change is not None and abs(change) > _DRIFT_CHANGE and d["trend_share"] > _DRIFT_SHARE:
-            notes.append(f"trajectory {d['trajectory']}: the energy drifts by {change:+.1%} "
-                         "over the record; the system may be damped or forced "
-                         "(try --damping viscous)" if not damping else
-                         f"trajectory {d['trajectory']}: the energy balance still drifts by "
-                         f"{change:+.1%} over the record with {', '.join(damping)} damping; "
-                         "try another kind of --damping, or the system is forced")
+            words = drift_words(change, driven=driven)
+            notes.append(f"trajectory {d['trajectory']}: the energy is not conserved: a "
+                         f"straight line through it {words} over the record; the system may "
+                         "be damped or forced (try --damping viscous)" if not damping else
+                         f"trajectory {d['trajectory']}: with {', '.join(damping)} damping the "
+                         f"energy balance is still not conserved: a straight line through it "
+                         f"{words} over the record; try another kind of --damping, or the "
+                         "system is forced")
     if cond.status != "ok":
         combination = " ".join(f"{w:+.2f}*{n}" for n, w in
                                sorted(cond.weakest_direction.items(), key=lambda x: -abs(x[1]))
