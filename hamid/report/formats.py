@@ -19,7 +19,7 @@ from typing import Any, Literal
 from hamid.errors import UsageError
 from hamid.options import percent
 from hamid.result.validation import SCHEMA
-from hamid.result.wording import drift_words, method_name
+from hamid.result.wording import correlation_text, drift_words, method_name
 from hamid.safe_text import counted, printable
 
 __all__ = ["FORMATS", "SCHEMA", "printable", "render", "render_grid"]
@@ -207,13 +207,18 @@ def _dissipation_section(result: Mapping[str, Any]) -> _Section | None:
 
 
 def _conditioning_section(result: Mapping[str, Any]) -> _Section:
-    """Helper: condition number, its verdict and the worst-determined combination."""
+    """Helper: condition number, its verdict, the worst-determined combination and the
+    strongest correlation among the estimates (absent from older reports)."""
     conditioning = result["conditioning"]
     rows = (
         ("condition number", _num(conditioning["condition_number"], ".4g")),
         ("status", conditioning["status"]),
         ("weakest direction", _direction(conditioning["weakest_direction"])),
     )
+    strongest = conditioning.get("strongest_correlation")
+    if strongest:
+        rows += (("strongest correlation", f"{' and '.join(strongest['parameters'])} "
+                  f"{correlation_text(strongest['correlation']).replace('-', _MINUS)}"),)
     return _Section("Conditioning", tables=(_Table(("quantity", "value"), (("", rows),), True),))
 
 

@@ -49,6 +49,7 @@ __all__ = [
     "ResidualSummary",
     "SCHEMA",
     "SkippedCheck",
+    "StrongestCorrelation",
     "plain_data",
 ]
 
@@ -124,6 +125,13 @@ class ResidualSummary(TypedDict):
     blocks: NotRequired[dict[str, BlockResiduals]]
 
 
+class StrongestCorrelation(TypedDict):
+    """The two free parameters whose estimates are the most correlated."""
+
+    parameters: list[str]
+    correlation: float
+
+
 class ConditioningInfo(TypedDict):
     """Conditioning of the column-scaled design, levels included."""
 
@@ -132,6 +140,7 @@ class ConditioningInfo(TypedDict):
     weakest_direction: dict[str, float]
     status: Literal["ok", "moderate", "severe"]
     blocks: NotRequired[dict[str, float | None] | None]
+    strongest_correlation: NotRequired[StrongestCorrelation | None]
 
 
 class EnergyLost(TypedDict):

@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["drift_words", "method_name"]
+__all__ = ["correlation_text", "drift_words", "method_name"]
 
 
 def method_name(method: Mapping[str, Any]) -> str:
@@ -30,3 +30,11 @@ def drift_words(change: float, *, driven: bool = False) -> str:
     size = abs(change)
     amount = f"{size:.3g} times" if size > 1 else f"{100 * size:.3g}% of"
     return f"{'falls' if change < 0 else 'rises'} by {amount} {reference}"
+
+
+def correlation_text(r: float) -> str:
+    """A correlation with its sign and the digits that tell it from ±1: -0.998, 0.99994."""
+    digits = 3
+    while digits < 8 and round(abs(r), digits) == 1 and abs(r) != 1:
+        digits += 1
+    return f"{r:+.{digits}f}"
