@@ -426,7 +426,8 @@ def _fit_each(data: tuple[str, ...], model: str | None, fit_options: dict[str, A
 @click.option("-o", "--output", default="-", metavar="OUT", help="Write the report here.")
 def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
     """Render a saved fit result (JSON) as a table, JSON, CSV or markdown; several results
-    (or the lines of fit --each) side by side, a column per source."""
+    (or the lines of fit --each) side by side, a column per source, or a row per source
+    when the table would be wider than the terminal (COLUMNS, else 80 off a terminal)."""
     from hamid.data import destinations, documents, readers, writing
     from hamid.result.fit_result import FitResult
 
@@ -437,7 +438,8 @@ def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
 
         to_terminal = destinations.is_terminal(output)
         text = comparison.render(comparison.load(result_files), fmt,
-                                 color=to_terminal and "NO_COLOR" not in os.environ)
+                                 color=to_terminal and "NO_COLOR" not in os.environ,
+                                 width=console.terminal_width() if fmt == "table" else None)
         writing.write_text(console.printable_lines(text) if fmt == "csv" and to_terminal else text,
                            output)
         return

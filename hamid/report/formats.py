@@ -667,26 +667,33 @@ _PYTHON_RENDERERS: dict[str, Callable[..., str]] = {"summary": _render_summary,
                                                     "html": _render_html}
 
 
-def render_grid(title: str, header: Sequence[str],
-                groups: Sequence[tuple[str, Sequence[Sequence[str]]]], lines: Sequence[str],
-                format: Literal["table", "markdown"], *, color: bool = False) -> str:
+Grid = Sequence[tuple[str, Sequence[Sequence[str]]]]
+
+
+def grid_width(header: Sequence[str], groups: Grid) -> int:
+    """The width a table of these cells takes when no column folds (`render_grid`)."""
+    rows = [row for _, group in groups for row in group]
+    return sum(max(len(printable(cell)) for cell in column) + 3
+               for column in zip(header, *rows, strict=True))
+
+
+def render_grid(title: str, header: Sequence[str], groups: Grid, lines: Sequence[str],
+                format: Literal["table", "markdown"], *, color: bool = False,
+                width: int | None = None) -> str:
     """Render one table under a title, then lines of text (e.g. errors), as the report's
-    table or markdown; for tables of several fits side by side (`hamid.report.comparison`).
+    table or markdown; for tables of several fits (`hamid.report.comparison`).
 
     `groups` are (label, rows); each group after the first starts a section under its
-    label. The table is as wide as its cells: a column per fit does not fold.
+    label. The table is as wide as its cells (a column per fit does not fold), or at most
+    `width` when given: text wrapped and columns folded to fit.
     """
     table = _Table(tuple(header), tuple((label, tuple(map(tuple, rows)))
                                         for label, rows in groups))
     sections = (_Section("", tables=(table,)),
                 *([_Section("", lines=tuple(lines), style="yellow")] if lines else []))
     view = _printable_view(_View(title, (), sections))
-    natural = sum(max(len(cell) for cell in column) + 3 for column in zip(
-        view.sections[0].tables[0].header,
-        *(row for _, rows in view.sections[0].tables[0].groups for row in rows),
-        strict=True))
     text = {"table": _table_text, "markdown": _markdown_text}[format]
-    return text(view, color=color, width=max(100, natural))
+    return text(view, color=color, width=width or max(100, grid_width(header, groups)))
 
 
 def render(

@@ -440,7 +440,8 @@ def saved(tmp_path_factory, sources) -> dict[str, Path]:
     return paths
 
 
-def test_report_shows_a_column_per_source(saved, singles):
+def test_report_shows_a_column_per_source(saved, singles, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "300")   # wide enough for the tmp paths side by side
     result = invoke(["report", saved["a"], saved["b"]])
     assert result.exit_code == 0, result.stderr
     lines = result.stdout.splitlines()
