@@ -376,8 +376,9 @@ def _table(doc: Mapping[str, Any], color: bool) -> str:
              "from each trajectory's start state fitted to its first period")
     count = len(doc["trajectories"])
     console.print(Text(safe_text.printable(
-        f"hamid predict — model {doc['model']}, {count} trajector{'y' if count == 1 else 'ies'}, "
-        f"{doc['samples']} samples, {start}"), style="bold"))
+        f"hamid predict — model {doc['model']}, "
+        f"{safe_text.counted(count, 'trajectory', 'trajectories')}, {doc['samples']} samples, "
+        f"{start}"), style="bold"))
     names = list(doc["channels"])
     table(("channel", "RMS error", "NRMSE"),
           [(name, _number(c["rms"]), _number(c["nrmse"])) for name, c in doc["channels"].items()])

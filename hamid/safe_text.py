@@ -1,12 +1,13 @@
-"""Text from data files shown safely: every control character a terminal would obey
-(escape sequences, bidirectional overrides) written as a visible escape instead."""
+"""Text shown safely and plainly: every control character of text from data files that a
+terminal would obey (escape sequences, bidirectional overrides) written as a visible escape
+instead; a count with its noun in agreement ("1 trajectory", "2 trajectories")."""
 
 from __future__ import annotations
 
 import functools
 import re
 
-__all__ = ["printable"]
+__all__ = ["counted", "printable"]
 
 # What a terminal obeys instead of showing: C0 controls (ESC starts the sequences that set the
 # window title, move the cursor or hide text), DEL, C1 controls (U+009B is a one-character
@@ -53,3 +54,16 @@ def _escape_control(match: re.Match[str]) -> str:
     if named is not None:
         return named
     return f"\\x{ord(char):02x}" if ord(char) < 0x100 else f"\\u{ord(char):04x}"
+
+
+def counted(n: float, one: str, many: str) -> str:
+    """`n` with its noun in agreement: `one` for exactly 1, `many` otherwise; a whole float
+    without its decimal point.
+
+    Examples
+    --------
+    >>> counted(1, "trajectory", "trajectories"), counted(2.0, "segment", "segments")
+    ('1 trajectory', '2 segments')
+    """
+    shown = int(n) if float(n).is_integer() else n
+    return f"{shown} {one if n == 1 else many}"

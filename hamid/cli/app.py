@@ -26,6 +26,7 @@ from hamid.cli import console, option_groups
 from hamid.cli.predict_command import predict
 from hamid.cli.select_command import select
 from hamid.errors import DataError, HamidError, UsageError
+from hamid.safe_text import counted
 
 if TYPE_CHECKING:
     from hamid.data import writing
@@ -234,7 +235,8 @@ def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_met
             meta = frame.attrs["hamid"]
             writing.write_table(frame, name, format=fmt, metadata=None if no_meta else meta)
     drift = max(t["energy_drift"] for t in meta["trajectories"])
-    stderr.print(f"simulated {len(meta['trajectories'])} trajectories, {len(frame)} samples "
+    stderr.print(f"simulated {counted(len(meta['trajectories']), 'trajectory', 'trajectories')}, "
+                 f"{counted(len(frame), 'sample', 'samples')} "
                  f"(t = 0..{frame['t'].iloc[-1]:g}, dt = {meta['dt']:g}); "
                  f"largest relative energy drift {drift:.2g}"
                  + ("" if not meta["damping"] else " (energy plus dissipated work)")
@@ -370,7 +372,8 @@ def fit(data: tuple[str, ...], model: str | None, strict: bool, fmt: str | None,
     for note in notes:
         click.echo(console.printable(note), err=True)
     if strict and result.warnings:
-        click.echo(f"error: --strict: the fit has {len(result.warnings)} warning(s)", err=True)
+        click.echo(f"error: --strict: the fit has "
+                   f"{counted(len(result.warnings), 'warning', 'warnings')}", err=True)
         raise click.exceptions.Exit(3)
 
 
@@ -423,7 +426,8 @@ def _fit_each(data: tuple[str, ...], model: str | None, fit_options: dict[str, A
 @click.option("-o", "--output", default="-", metavar="OUT", help="Write the report here.")
 def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
     """Render a saved fit result (JSON) as a table, JSON, CSV or markdown; several results
-    (or the lines of fit --each) side by side, a column per source."""
+    (or the lines of fit --each) side by side, a column per source, or a row per source
+    when the table would be wider than the terminal (COLUMNS, else 80 off a terminal)."""
     from hamid.data import destinations, documents, readers, writing
     from hamid.result.fit_result import FitResult
 
@@ -434,7 +438,8 @@ def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
 
         to_terminal = destinations.is_terminal(output)
         text = comparison.render(comparison.load(result_files), fmt,
-                                 color=to_terminal and "NO_COLOR" not in os.environ)
+                                 color=to_terminal and "NO_COLOR" not in os.environ,
+                                 width=console.terminal_width() if fmt == "table" else None)
         writing.write_text(console.printable_lines(text) if fmt == "csv" and to_terminal else text,
                            output)
         return

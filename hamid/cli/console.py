@@ -8,7 +8,8 @@ from typing import Any
 
 from hamid import safe_text
 
-__all__ = ["Progress", "Status", "printable", "printable_lines", "stderr_console"]
+__all__ = ["Progress", "Status", "printable", "printable_lines", "stderr_console",
+           "terminal_width"]
 
 
 def printable(text: str) -> str:
@@ -19,6 +20,14 @@ def printable(text: str) -> str:
 def printable_lines(text: str) -> str:
     """Text of several lines, with the control characters of each line escaped."""
     return safe_text.printable(text, keep="\n")
+
+
+def terminal_width() -> int:
+    """The width of standard output as rich sees it: the COLUMNS variable when set, the
+    terminal's when it is one, else 80."""
+    from rich.console import Console
+
+    return Console().width
 
 
 def stderr_console() -> Any:

@@ -24,6 +24,7 @@ from typing import IO, TYPE_CHECKING, Any, Literal
 from hamid import read_limits
 from hamid.data import compressed, lab_formats, text_layout
 from hamid.errors import DataError, ModelError, UsageError
+from hamid.safe_text import counted
 
 if TYPE_CHECKING:
     import numpy as np
@@ -273,9 +274,8 @@ def _read_text(
     if fmt is not None and data.startswith(_PARQUET_MAGIC):
         raise DataError(f"{name}: is a Parquet file, not {fmt.upper()} text")
     layout = text_layout.layout(data, name, fmt, text)
-    body = pa.py_buffer(data)[layout.start:]
     try:
-        table = _parse_csv(body, layout, name)
+        table = _parse_csv(data, layout, name)
         names = table.column_names
     except UnicodeDecodeError as exc:
         raise not_utf8(data, name) from exc
@@ -291,11 +291,14 @@ def _read_text(
     return table.rename_columns(stripped), layout.metadata
 
 
-def _parse_csv(body: pa.Buffer, layout: text_layout.Layout, name: str) -> pa.Table:
-    """Helper function parsing delimited text with pyarrow, typed if possible."""
+def _parse_csv(data: bytes, layout: text_layout.Layout, name: str) -> pa.Table:
+    """Helper function parsing delimited text with pyarrow, typed if possible; a row of
+    another number of fields than the header is named, with `--skip-rows N` when the text
+    seems to start with N lines of preamble."""
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
+    body = pa.py_buffer(data)[layout.start:]
     # Only an empty cell is missing: 'n/a' in a number column must be reported, not hidden.
     convert = pacsv.ConvertOptions(null_values=[""], decimal_point=layout.decimal)
     parse = pacsv.ParseOptions(delimiter=layout.delimiter)
@@ -334,9 +337,15 @@ def _parse_csv(body: pa.Buffer, layout: text_layout.Layout, name: str) -> pa.Tab
     except pa.ArrowException as exc:
         if bad_rows:
             row = bad_rows[0]
+            # lines before the header taken (skipped or comments) and those after it
+            preamble = text_layout.preamble_lines(data[layout.start:], layout.delimiter)
+            preamble += data.count(b"\n", 0, layout.start) if preamble else 0
             raise DataError(
-                f"{name}: row {row.number - 1 - layout.skip} has {row.actual_columns} fields "
-                f"where the header has {row.expected_columns}: {_cell(row.text)}"
+                f"{name}: row {row.number - 1 - layout.skip} has "
+                f"{counted(row.actual_columns, 'field', 'fields')} where the header has "
+                f"{row.expected_columns}: {_cell(row.text)}"
+                + (f"; the file seems to start with {counted(preamble, 'line', 'lines')} "
+                   f"before its header: give --skip-rows {preamble}" if preamble else "")
             ) from exc
         if body.size + 1 <= _MAX_BLOCK:
             raise DataError(f"{name}: not valid delimited text ({first_line(exc)})") from exc

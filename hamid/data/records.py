@@ -12,6 +12,7 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid.errors import DataError
+from hamid.safe_text import counted
 
 if TYPE_CHECKING:
     from hamid.model.models import Model
@@ -160,9 +161,10 @@ def split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int], 
     if not cut.any() and not missing.any():
         return records, None
     if not cut.any():   # rows missing, every trajectory going on across them
-        notes.append(f"{int(missing.sum())} row(s) with missing values dropped; the "
-                     f"trajectories go on across the {n_bridged} place(s) they leave (none "
-                     f"over {GAP_STEPS:g} times the median step), nothing interpolated")
+        notes.append(f"{counted(int(missing.sum()), 'row', 'rows')} with missing values "
+                     "dropped; the trajectories go on across the "
+                     f"{counted(n_bridged, 'place', 'places')} they leave (none over "
+                     f"{GAP_STEPS:g} times the median step), nothing interpolated")
         return Records(records.X[kept], None if t is None else t[kept], group[kept],
                        records.labels, None if records.U is None else records.U[kept]), kept
     start = np.ones(len(kept), dtype=bool)
@@ -186,14 +188,15 @@ def split_gaps(records: Records, gaps: str, row_sources: tuple[tuple[str, int], 
         label = records.labels[j]
         labels.append(label if count[j] == 1 else f"{label}/{seen[j]}")
     new_group = np.searchsorted(pieces, piece).astype(np.int64)
-    bridged = (f"; they go on across {n_bridged} shorter run(s) of missing values"
-               if n_bridged else "")
-    notes.append(f"{n_dropouts + n_gaps} cut(s) in the trajectories ({n_dropouts} at missing "
-                 f"values, {n_gaps} at time gaps over {GAP_STEPS:g} times the median "
-                 f"step{bridged}): "
-                 f"{len(labels)} trajectories fitted, each with its own energy level; "
-                 f"{int(missing.sum())} row(s) with missing values and "
-                 f"{int((~keep_rows).sum())} row(s) in pieces under {SHORTEST_PIECE} samples "
+    bridged = (f"; they go on across {counted(n_bridged, 'shorter run', 'shorter runs')} of "
+               "missing values" if n_bridged else "")
+    notes.append(f"{counted(n_dropouts + n_gaps, 'cut', 'cuts')} in the trajectories "
+                 f"({n_dropouts} at missing values, {n_gaps} at time gaps over {GAP_STEPS:g} "
+                 f"times the median step{bridged}): "
+                 f"{counted(len(labels), 'trajectory', 'trajectories')} fitted, each with its "
+                 f"own energy level; {counted(int(missing.sum()), 'row', 'rows')} with missing "
+                 f"values and {counted(int((~keep_rows).sum()), 'row', 'rows')} in pieces under "
+                 f"{SHORTEST_PIECE} samples "
                  "dropped, nothing interpolated (--gaps error refuses instead)")
     return Records(records.X[kept], None if t is None else t[kept], new_group,
                    tuple(labels), None if records.U is None else records.U[kept]), kept

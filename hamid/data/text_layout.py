@@ -24,7 +24,8 @@ from hamid import read_limits
 from hamid.errors import DataError, UsageError
 from hamid.read_limits import json_value
 
-__all__ = ["Layout", "TextOptions", "head", "json_kind", "layout", "parse_metadata", "points"]
+__all__ = ["Layout", "TextOptions", "head", "json_kind", "layout", "parse_metadata", "points",
+           "preamble_lines"]
 
 UTF8_BOM = b"\xef\xbb\xbf"
 _METADATA_LINE = re.compile(rb"#\s*hamid:(.*)")
@@ -33,6 +34,8 @@ _NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?|[+-]?(nan|inf|infin
 _COMMA_NUMBER = re.compile(r"[+-]?\d*,\d+([eE][+-]?\d+)?")
 # Data rows looked at to detect the decimal mark and the units row.
 _SNIFF_ROWS = 8
+# Lines looked at to guess the length of a preamble before the header.
+_PREAMBLE_LINES = 200
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,6 +139,22 @@ def head(stream: IO[bytes], name: str, skip_rows: int = 0) -> bytes:
         if more > _SNIFF_ROWS + 1:
             break
     return b"".join(lines)
+
+
+def preamble_lines(text: bytes, delimiter: str) -> int:
+    """How many lines a preamble seems to take at the start of `text` (a data logger's lines
+    before the header): the leading lines whose number of fields, split at `delimiter`,
+    differs from the most common number among the first lines. A guess for a hint, not a
+    reading: 0 when the first line already has the common number."""
+    lines = text.removeprefix(UTF8_BOM).split(b"\n", _PREAMBLE_LINES)[:_PREAMBLE_LINES]
+    separator = delimiter.encode()
+    fields = [line.count(separator) + 1 if line.strip() else None for line in lines]
+    seen = [n for n in fields if n is not None]
+    if not seen:
+        return 0
+    # the most common number; of two as common, the one the later lines have (the data's)
+    common = max(set(seen), key=lambda n: (seen.count(n), fields[::-1].index(n) * -1))
+    return fields.index(common)
 
 
 def points(column: Any) -> Any:

@@ -16,6 +16,7 @@ from hamid.linear import design
 from hamid.linear.design import RowKind
 from hamid.model.models import Model
 from hamid.options import REFINEMENT_BYTES, FitOptions
+from hamid.safe_text import counted
 
 __all__ = ["FitPlan", "decide", "refinement_obstacle"]
 
@@ -126,7 +127,8 @@ def window_warnings(fit_plan: FitPlan, durations: list[float] | None) -> list[st
     notes = []
     short = [d for d in durations if d < window]
     if short:
-        notes.append(f"{len(short)} of {len(durations)} trajectories are shorter than the "
+        notes.append(f"{len(short)} of {counted(len(durations), 'trajectory', 'trajectories')} "
+                     f"{'is' if len(short) == 1 else 'are'} shorter than the "
                      f"weak-form window of {window:.3g} s (the shortest lasts "
                      f"{min(short):.3g} s) and give no weak-form rows; give a shorter "
                      "--weak-window, or check the time unit")

@@ -168,9 +168,12 @@ class Dissipation:
     def reversals(self) -> tuple[expressions.Func, ...]:
         """The arguments of abs in R, each a function of the state whose sign change
         reverses a force of constant size (friction's): `smoothed` rounds them."""
+        symbolic = [part for part in self.parts if isinstance(part, expressions.Symbolic)]
+        if not symbolic:   # polynomials: no abs, and no sympy to import
+            return ()
         import sympy
 
-        found = [node.args[0] for part in self.parts if isinstance(part, expressions.Symbolic)
+        found = [node.args[0] for part in symbolic
                  for node in sympy.preorder_traversal(part.expression)
                  if isinstance(node, sympy.Abs)]
         return tuple(expressions.Symbolic(self.variables, f) for f in dict.fromkeys(found))

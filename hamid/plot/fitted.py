@@ -21,6 +21,7 @@ from hamid.errors import DataError, FitError
 from hamid.linear import design
 from hamid.model.models import Model
 from hamid.prediction import noise_levels
+from hamid.safe_text import counted
 
 __all__ = ["Energies", "Segment", "energies", "lowest_energy", "noise_levels",
            "read_recording", "segment_motion"]
@@ -41,7 +42,8 @@ def read_recording(report: Mapping[str, Any], data: Sequence[str],
     found = (len(records.group), records.n_trajectories)
     fitted = (report["data"]["n_samples"], report["data"]["n_trajectories"])
     if found != fitted:
-        raise DataError(f"{', '.join(data)}: {found[0]} samples in {found[1]} trajectories, "
+        raise DataError(f"{', '.join(data)}: {found[0]} samples in "
+                        f"{counted(found[1], 'trajectory', 'trajectories')}, "
                         f"but the fit had {fitted[0]} in {fitted[1]}: give the files the fit "
                         "read (with the trajectory column, delimiter and gap policy it had)")
     return recording

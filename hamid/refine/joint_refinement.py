@@ -40,6 +40,7 @@ from hamid.refine.outcome import (
     RefinementInfo,
     SmoothingInfo,
 )
+from hamid.safe_text import counted
 
 if TYPE_CHECKING:
     from hamid.refine.trajectory import SegmentFit
@@ -219,8 +220,8 @@ def _refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissi
     reason = None
     if acceptance is None and not within:
         reason = beyond + (
-            f"the record holds {fit.segments} segments of one period, too few to check it on "
-            f"segments held out of its fit (at least {CHECKED_SEGMENTS})"
+            f"the record holds {counted(fit.segments, 'segment', 'segments')} of one period, too "
+            f"few to check it on segments held out of its fit (at least {CHECKED_SEGMENTS})"
             if fit.segments < CHECKED_SEGMENTS else
             "its fits without a block of segments could not be made to check it")
     elif acceptance is not None and acceptance["t"] > acceptance["t_limit"]:
@@ -228,7 +229,7 @@ def _refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissi
                   "the held-out segments worse than the linear fit does (misfit "
                   f"{acceptance['held_out_refined']:.5g} against "
                   f"{acceptance['held_out_linear']:.5g} per value, t = {acceptance['t']:.3g} "
-                  f"over {fit.segments} segments)")
+                  f"over {counted(fit.segments, 'segment', 'segments')})")
     if reason is not None:
         return Outcome.refused(reason, **info)
     info["lengthening"] = None

@@ -17,6 +17,8 @@ from hamid.data import documents, readers
 from hamid.errors import DataError, HamidError, UsageError
 from hamid.report import formats
 from hamid.result.fit_result import FitResult
+from hamid.result.wording import method_name
+from hamid.safe_text import counted
 
 __all__ = ["COMPARISON_FORMATS", "ROW_COLUMNS", "Compared", "load", "parameter_rows", "record",
            "render"]
@@ -69,9 +71,15 @@ def _line(document: dict, where: str) -> Compared:
     return Compared(source, FitResult.from_dict(document, source=where))
 
 
-def render(compared: Sequence[Compared], format: str, *, color: bool = False) -> str:
+def render(compared: Sequence[Compared], format: str, *, color: bool = False,
+           width: int | None = None) -> str:
     """The fits as one table with a column per source (table, markdown), or as the rows
-    (csv) or lines (jsonl) of `hamid fit --each`."""
+    (csv) or lines (jsonl) of `hamid fit --each`.
+
+    Given a `width` (a terminal's), a table whose columns would not fit takes a row per
+    source instead: each parameter's estimate ± its error, the method and the number of
+    warnings; no line is wider than `width`.
+    """
     records = [record(c.source, c.outcome) for c in compared]
     if format == "jsonl":
         import json
@@ -93,20 +101,32 @@ def render(compared: Sequence[Compared], format: str, *, color: bool = False) ->
                          f"as {', '.join(COMPARISON_FORMATS)}")
     fits = [c.outcome for c in compared if isinstance(c.outcome, FitResult)]
     models = sorted({fit.model["name"] for fit in fits})
-    title = (f"hamid report — {len(compared)} fit{'' if len(compared) == 1 else 's'}" +
+    title = (f"hamid report — {counted(len(compared), 'fit', 'fits')}" +
              (f" of {', '.join(models)}" if models else ""))
     names = list(dict.fromkeys(p.name for fit in fits for p in fit.parameters))
     parameters = [(name, [_cell(c.outcome, name) for c in compared]) for name in names]
     summary = [("samples", [_summary(c.outcome, lambda f: f"{f.data['n_samples']:,}")
                             for c in compared]),
-               ("method", [_summary(c.outcome, lambda f: f.method["kind"]) for c in compared]),
+               ("method", [_summary(c.outcome, lambda f: method_name(f.method))
+                           for c in compared]),
                ("warnings", [_summary(c.outcome, lambda f: str(len(f.warnings)))
                              for c in compared])]
     errors = [f"error: {c.outcome}" for c in compared if isinstance(c.outcome, HamidError)]
+    header = ("parameter", *(c.source for c in compared))
     groups = [("", [(name, *cells) for name, cells in parameters]),
               ("fit", [(name, *cells) for name, cells in summary])]
-    return formats.render_grid(title, ("parameter", *(c.source for c in compared)), groups,
-                              errors, format, color=color)  # type: ignore[arg-type]
+    if width is not None and formats.grid_width(header, groups) > width:
+        # a row per source: the parameters and warnings; the method in the title when the
+        # fits share it, else a column
+        methods = {method_name(fit.method) for fit in fits}
+        columns = [*parameters, *(row for row in summary if row[0] == "warnings"
+                                  or row[0] == "method" and len(methods) > 1)]
+        title += f", method {methods.pop()}" if len(methods) == 1 else ""
+        header = ("source", *(name for name, _ in columns))
+        groups = [("", [(c.source, *(cells[i] for _, cells in columns))
+                        for i, c in enumerate(compared)])]
+    return formats.render_grid(title, header, groups, errors, format,  # type: ignore[arg-type]
+                               color=color, width=width)
 
 
 def _cell(outcome: FitResult | HamidError, name: str) -> str:

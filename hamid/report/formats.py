@@ -19,7 +19,8 @@ from typing import Any, Literal
 from hamid.errors import UsageError
 from hamid.options import percent
 from hamid.result.validation import SCHEMA
-from hamid.safe_text import printable
+from hamid.result.wording import correlation_text, drift_words, method_name
+from hamid.safe_text import counted, printable
 
 __all__ = ["FORMATS", "SCHEMA", "printable", "render", "render_grid"]
 
@@ -81,11 +82,6 @@ def _direction(weights: Mapping[str, float]) -> str:
         term = f"{abs(w):.2f}·{name}"
         terms.append(f"{sign}{term}" if i == 0 else f"{sign} {term}")
     return " ".join(terms)
-
-
-def _plural(n: float, one: str, many: str) -> str:
-    """Helper: a count with its noun."""
-    return f"{_count(n)} {one if n == 1 else many}"
 
 
 def _sources(sources: Sequence[object], shown: int = 3) -> str:
@@ -183,11 +179,13 @@ def _residuals_section(result: Mapping[str, Any]) -> _Section:
         ("lag-1 autocorrelation", _num(residuals["lag1_autocorrelation"], ".3g")),
     )
     tables = [_Table(("statistic", "value"), (("", stats),), grid=True)]
-    drift = tuple(
-        (str(d["trajectory"]), _percent(d["relative_change"])) for d in residuals["drift"]
-    )
+    driven = bool(result["data"].get("inputs"))
+    drift = tuple((str(d["trajectory"]), _NULL if d["relative_change"] is None else
+                   drift_words(d["relative_change"], driven=driven))
+                  for d in residuals["drift"])
     if drift:
-        tables.append(_Table(("trajectory", "energy drift"), (("", drift),)))
+        tables.append(_Table(("trajectory", "energy over the record (a straight line through it)"),
+                             (("", drift),)))
     return _Section("Residuals", tables=tuple(tables))
 
 
@@ -209,27 +207,31 @@ def _dissipation_section(result: Mapping[str, Any]) -> _Section | None:
 
 
 def _conditioning_section(result: Mapping[str, Any]) -> _Section:
-    """Helper: condition number, its verdict and the worst-determined combination."""
+    """Helper: condition number, its verdict, the worst-determined combination and the
+    strongest correlation among the estimates (absent from older reports)."""
     conditioning = result["conditioning"]
     rows = (
         ("condition number", _num(conditioning["condition_number"], ".4g")),
         ("status", conditioning["status"]),
         ("weakest direction", _direction(conditioning["weakest_direction"])),
     )
+    strongest = conditioning.get("strongest_correlation")
+    if strongest:
+        rows += (("strongest correlation", f"{' and '.join(strongest['parameters'])} "
+                  f"{correlation_text(strongest['correlation']).replace('-', _MINUS)}"),)
     return _Section("Conditioning", tables=(_Table(("quantity", "value"), (("", rows),), True),))
 
 
 _LENGTHENING_STOPPED = {
-    "whole": "one per trajectory", "longest": "the longest integrated at once",
+    "longest": "the longest integrated at once",
     "misfit": "longer ones missed the recording beyond the noise",
     "failed": "longer ones could not be fitted",
     "unstable": "the motion too unstable over longer ones for their errors to hold"}
 
 
 def _refinement_checks(refinement: Mapping[str, Any]) -> list[tuple[str, str]]:
-    """Helper: the refinement's noise levels when raised from its residuals, its segments
-    once lengthened, and its held-out check against the linear fit (reports of older
-    versions have none of these)."""
+    """Helper: the refinement's noise levels when raised from its residuals and its held-out
+    check against the linear fit (reports of older versions have neither)."""
     rows = []
     noise = refinement.get("noise") or {}
     raised = [f"{name} {_num(entry['sigma'], '.3g')}" for name, entry in noise.items()
@@ -238,20 +240,44 @@ def _refinement_checks(refinement: Mapping[str, Any]) -> list[tuple[str, str]]:
         rows.append(("refinement noise σ", f"{', '.join(raised)} from its residuals "
                      f"(misfit {_num(refinement.get('noise_chi2_per_dof'), '.3g')} × the noise "
                      "estimated from differences)"))
-    lengthening = refinement.get("lengthening")
-    if lengthening and lengthening["rounds"]:
-        rows.append(("lengthened", f"{_plural(lengthening['segments'], 'segment', 'segments')}"
-                     f" of up to {_num(lengthening['segment_seconds'])} s, misfit "
-                     f"{_num(lengthening['chi2_per_dof'])} × noise variance "
-                     f"({_LENGTHENING_STOPPED[lengthening['stopped']]})"))
     acceptance = refinement.get("acceptance") or {}
     if acceptance.get("rule") == "held-out":
         rows.append(("held-out check", f"misfit {_num(acceptance['held_out_refined'], '.4g')}"
                      f" against {_num(acceptance['held_out_linear'], '.4g')} of the linear "
-                     f"fit over {_plural(acceptance['folds'], 'fold', 'folds')}, t = "
+                     f"fit over {counted(acceptance['folds'], 'fold', 'folds')}, t = "
                      f"{_num(acceptance['t'], '.3g')} (refused above "
                      f"{_num(acceptance['t_limit'], '.3g')})"))
     return rows
+
+
+def _refinement_rows(refinement: Mapping[str, Any] | None) -> list[tuple[str, str]]:
+    """Helper: the fit the refined numbers come from (its segments, the whole record when
+    lengthened to it), then the first fit's segments when they were lengthened; or why the
+    refinement was not kept."""
+    if not refinement:
+        return []
+    if not refinement["applied"]:
+        return [("refinement", f"none: {refinement['reason']}")]
+
+    def fit(last: Mapping[str, Any], span: str) -> str:
+        return (f"{span}, misfit {_num(last['chi2_per_dof'])} × noise variance, "
+                f"{counted(last['iterations'], 'iteration', 'iterations')}")
+
+    first = fit(refinement, f"{counted(refinement['segments'], 'segment', 'segments')} of "
+                            f"{_num(refinement['segment_seconds'])} s")
+    lengthening = refinement.get("lengthening")
+    if not (lengthening and lengthening["rounds"]):
+        return [("refinement", f"trajectory fit over {first}")]
+    segments, seconds = lengthening["segments"], _num(lengthening["segment_seconds"])
+    if lengthening["stopped"] != "whole":
+        span = (f"{counted(segments, 'segment', 'segments')} of up to {seconds} s "
+                f"({_LENGTHENING_STOPPED[lengthening['stopped']]})")
+    elif segments == 1:
+        span = f"the whole record, {seconds} s"
+    else:
+        span = f"each whole trajectory ({segments}, up to {seconds} s)"
+    return [("refinement", f"trajectory fit over {fit(lengthening, span)}"),
+            ("lengthened from", first)]
 
 
 def _method_section(result: Mapping[str, Any]) -> _Section:
@@ -275,14 +301,7 @@ def _method_section(result: Mapping[str, Any]) -> _Section:
     rows.append(("bias correction", "yes" if method["bias_correction"] else "no"))
     if method["weak_window"] is not None:
         rows.append(("weak window", f"{_num(method['weak_window'])} s"))
-    if refinement and refinement["applied"]:
-        rows.append(("refinement", f"trajectory fit over "
-                     f"{_plural(refinement['segments'], 'segment', 'segments')} of "
-                     f"{_num(refinement['segment_seconds'])} s, misfit "
-                     f"{_num(refinement['chi2_per_dof'])} × noise variance, "
-                     f"{_plural(refinement['iterations'], 'iteration', 'iterations')}"))
-    elif refinement:
-        rows.append(("refinement", f"none: {refinement['reason']}"))
+    rows += _refinement_rows(refinement)
     rows += _refinement_checks(refinement or {})
     own = (result["model"].get("dissipation") or {}).get("function")
     rows.append(("damping", ", ".join([*([f"R = {own}"] if own else []), *method["damping"]])
@@ -318,8 +337,8 @@ def _scale_rows(scale: Mapping[str, Any] | None, data: Mapping[str, Any]
 def _data_line(data: Mapping[str, Any]) -> str:
     """Helper: one line on the samples, their files and where velocities came from."""
     text = (
-        f"data: {_plural(data['n_samples'], 'sample', 'samples')} in "
-        f"{_plural(data['n_trajectories'], 'trajectory', 'trajectories')}"
+        f"data: {counted(data['n_samples'], 'sample', 'samples')} in "
+        f"{counted(data['n_trajectories'], 'trajectory', 'trajectories')}"
     )
     if data["sources"]:
         text += f" from {_sources(data['sources'])}"
@@ -351,7 +370,7 @@ def _skipped_lines(result: Mapping[str, Any]) -> tuple[str, ...]:
 def _view(result: Mapping[str, Any]) -> _View:
     """Helper: the report's content, in order, as text."""
     method = result["method"]
-    title = f"hamid fit — {result['model']['name']}, method {method['kind']}"
+    title = f"hamid fit — {result['model']['name']}, method {method_name(method)}"
     if method["kind_reason"]:
         title += f" ({method['kind_reason']})"
     warnings = (*(f"warning: {w}" for w in result["warnings"]),
@@ -568,7 +587,7 @@ def _render_summary(result: Mapping[str, Any], *, color: bool, width: int | None
     facts = [
         ("Model:", result["model"]["name"]),
         ("Samples:", _count(result["data"]["n_samples"])),
-        ("Method:", method["kind"] + (", refined" if refined else "")),
+        ("Method:", method_name(method)),
         ("Trajectories:", _count(result["data"]["n_trajectories"])),
         ("Covariance:", "Gauss-Newton" if refined else method["covariance"]),
         ("Residual rms:", _num(residuals["rms"], ".4g")),
@@ -648,26 +667,33 @@ _PYTHON_RENDERERS: dict[str, Callable[..., str]] = {"summary": _render_summary,
                                                     "html": _render_html}
 
 
-def render_grid(title: str, header: Sequence[str],
-                groups: Sequence[tuple[str, Sequence[Sequence[str]]]], lines: Sequence[str],
-                format: Literal["table", "markdown"], *, color: bool = False) -> str:
+Grid = Sequence[tuple[str, Sequence[Sequence[str]]]]
+
+
+def grid_width(header: Sequence[str], groups: Grid) -> int:
+    """The width a table of these cells takes when no column folds (`render_grid`)."""
+    rows = [row for _, group in groups for row in group]
+    return sum(max(len(printable(cell)) for cell in column) + 3
+               for column in zip(header, *rows, strict=True))
+
+
+def render_grid(title: str, header: Sequence[str], groups: Grid, lines: Sequence[str],
+                format: Literal["table", "markdown"], *, color: bool = False,
+                width: int | None = None) -> str:
     """Render one table under a title, then lines of text (e.g. errors), as the report's
-    table or markdown; for tables of several fits side by side (`hamid.report.comparison`).
+    table or markdown; for tables of several fits (`hamid.report.comparison`).
 
     `groups` are (label, rows); each group after the first starts a section under its
-    label. The table is as wide as its cells: a column per fit does not fold.
+    label. The table is as wide as its cells (a column per fit does not fold), or at most
+    `width` when given: text wrapped and columns folded to fit.
     """
     table = _Table(tuple(header), tuple((label, tuple(map(tuple, rows)))
                                         for label, rows in groups))
     sections = (_Section("", tables=(table,)),
                 *([_Section("", lines=tuple(lines), style="yellow")] if lines else []))
     view = _printable_view(_View(title, (), sections))
-    natural = sum(max(len(cell) for cell in column) + 3 for column in zip(
-        view.sections[0].tables[0].header,
-        *(row for _, rows in view.sections[0].tables[0].groups for row in rows),
-        strict=True))
     text = {"table": _table_text, "markdown": _markdown_text}[format]
-    return text(view, color=color, width=max(100, natural))
+    return text(view, color=color, width=width or max(100, grid_width(header, groups)))
 
 
 def render(

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any, Literal, NotRequired, TypedDict
 
 from hamid.refine.outcome import AcceptanceInfo, LengtheningInfo, NoiseLevel, RefinementInfo
 from hamid.result.validation import SCHEMA
+from hamid.result.wording import method_name
 
 if TYPE_CHECKING:
     import numpy.typing as npt
@@ -48,6 +49,7 @@ __all__ = [
     "ResidualSummary",
     "SCHEMA",
     "SkippedCheck",
+    "StrongestCorrelation",
     "plain_data",
 ]
 
@@ -123,6 +125,13 @@ class ResidualSummary(TypedDict):
     blocks: NotRequired[dict[str, BlockResiduals]]
 
 
+class StrongestCorrelation(TypedDict):
+    """The two free parameters whose estimates are the most correlated."""
+
+    parameters: list[str]
+    correlation: float
+
+
 class ConditioningInfo(TypedDict):
     """Conditioning of the column-scaled design, levels included."""
 
@@ -131,6 +140,7 @@ class ConditioningInfo(TypedDict):
     weakest_direction: dict[str, float]
     status: Literal["ok", "moderate", "severe"]
     blocks: NotRequired[dict[str, float | None] | None]
+    strongest_correlation: NotRequired[StrongestCorrelation | None]
 
 
 class EnergyLost(TypedDict):
@@ -236,9 +246,7 @@ class FitResult:
     checks_skipped: tuple[SkippedCheck, ...] = field(default=())
 
     def __repr__(self) -> str:
-        refined = (self.method.get("refinement") or {}).get("applied")
-        return (f"FitResult(model={self.model['name']!r}, method="
-                f"{self.method['kind'] + (' refined' if refined else '')!r}, "
+        return (f"FitResult(model={self.model['name']!r}, method={method_name(self.method)!r}, "
                 f"estimates={self.estimates!r}, warnings={len(self.warnings)})")
 
     def summary(self) -> str:

@@ -18,7 +18,7 @@ from hamid.data.records import Records
 from hamid.errors import DataError
 from hamid.linear import design, uncertainty
 from hamid.linear.design import RowKind
-from hamid.linear.estimate import LinearFit, NoiseCheck, ResidualSums, Rows
+from hamid.linear.estimate import DISCRETIZATION_NOTE, LinearFit, NoiseCheck, ResidualSums, Rows
 from hamid.linear.plan import FitPlan
 from hamid.linear.unknowns import Unknowns
 from hamid.model.dissipation import Dissipation
@@ -33,12 +33,15 @@ from hamid.result.fit_result import (
     ProvenanceInfo,
     plain_data,
 )
+from hamid.result.wording import correlation_text, drift_words
 
 __all__ = ["Provenance", "dissipation_summary", "fit_result", "run_provenance", "samples"]
 
 # A drift is reported when the energy changes by more than this fraction over the record
 # and a straight line in time explains this share of the residual variance.
 _DRIFT_CHANGE, _DRIFT_SHARE = 0.01, 0.2
+# Two estimates correlated beyond this the data hardly tell apart: a warning names them.
+HIGH_CORRELATION = 0.99
 
 
 @dataclass(frozen=True)
@@ -102,6 +105,8 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
         "singular_values": list(cond.singular_values),
         "weakest_direction": cond.weakest_direction, "status": cond.status,
         "blocks": fit.block_conditions,
+        "strongest_correlation": strongest_correlation(
+            [p.name for p in parameters if not p.fixed], fit.covariance),
     }
     levels = tuple(EnergyLevel(label, float(level), _finite_or_none(error), int(size))
                    for label, level, error, size in zip(provenance.labels, fit.h, fit.h_stderr,
@@ -110,7 +115,10 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
                 *_warnings(parameters=parameters, stats=stats, cond=cond, df=fit.df,
                            options=options, kind=plan.kind, refinement=refinement,
                            damping=[*options.damping,
-                                    *(["Rayleigh"] if model.dissipation else [])]),
+                                    *(["Rayleigh"] if model.dissipation else [])],
+                           driven=model.forcing is not None),
+                *_correlation_warnings(conditioning["strongest_correlation"],
+                                       quadrature=DISCRETIZATION_NOTE in fit.description),
                 *_noise_warnings(provenance.noise_check), *forcing_warnings(forcing)]
     return FitResult(
         hamid_version=__version__,
@@ -199,6 +207,44 @@ def samples(rows: Rows, fit: LinearFit, model: Model, unknowns: Unknowns, plan: 
     return {"trajectory": np.asarray(labels, dtype=object)[group], "t": time,
             "energy": fitted, "residual": residual,
             "weight": design.sample_weights(plan.kind, rows.blocks, n_samples, rows.windows)}
+
+
+def strongest_correlation(names: list[str], covariance: Any) -> dict[str, Any] | None:
+    """The two free parameters whose estimates are the most correlated, and their
+    correlation (from the covariance reported, the refinement's when it made the numbers):
+    beside the condition number of the design, which can look fine while two estimates
+    trade off against each other. None with fewer than two, or no finite correlation."""
+    matrix = np.asarray(covariance, dtype=float)
+    if len(names) < 2:
+        return None
+    sd = np.sqrt(np.clip(np.diag(matrix), 0, None))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = matrix / np.outer(sd, sd)
+    upper = np.triu(np.isfinite(r), k=1)
+    if not upper.any():
+        return None
+    size = np.where(upper, np.abs(np.nan_to_num(r)), -1.0)
+    i, j = np.unravel_index(int(np.argmax(size)), size.shape)
+    return {"parameters": [names[i], names[j]],
+            "correlation": float(np.clip(r[i, j], -1.0, 1.0))}
+
+
+def _correlation_warnings(strongest: dict[str, Any] | None, *, quadrature: bool
+                          ) -> list[str]:
+    """Two estimates so correlated that the data hardly tell them apart, named; or, when
+    the weak rows' `quadrature` error is in the covariance (one shift of known direction,
+    which correlates the estimates by itself), said to be that."""
+    if strongest is None or abs(strongest["correlation"]) <= HIGH_CORRELATION:
+        return []
+    pair = (f"{' and '.join(strongest['parameters'])} are correlated at "
+            f"{correlation_text(strongest['correlation'])}")
+    if quadrature:
+        return [f"{pair}, with the weak-form quadrature's error in their covariance: one "
+                "shift of known direction that moves the estimates together "
+                "(method.discretization); a finer time step shrinks it"]
+    return [f"{pair}: the data hardly tell them apart (each estimate leans on the other, and "
+            "their errors are large together); record larger amplitudes or a trajectory at "
+            "another energy, or --fix one of them if it is known"]
 
 
 def _symmetric(covariance: Any) -> Any:
@@ -300,19 +346,23 @@ def forcing_warnings(forcing: Mapping[str, Any] | None) -> list[str]:
 
 def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: Any,
               df: int, options: FitOptions, kind: RowKind,
-              refinement: RefinementInfo | None, damping: list[str]) -> list[str]:
-    """Plain-words warnings about the fit; `damping` names its kinds of dissipation."""
+              refinement: RefinementInfo | None, damping: list[str], driven: bool
+              ) -> list[str]:
+    """Plain-words warnings about the fit; `damping` names its kinds of dissipation, and
+    `driven` says the energy's drift is against its spread, not its level."""
     level, cov = options.level, options.cov
     notes = []
     for d in stats["drift"]:
         change = d["relative_change"]
         if change is not None and abs(change) > _DRIFT_CHANGE and d["trend_share"] > _DRIFT_SHARE:
-            notes.append(f"trajectory {d['trajectory']}: the energy drifts by {change:+.1%} "
-                         "over the record; the system may be damped or forced "
-                         "(try --damping viscous)" if not damping else
-                         f"trajectory {d['trajectory']}: the energy balance still drifts by "
-                         f"{change:+.1%} over the record with {', '.join(damping)} damping; "
-                         "try another kind of --damping, or the system is forced")
+            words = drift_words(change, driven=driven)
+            notes.append(f"trajectory {d['trajectory']}: the energy is not conserved: a "
+                         f"straight line through it {words} over the record; the system may "
+                         "be damped or forced (try --damping viscous)" if not damping else
+                         f"trajectory {d['trajectory']}: with {', '.join(damping)} damping the "
+                         f"energy balance is still not conserved: a straight line through it "
+                         f"{words} over the record; try another kind of --damping, or the "
+                         "system is forced")
     if cond.status != "ok":
         combination = " ".join(f"{w:+.2f}*{n}" for n, w in
                                sorted(cond.weakest_direction.items(), key=lambda x: -abs(x[1]))

@@ -47,6 +47,12 @@ def _number(value: float | None) -> str:
     return "—" if value is None else f"{value:.6g}"
 
 
+def _terms(terms: Sequence[str]) -> str:
+    """Library terms as a list; "(none)" for a model of no library term (the energy's
+    parameter-free part alone, with the damping that every candidate has)."""
+    return ", ".join(terms) or "(none)"
+
+
 def _table(doc: Mapping[str, Any], color: bool, width: int) -> str:
     from rich import box
     from rich.console import Console
@@ -77,11 +83,11 @@ def _table(doc: Mapping[str, Any], color: bool, width: int) -> str:
          + (f"; always in: {', '.join(doc['kept'])}" if doc["kept"] else ""))
     console.print()
     line("Chosen terms", "bold underline")
-    line(", ".join(doc["chosen"]))
+    line(_terms(doc["chosen"]))
     console.print()
     line("Candidate models", "bold underline")
     table(("rank", "terms", doc["criterion"], "Δ", "residual variance"),
-          [(f"{i + 1}{' *' if c['chosen'] else ''}", ", ".join(c["terms"]),
+          [(f"{i + 1}{' *' if c['chosen'] else ''}", _terms(c["terms"]),
             _number(c["criterion"]), _number(c["delta"]), _number(c["residual_variance"]))
            for i, c in enumerate(doc["candidates"])], 2)
     line(f"* chosen: {doc['rule']}; residual variance relative to the whole library's")

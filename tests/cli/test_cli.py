@@ -225,6 +225,13 @@ def test_simulate_csv_file_carries_metadata(runner, tmp_path):
     assert frame["t"].iloc[-1] == pytest.approx(30.0)
 
 
+def test_simulate_of_one_trajectory_says_one_trajectory(runner, tmp_path):
+    config = write_system(tmp_path)
+    result = invoke(runner, ["simulate", "--config", config, "-o", tmp_path / "one.csv"])
+    assert_ok(result)
+    assert "simulated 1 trajectory, 21 samples (t = 0..2, dt = 0.1)" in result.stderr
+
+
 def test_simulate_parquet_carries_metadata(runner, tmp_path):
     import pyarrow.parquet as pq
 

@@ -452,7 +452,7 @@ def test_text_that_is_not_utf8(in_tmp, content, line):
 @pytest.mark.parametrize(
     ("content", "message"),
     [
-        (b"t,x\n0,1\n1,2\n3\n", r"row 3 has 1 fields where the header has 2: '3'"),
+        (b"t,x\n0,1\n1,2\n3\n", r"row 3 has 1 field where the header has 2: '3'"),
         (b"# c\nt,x\n\n0,1\n1,2,3\n", r"row 2 has 3 fields where the header has 2: '1,2,3'"),
     ],
 )

@@ -6,14 +6,16 @@ import gzip
 import json
 import re
 import shutil
+import subprocess
 
 import numpy as np
 import pyarrow as pa
 import pytest
+from helpers import hamid_command, one_line_error
 
 import hamid
 from hamid.data import readers as hio
-from hamid.data.text_layout import TextOptions
+from hamid.data.text_layout import TextOptions, preamble_lines
 from hamid.errors import DataError, UsageError
 
 SAMPLE = "sample_data/duffing.csv"
@@ -208,6 +210,33 @@ def test_text_options_given(tmp_path):
     assert list(columns["x"]) == [1.5]
 
 
+@pytest.mark.parametrize(("text", "delimiter", "lines"), [
+    (b"Logger 7, serial 12\nstarted 2026-11-24\nt,x,v\n0,1,0\n1,2,0\n", ",", 2),
+    (b"\xef\xbb\xbfLogger 7\n\nsite A\nt;x\n0;1\n1;2\n", ";", 3),   # blank lines count
+    (b"a\nb\nt,x,v\n0,1,2\n", ",", 2),    # as common as the data: the data's number wins
+    (b"t,x\n0,1\n1,2\n3\n", ",", 0),      # a short row at the end is no preamble
+    (b"", ",", 0),
+])
+def test_a_preamble_is_the_leading_lines_of_another_number_of_fields(text, delimiter, lines):
+    assert preamble_lines(text, delimiter) == lines
+
+
+def test_a_preamble_read_as_the_header_gets_the_skip_rows_hint(tmp_path):
+    """Two lines before the header: the first is taken for it and the second is a row of
+    another number of fields; the error names --skip-rows 2, which then reads the file."""
+    path = tmp_path / "logger.csv"
+    rows = "".join(f"{0.1 * i:g},{np.cos(0.1 * i):.6f},{-np.sin(0.1 * i):.6f}\n"
+                   for i in range(300))
+    path.write_text(f"Logger 7, serial 12\nstarted 2026-11-24\nt,x,v\n{rows}")
+    done = subprocess.run([*hamid_command(), "fit", str(path), "--model", "duffing"],
+                          capture_output=True, text=True, timeout=120)
+    one_line_error(done, 1, f"{path}: row 1 has 1 field where the header has 2: "
+                            "'started 2026-11-24'; the file seems to start with 2 lines "
+                            "before its header: give --skip-rows 2")
+    columns, _ = hio.read_columns(path, text=TextOptions(skip_rows=2))
+    assert list(columns) == ["t", "x", "v"] and len(columns["t"]) == 300
+
+
 @pytest.mark.parametrize(("kwargs", "message"), [
     ({"delimiter": ";;"}, "--delimiter: ';;' is not one character that can separate cells"),
     ({"decimal": ";"}, "--decimal: ';' is not '.' or ','"),
@@ -341,3 +370,15 @@ def test_unit_headers_fit_without_a_model_on_the_command_line(tmp_path):
     assert report["data"]["scale"] == {"x [mm]": 1e-3, "x_dot [mm/s]": 1e-3}
     estimates = {p["name"]: p["estimate"] for p in report["parameters"]}
     assert estimates["c_2"] == pytest.approx(2.0, rel=1e-4)
+
+
+def test_the_skip_rows_hint_counts_the_lines_before_the_header_taken(tmp_path):
+    """A comment line and a given --skip-rows 1 before a two-line preamble: the hint
+    counts from the file's start, as --skip-rows does."""
+    path = tmp_path / "logger.csv"
+    path.write_text("junk\n# a comment\nLogger 7, serial 12\nstarted today\nt,x,v\n0,1,0\n"
+                    "1,2,0\n2,3,0\n")
+    with pytest.raises(DataError, match=r"give --skip-rows 4$"):
+        hio.read_columns(path, text=TextOptions(skip_rows=1))
+    columns, _ = hio.read_columns(path, text=TextOptions(skip_rows=4))
+    assert list(columns["x"]) == [1, 2, 3]

@@ -415,7 +415,7 @@ def test_chunks_make_the_checks_of_a_whole_read_or_name_them(unchecked_file, met
     assert any("'u1' change 0.5 times as fast as the velocities 'v1'" in w
                for w in chunks.warnings)
     if method == "weak":
-        assert any("1 of 3 trajectories are shorter than the weak-form window" in w
+        assert any("1 of 3 trajectories is shorter than the weak-form window" in w
                    for w in chunks.warnings)
     assert whole.samples is not None and whole.recording is not None
     assert chunks.samples is None and chunks.recording is None

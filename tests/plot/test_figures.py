@@ -336,7 +336,7 @@ def test_plot_refuses_other_data_than_the_fit_read(report_file, tmp_path, table)
     table[table.trajectory == 1].to_csv(part, index=False)
     result = _run("plot", str(report_file), str(part), "-o", str(tmp_path / "fig.png"))
     assert result.exit_code == 1 and result.stdout == ""
-    assert result.stderr.startswith(f"Error: {part}: 801 samples in 1 trajectories, but the fit "
+    assert result.stderr.startswith(f"Error: {part}: 801 samples in 1 trajectory, but the fit "
                                     "had 1602 in 2")
     assert [p.name for p in tmp_path.iterdir()] == ["part.csv"]
 

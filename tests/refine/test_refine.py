@@ -337,9 +337,11 @@ def test_lengthened_segments_reach_the_bound_of_one_state_per_trajectory(monkeyp
     assert refinement["applied"] is True and refinement["segments"] == 8
     assert lengthening["stopped"] == "whole" and lengthening["segments"] == 2
     assert lengthening["rounds"] == 1 and lengthening["segment_seconds"] == pytest.approx(100)
-    assert re.search(r"lengthened +2 segments of up to 100 s, misfit [0-9.]+ × noise "
-                     r"variance \(one per trajectory\)", render(result.to_dict(), "table",
-                                                                 width=200))
+    table = render(result.to_dict(), "table", width=200)
+    assert re.search(r"refinement +trajectory fit over each whole trajectory \(2, up to 100 s\), "
+                     r"misfit [0-9.]+ × noise variance, \d+ iterations?\n", table)
+    assert re.search(r"lengthened from +8 segments of [0-9.]+ s, misfit [0-9.]+ × noise "
+                     r"variance, \d+ iterations?\n", table)
     errors = np.array([p.stderr for p in result.parameters])
     bound = np.sqrt(np.diag(_duffing_bound(clean, 0.01)))
     assert errors / bound == pytest.approx([1.0, 1.0], abs=0.1)
@@ -430,9 +432,9 @@ def test_chaotic_motion_is_not_tied_beyond_what_its_errors_can_carry():
     assert refinement["covariance"] == "misfit-scaled"
     assert lengthening["stopped"] == "unstable"
     assert refinement["segments"] > lengthening["segments"] > 2
-    assert re.search(r"lengthened +\d+ segments of up to [0-9.]+ s, misfit [0-9.]+ × noise "
-                     r"variance \(the motion too unstable over longer ones for their errors "
-                     r"to hold\)", render(result.to_dict(), "table", width=300))
+    assert re.search(r"trajectory fit over \d+ segments of up to [0-9.]+ s \(the motion too "
+                     r"unstable over longer ones for their errors to hold\), misfit [0-9.]+ × "
+                     r"noise variance", render(result.to_dict(), "table", width=300))
     for p in result.parameters:
         assert abs(p.estimate - CHAOTIC["parameters"][p.name]) < 4 * p.stderr, p.name
         assert p.stderr > 1e-6, p.name   # tied over 200 s it reported 1e-10 or 0

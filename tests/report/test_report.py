@@ -289,10 +289,53 @@ def test_text_energy_levels_residuals_and_drift(result, fmt):
         assert snippet in text
     for snippet in ["0.0001235", "0.0006123", "0.001101", "0.999877", "0.432"]:
         assert snippet in text
-    assert "-1.23%" in text
-    assert "+0.456%" in text
+    assert "falls by 1.23% of its level h" in text
+    assert "rises by 0.456% of its level h" in text
+    result["residuals"]["drift"] = [{"trajectory": 0, "relative_change": -2.678}]
+    assert "falls by 2.68 times its level h" in render(result, fmt)
+    result["data"]["inputs"] = {"u": "force"}
+    assert "falls by 2.68 times the spread of its energy" in render(result, fmt)
     result["residuals"]["drift"] = []
-    assert "energy drift" not in render(result, fmt)
+    assert "energy over the record" not in render(result, fmt)
+
+
+def _refined(result, lengthening):
+    """`result` with an applied refinement of 12 segments of 2 s, lengthened as given."""
+    result["method"]["refinement"] = {
+        "applied": True, "segments": 12, "segment_seconds": 2.0, "iterations": 4,
+        "chi2_per_dof": 1.02, "lengthening": {"iterations": 2, "chi2_per_dof": 1.01,
+                                              **lengthening}}
+    return result
+
+
+@pytest.mark.parametrize("fmt", TEXT_FORMATS)
+def test_a_fit_lengthened_to_the_whole_record_says_so(result, fmt):
+    one = render(_refined(result, {"segments": 1, "segment_seconds": 21.28, "rounds": 1,
+                                   "stopped": "whole"}), fmt, width=200)
+    assert "trajectory fit over the whole record, 21.28 s, misfit 1.01 × noise variance, " \
+           "2 iterations" in one
+    assert "12 segments of 2 s, misfit 1.02 × noise variance, 4 iterations" in one
+    two = render(_refined(result, {"segments": 2, "segment_seconds": 21.28, "rounds": 1,
+                                   "stopped": "whole"}), fmt, width=200)
+    assert "trajectory fit over each whole trajectory (2, up to 21.28 s)" in two
+    some = render(_refined(result, {"segments": 3, "segment_seconds": 8.0, "rounds": 2,
+                                    "stopped": "misfit"}), fmt, width=200)
+    assert "trajectory fit over 3 segments of up to 8 s (longer ones missed the recording " \
+           "beyond the noise), misfit 1.01" in some
+    none = render(_refined(result, {"segments": 12, "segment_seconds": 2.0, "rounds": 0,
+                                    "stopped": "clean"}), fmt, width=200)
+    assert "trajectory fit over 12 segments of 2 s, misfit 1.02 × noise variance, " \
+           "4 iterations" in none
+    assert "lengthened" not in none and "whole" not in none
+
+
+@pytest.mark.parametrize("fmt", [*TEXT_FORMATS, "summary", "html"])
+def test_a_refined_fit_names_the_refinement_as_its_method(result, fmt):
+    assert "joint + trajectory refinement" not in render(result, fmt)
+    refined = _refined(result, {"segments": 1, "segment_seconds": 21.28, "rounds": 1,
+                                "stopped": "whole"})
+    assert "joint + trajectory refinement" in render(refined, fmt)
+    assert json.loads(render(refined, "json"))["method"]["kind"] == "joint"
 
 
 @pytest.mark.parametrize("fmt", TEXT_FORMATS)

@@ -364,6 +364,19 @@ def test_the_command_writes_a_table_the_json_report_and_the_model(tmp_path):
     assert json.loads(refit.stdout)["parameters"] == document["fit"]["parameters"]
 
 
+def test_a_candidate_of_no_library_term_is_listed_as_none():
+    """With --damping every candidate has the damping, so one has no term of the library:
+    its terms cell says so instead of staying blank."""
+    table = invoke(["select", SAMPLES / "duffing.csv", "--library", "poly:1:4",
+                    "--damping", "viscous"])
+    assert table.exit_code == 0, table.output
+    candidates = table.stdout.split("Candidate models\n")[1].split("* chosen")[0]
+    rows = [line.split() for line in candidates.splitlines()[2:]]
+    assert len(rows) == 8 and all(len(row) >= 5 for row in rows)   # rank, terms, 3 numbers
+    none = [row for row in rows if row[1] == "(none)"]
+    assert len(none) == 1 and len(none[0]) == 5
+
+
 @pytest.mark.parametrize(("args", "message"), [
     (["--seed", "1"], "--seed applies only to --stability"),
     (["--write-model", "chosen.txt"], "--write-model 'chosen.txt': give a FILE.toml"),
