@@ -208,6 +208,15 @@ def find_coordinates(columns: Sequence[str], *, exclude: Collection[str]) -> lis
     return pairs
 
 
+def _velocity_names_of(coordinate: str, velocity: str, column: str) -> list[str]:
+    """The names a velocity's column may have: its own, then `velocity_names` of its
+    coordinate's name and of that coordinate's column (with and without its unit)."""
+    looked_for = [velocity]
+    for base in (coordinate, column, split_unit(column, COLUMN_UNITS)[0]):
+        looked_for += velocity_names(base)
+    return list(dict.fromkeys(looked_for))
+
+
 def resolve_columns(
     columns: Sequence[str],
     coordinates: Sequence[str],
@@ -216,8 +225,13 @@ def resolve_columns(
     mapping: Mapping[str, str] | None = None,
     source: str,
     inputs: Sequence[str] = (),
+    velocities_optional: bool = False,
 ) -> dict[str, str]:
     """Find the file column of each coordinate, velocity and input of a model.
+
+    With `velocities_optional`, a file without a column for any velocity (none found, none
+    given by `mapping`) gives the coordinates' and inputs' columns only: its velocities are
+    to be derived from the positions. A file with some of them still needs them all.
 
     Each name is looked for in `mapping`, then as the same name (or the same name before a
     unit suffix); a velocity not found so is looked for by `velocity_names`, applied to its
@@ -284,16 +298,17 @@ def resolve_columns(
                 f"(columns: {readers.list_columns(columns)}){hint}"
             )
         resolved[name] = column
+    if velocities_optional and velocities and not any(
+            velocity in mapping or any(name in index for name in _velocity_names_of(
+                coordinate, velocity, resolved[coordinate]))
+            for coordinate, velocity in zip(coordinates, velocities, strict=True)):
+        velocities = ()
     # No velocities: they will be derived from the positions.
     for coordinate, velocity in zip(coordinates if velocities else (), velocities, strict=True):
         if velocity in mapping:
             resolved[velocity] = mapping[velocity]
             continue
-        looked_for = [velocity]
-        for base in (coordinate, resolved[coordinate],
-                     split_unit(resolved[coordinate], COLUMN_UNITS)[0]):
-            looked_for += velocity_names(base)
-        looked_for = list(dict.fromkeys(looked_for))
+        looked_for = _velocity_names_of(coordinate, velocity, resolved[coordinate])
         found = next((index[candidate] for candidate in looked_for if candidate in index),
                      None)
         if found is None:

@@ -72,6 +72,10 @@ class Source(Protocol):
         for `purpose`; records read whole are one chunk."""
     def whole(self) -> Records:
         """All the records in memory (for the trajectory refinement)."""
+    @property
+    def derived_velocities(self) -> bool:
+        """Whether the velocities were derived from the positions (--velocity savgol, or
+        a recording without velocity columns), not measured."""
     def whole_bytes(self) -> int | None:
         """The memory `whole` takes anew, None when the records are in memory already."""
 
@@ -126,6 +130,10 @@ class Loaded:
         """None: the records are in memory."""
         return None
 
+    @property
+    def derived_velocities(self) -> bool:
+        return self.velocity_gain is not None
+
 
 def load(data: Any, model: str | os.PathLike[str] | Model | None,
          options: FitOptions) -> Loaded:
@@ -154,7 +162,12 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
         names = [str(c) for c in frame]
         mapping = column_roles.resolve_columns(
             names, m.coordinates, () if derived else m.velocities, mapping=options.columns,
-            source=source, inputs=m.inputs)
+            source=source, inputs=m.inputs, velocities_optional=not parts)
+        if not derived and m.velocities[0] not in mapping:   # the first file has none
+            derived = True
+            notes.append(f"{source}: no velocity column for any coordinate: the velocities "
+                         "are derived from the positions (as --velocity savgol), and the "
+                         "trajectory refinement fits the positions alone")
         time, trajectory = _special_columns(names, mapping, options, source, notes)
         units = _units(names, mapping, time, options, table_metadata, source)
         notes.extend(units["notes"])
@@ -514,6 +527,11 @@ class Chunked:
         return _data_info([self.table.name], sum(self.surveyed().sizes), len(self.labels),
                           self.reader.mapping, self.options, self.units)
 
+    @property
+    def derived_velocities(self) -> bool:
+        """False: velocities are derived only from records read whole."""
+        return False
+
     def whole(self) -> Records:
         """All the records of the file, for the trajectory refinement."""
         n_samples = sum(self.surveyed().sizes)
@@ -638,8 +656,8 @@ def _settle_model(model: str | os.PathLike[str] | Model | None,
         raise DataError(f"{source}: no model given and no coordinate with a velocity column "
                         f"found (columns: {', '.join(names)}); give --model "
                         f"{_model_beside(source)}, or name velocities vx, x_dot, xdot, dx "
-                        "or v1 for x1; for positions without velocities give --model and "
-                        "--velocity savgol")
+                        "or v1 for x1 (positions without velocities are fitted given "
+                        "--model)")
     if options.columns:
         raise UsageError("--columns needs --model (the assumed model takes the file's names)")
     # The model's names are the columns' without their units (`x [mm]` is `x`), which

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import subprocess
+
 import numpy as np
 import pytest
 from conftest import DUFFING, PENG, with_noise
 
 import hamid
 from hamid.data.measurement import estimate_noise
-from hamid.errors import UsageError
+from hamid.errors import DataError, UsageError
 
 VARIABLES = ["u1", "u2", "v1", "v2"]
 
@@ -210,3 +212,36 @@ def test_bias_correction_removes_the_noise_bias():
         else:
             assert np.all(np.abs(ratio) < 1 / 3), (label, ratio)
             assert np.all((coverage >= 0.85) & (coverage <= 0.99)), (label, coverage)
+
+
+def test_a_recording_of_positions_alone_is_fitted_without_an_option(clean_records,
+                                                                    tmp_path):
+    """No velocity column at all: the velocities are derived (as --velocity savgol), the
+    refinement fits the positions alone, and the note says so; the intervals hold the
+    truth and are at most twice as wide as with the velocities recorded."""
+    frame = with_noise(clean_records["duffing"], 0.01, seed=3)
+    positions = hamid.fit(frame.drop(columns="v"))
+    both = hamid.fit(frame)
+    assert any("no velocity column for any coordinate: the velocities are derived" in w
+               for w in positions.warnings)
+    assert positions.method["refinement"]["noise"]["v"]["source"] == "derived"
+    for p, q in zip(positions.parameters, both.parameters, strict=True):
+        assert p.ci_low <= DUFFING["parameters"][p.name] <= p.ci_high, p
+        assert p.stderr <= 2 * q.stderr, (p.name, p.stderr / q.stderr)
+    assert positions.estimates == hamid.fit(frame.drop(columns="v"),
+                                            velocity="savgol").estimates
+    path = tmp_path / "encoder.csv"
+    frame.drop(columns="v").to_csv(path, index=False)
+    from tests.helpers import hamid_command
+
+    done = subprocess.run([*hamid_command(), "fit", str(path), "--model", "duffing",
+                           "--format", "json"],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert "derived from the positions" in done.stderr
+
+
+def test_a_recording_with_some_velocities_still_needs_them_all(clean_records):
+    frame = clean_records["peng-quadratic"].drop(columns="v2")
+    with pytest.raises(DataError, match="no column for velocity 'v2'"):
+        hamid.fit(frame, "peng-quadratic")
