@@ -16,6 +16,7 @@ from hamid.plot import figures
 pytest.importorskip("matplotlib")
 
 from matplotlib.axes import Axes  # noqa: E402
+from matplotlib.collections import PathCollection  # noqa: E402
 from matplotlib.legend import Legend  # noqa: E402
 from matplotlib.text import Text  # noqa: E402
 
@@ -115,4 +116,106 @@ def test_the_checker_finds_a_cut_title_and_overlapping_labels():
 def test_no_text_cut_or_overlapping(name, panel, request, tmp_path):
     fit = request.getfixturevalue(name)
     (drawn, figure), = figures.pages(fit.to_dict(), fit.recording, panel)[0]
+    assert layout_faults(figure) == []
+
+
+def _axes(figure) -> list:
+    return [ax for ax in figure.findobj(Axes) if ax.get_label() != "<colorbar>"]
+
+
+def _caption(figure) -> str:
+    """The caption under a panel, on one line."""
+    return figure.get_supxlabel().replace("\n", " ")
+
+
+def _page(fit, panel: str):
+    (_, figure), = figures.pages(fit.to_dict(), fit.recording, panel)[0]
+    return figure
+
+
+def test_axes_carry_the_units_the_data_were_converted_to(beam):
+    """x_mm and v_mm_s were converted to m and m/s; E = v²/2 + ... has no parameter in
+    its kinetic part, so energies are per unit mass, in m²/s²."""
+    phase = _axes(_page(beam, "phase"))
+    assert {ax.get_xlabel() for ax in phase} <= {"x [10⁻³ m]", "x [10⁻² m]"}
+    assert {ax.get_ylabel() for ax in phase} <= {"v [10⁻² m/s]", "v [m/s]"}
+    energy = _page(beam, "energy")
+    assert "energy per unit mass" in {t.get_text() for t in energy.findobj(Text)}
+    assert all(ax.get_ylabel() in ("E [10⁻⁵ m²/s²]", "E [10⁻⁴ m²/s²]", "E [10⁻³ m²/s²]")
+               for ax in _axes(energy))
+    assert _axes(energy)[-1].get_xlabel() == "t [s]"
+    motion = _axes(_page(beam, "motion"))
+    assert motion[0].get_ylabel() == "q [10⁻³ m]" and motion[-1].get_xlabel() == "t [s]"
+
+
+def test_fifteen_decays_six_drawn_from_the_smallest_to_the_largest_and_said(beam):
+    """Six of the 15 decays, spread over their levels (the amplitudes grow with the file
+    number), the smallest and the largest among them; the caption says the choice."""
+    figure = _page(beam, "energy")
+    names = [ax.get_title(loc="left") for ax in _axes(figure)]
+    assert len(names) == 6 and all(".csv" in n and "/" not in n for n in names)
+    assert names[0].startswith("decay_01_") and names[-1].startswith("decay_15_")
+    assert "6 of 15 trajectories shown, spread from the lowest energy level to the highest" \
+        in _caption(figure)
+    # the residuals of all 15 are drawn, a line each
+    (series, *_), = [_axes(_page(beam, "residuals"))]
+    assert len([line for line in series.get_lines() if len(line.get_xdata()) > 2]) == 15
+
+
+def test_a_record_cut_by_dropouts_is_drawn_as_one(tmp_path):
+    """One decay with three dropouts, fitted as four pieces (--gaps split): one row, one
+    phase plot, its four pieces in it."""
+    frame = hamid.simulate({**BEAM, "initial": BEAM["initial"][-1:]})
+    for row in (200, 500, 800):
+        frame.loc[row, "x"] = np.nan
+    path = tmp_path / "cut.csv"
+    frame.to_csv(path, index=False)
+    fit = hamid.fit(str(path), model="duffing", damping="viscous", gaps="split")
+    assert len(fit.energy_levels) == 4
+    energy = _page(fit, "energy")
+    (ax,) = _axes(energy)
+    assert ax.get_title(loc="left") == "trajectory 1"
+    assert len([line for line in ax.get_lines() if line.get_linestyle() == "-"]) == 4
+    assert "1 recording cut at dropouts or gaps drawn as one" in \
+        _caption(energy)
+    (phase,) = _axes(_page(fit, "phase"))
+    (points,) = [c for c in phase.collections if isinstance(c, PathCollection)]
+    assert len(points.get_offsets()) == len(frame) - 3
+
+
+DRIVEN_MODEL = """
+[model]
+name = "driven-duffing"
+coordinates = ["x"]
+velocities = ["v"]
+energy = "m*v**2/2 + k*x**2/2 + k3*x**4/4"
+parameters = ["m", "k", "k3"]
+
+[forcing]
+inputs = ["F"]
+work = "F*x"
+"""
+
+
+def test_the_motion_of_a_driven_fit_is_drawn_above_its_input(tmp_path):
+    import tomllib
+
+    model = tmp_path / "driven.toml"
+    model.write_text(DRIVEN_MODEL)
+    document = tomllib.loads(DRIVEN_MODEL)
+    document["forcing"]["signals"] = {"F": {"kind": "multisine", "amplitude": 1.0,
+                                            "band": [0.05, 1.0], "seed": 3}}
+    frame = hamid.simulate({**document, "parameters": {"m": 1.5, "k": 4.0, "k3": 2.0},
+                            "damping": {"c_x": 0.08}, "initial": [{"x": 0.0, "v": 0.0}],
+                            "simulate": {"t_end": 40.0, "dt": 0.02},
+                            "noise": {"x": 1e-3, "v": 1e-3}})
+    fit = hamid.fit(frame, str(model), damping="viscous")
+    figure = _page(fit, "motion")
+    motion, misfit, driving = _axes(figure)
+    assert driving.get_ylabel() == "input"
+    (line,) = driving.get_lines()
+    np.testing.assert_array_equal(line.get_xdata(), motion.get_lines()[0].get_xdata())
+    shown = frame["t"] <= line.get_xdata()[-1] + 1e-9
+    np.testing.assert_array_equal(line.get_ydata(), frame.loc[shown, "F"])
+    assert "data in memory" in figure.get_suptitle() and "DataFrame" not in figure.get_suptitle()
     assert layout_faults(figure) == []
