@@ -38,7 +38,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure, SubFigure
 
 __all__ = ["FORMATS", "PANELS", "check_output", "choose", "figure", "output_paths", "pages",
-           "panel_files", "parse_panels", "save"]
+           "panel_files", "parse_panels", "save", "write_pages"]
 
 PANELS = ("energy", "residuals", "phase", "motion", "parameters", "correlation")
 FORMATS = (".png", ".svg", ".pdf")
@@ -707,14 +707,21 @@ def save(report: Mapping[str, Any], recording: Recording | None, path: str,
     """Draw the panels and write them: a PDF of a page per panel, or a PNG or SVG file per
     panel (`output_paths`), each atomically (inside `writing.all_or_nothing` all or none of
     them); returns the notes on panels left out."""
+    check_output(path)
+    drawn, notes = pages(report, recording, panels)
+    write_pages(drawn, path)
+    return notes
+
+
+def write_pages(drawn: Sequence[tuple[str, Figure]], path: str) -> None:
+    """Write figures named by panel: a PDF of a page each, or a PNG or SVG file each
+    (`output_paths`), each atomically, with no dates in them (the same fit draws the same
+    bytes)."""
     import io
 
     from hamid.data import writing
 
-    check_output(path)
-    drawn, notes = pages(report, recording, panels)
     extension = os.path.splitext(path)[1].lower()
-    # no dates in the files: the same fit draws the same bytes
     metadata = {".pdf": {"CreationDate": None}, ".svg": {"Date": None}}.get(extension)
     buffers = []
     if extension == ".pdf":
@@ -732,4 +739,3 @@ def save(report: Mapping[str, Any], recording: Recording | None, path: str,
             buffers.append(buffer.getvalue())
     for data, target in zip(buffers, output_paths(path, [n for n, _ in drawn]), strict=True):
         writing.write_bytes(data, target)
-    return notes
