@@ -449,7 +449,7 @@ def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
 
 
 @cli.command()
-@click.argument("result_file", metavar="RESULT.json")
+@click.argument("result_file", metavar="RESULT.json|RESULTS.jsonl")
 @click.argument("data", nargs=-1)
 @click.option("-o", "--output", required=True, metavar="FIG",
               help="Figure file: .png or .svg, a file per panel (FIG-1-energy.png, ...), or "
@@ -457,22 +457,56 @@ def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
 @click.option("--panels", metavar="LIST",
               help="Panels by number or name: 1 energy, 2 residuals, 3 phase, 4 motion, "
                    "5 parameters, 6 correlation (default: all that apply).")
+@click.option("--order-by", metavar="KEY",
+              help="Several fits: place each along the x axis by KEY, a dotted key of its "
+                   "report holding a number or an ISO 8601 time (data.time_unit, "
+                   "provenance.utc, ...), or mtime, the modification time of the data file "
+                   "it read (default: the order of the files and lines).")
 @option_groups.reading
 def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | None,
-         **reading: Any) -> None:
+         order_by: str | None, **reading: Any) -> None:
     """Draw a saved fit result (JSON); panels 1-4 need the DATA it was fitted to, read as
-    the fit read them (the report's reading options) unless reading options are given."""
+    the fit read them (the report's reading options) unless reading options are given.
+
+    Several fits (RESULTS.jsonl of fit --each, or several RESULT.json): each parameter
+    against the order of the fits (or --order-by) with its confidence interval."""
     from hamid.data import documents, readers, writing
     from hamid.plot import figures, fitted
     from hamid.result.fit_result import FitResult
 
-    _claim_figure(_outputs([result_file, *data]), "-o", output, panels)
+    reports = [result_file, *data]
+    if result_file.lower().endswith(".jsonl") or (
+            data and all(name.lower().endswith(".json") for name in data)):
+        _plot_drift(reports, output, panels, order_by, reading)
+        return
+    if order_by is not None:
+        raise UsageError("--order-by places several fits (RESULTS.jsonl, or several "
+                         "RESULT.json); one report has nothing to order")
+    _claim_figure(_outputs(reports), "-o", output, panels)
     source = readers.STDIN if readers.is_stdio(result_file) else result_file
     report = FitResult.from_dict(documents.read_json(result_file), source=source).to_dict()
     recording = (fitted.read_recording(report, data, option_groups.fit_keywords(reading))
                  if data else None)
     with writing.all_or_nothing():
         notes = figures.save(report, recording, output, panels)
+    for note in notes:
+        click.echo(console.printable(note), err=True)
+
+
+def _plot_drift(reports: list[str], output: str, panels: str | None, order_by: str | None,
+                reading: dict[str, Any]) -> None:
+    """`hamid plot` of several fits: their parameters in one figure (`hamid.plot.drift`)."""
+    from hamid.data import writing
+    from hamid.plot import drift
+    from hamid.report import comparison
+
+    if panels is not None or option_groups.fit_keywords(reading):
+        raise UsageError("several fits are drawn as one figure of their parameters: "
+                         "--panels and reading options apply to one report and its data")
+    _claim_figure(_outputs(reports), "-o", output, "parameters")
+    compared = comparison.load(reports)
+    with writing.all_or_nothing():
+        notes = drift.save(compared, output, order_by)
     for note in notes:
         click.echo(console.printable(note), err=True)
 

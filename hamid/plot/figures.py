@@ -31,14 +31,14 @@ import numpy as np
 from hamid.data import column_roles
 from hamid.data.records import Recording
 from hamid.errors import DataError, HamidError, UsageError
-from hamid.plot import fitted
+from hamid.plot import fitted, labels
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure, SubFigure
 
 __all__ = ["FORMATS", "PANELS", "check_output", "choose", "figure", "output_paths", "pages",
-           "panel_files", "parse_panels", "save"]
+           "panel_files", "parse_panels", "save", "write_pages"]
 
 PANELS = ("energy", "residuals", "phase", "motion", "parameters", "correlation")
 FORMATS = (".png", ".svg", ".pdf")
@@ -54,9 +54,9 @@ MAX_POINTS = 20_000          # samples drawn per series; longer ones are thinned
 # Parameters a panel shows: a row each in panel 5 (302 rows took 103 s and 461 MB), a row
 # and a column of panel 6's matrix.
 MAX_PARAMETERS = {"parameters": 40, "correlation": 200}
-_LONGEST_NAME = 40           # characters of a name from the report shown in a figure
 _WIDTH = 10.0                # inches
 _DPI = 120
+_TITLE_WIDTH = 95            # characters of a title's line at the default width
 
 
 def _matplotlib() -> Any:
@@ -114,7 +114,8 @@ def _check_parameters(report: Mapping[str, Any]) -> None:
     a report edited by hand gave matplotlib's "'xerr' must not contain negative values"
     and "Axis limits cannot be NaN or Inf"."""
     for p in report["parameters"]:
-        name, estimate, low, high = _plain(p["name"]), p["estimate"], p["ci_low"], p["ci_high"]
+        name, estimate = labels.plain(p["name"]), p["estimate"]
+        low, high = p["ci_low"], p["ci_high"]
         if low is not None and high is not None and not low <= estimate <= high:
             raise DataError(f"parameter {name}: estimate {estimate:.6g} lies outside its "
                             f"interval [{low:.6g}, {high:.6g}]; was the report edited?")
@@ -129,16 +130,6 @@ def _reach(estimate: float, *around: float | None) -> float:
     view."""
     known = [abs(x - estimate) for x in around if x is not None]
     return 1.3 * max(known, default=0.0) or 0.1 * abs(estimate) or 1.0
-
-
-def _plain(name: Any) -> str:
-    """A name from the report as plain text in a figure: cut to `_LONGEST_NAME`
-    characters, its dollar signs escaped (mathtext parsed an edited report's "$x^$", and
-    3,000 nested braces overflowed its parser's recursion)."""
-    text = str(name)
-    if len(text) > _LONGEST_NAME:
-        text = text[:_LONGEST_NAME - 1] + "…"
-    return text.replace("$", r"\$")
 
 
 def choose(report: Mapping[str, Any], recording: Recording | None,
@@ -180,20 +171,43 @@ class _Context:
         assert self.recording is not None
         return fitted.energies(self.report, self.recording)
 
-    @property
-    def labels(self) -> list[str]:
-        return [_plain(level["trajectory"]) for level in self.report["energy_levels"]]
+    @cached_property
+    def records(self) -> list[tuple[str, list[int]]]:
+        """Each recording's name and its fitted trajectories (`labels.recordings`)."""
+        return labels.recordings([str(level["trajectory"])
+                                  for level in self.report["energy_levels"]])
+
+    def spread(self, most: int) -> list[int]:
+        """At most `most` recordings, all when there are no more, else spread evenly from
+        the lowest energy level to the highest (their first trajectory's h), in order."""
+        n = len(self.records)
+        if n <= most:
+            return list(range(n))
+        h = [self.report["energy_levels"][pieces[0]]["h"] for _, pieces in self.records]
+        by_level = np.argsort(h, kind="stable")
+        return sorted(int(by_level[k]) for k in np.linspace(0, n - 1, most).round().astype(int))
 
     @property
-    def shown(self) -> range:
-        """The trajectories drawn one by one."""
-        return range(min(len(self.labels), MAX_SHOWN))
+    def shown(self) -> list[int]:
+        """The recordings drawn one by one."""
+        return self.spread(MAX_SHOWN)
+
+    def shown_note(self, shown: Sequence[int]) -> str:
+        """Said in a caption when recordings were left out, or pieces joined."""
+        n, kind = len(self.records), self.kind
+        cut = sum(len(pieces) > 1 for _, pieces in self.records)
+        joined = (f"; {cut} recording{'s' if cut > 1 else ''} cut at dropouts or gaps drawn "
+                  "as one, each piece fitted with its own level" if cut else "")
+        if len(shown) == n:
+            return joined
+        return (f"; {len(shown)} of {n} {kind} shown, spread from the lowest energy level to "
+                f"the highest{joined}")
 
     @property
-    def shown_note(self) -> str:
-        """Said in a caption when trajectories were left out."""
-        n = len(self.labels)
-        return f"; the first {MAX_SHOWN} of {n} trajectories shown" if n > MAX_SHOWN else ""
+    def kind(self) -> str:
+        """What the recordings are called: trajectories, or recordings when one was cut."""
+        return ("recordings" if len(self.records) < len(self.report["energy_levels"])
+                else "trajectories")
 
     @property
     def damped(self) -> bool:
@@ -208,33 +222,58 @@ class _Context:
         start, stop = self.recording.records.bounds()[j]  # type: ignore[union-attr]
         return slice(start, stop)
 
-    def label(self, name: str) -> str:
-        """A model variable's axis label, with its SI unit when its column named one."""
+    def unit(self, name: str) -> str | None:
+        """A model variable's SI unit (m, rad, m/s, rad/s) when its column named one."""
         column = self.report["data"]["columns"].get(name, name)
         unit = column_roles.column_scale(column)[1]
         if unit is None:
-            return name
+            return None
         base = "rad" if unit.removesuffix("_s") in ("rad", "mrad", "deg") else "m"
-        return f"{name} [{base}/s]" if unit.endswith("_s") else f"{name} [{base}]"
+        return f"{base}/s" if unit.endswith("_s") else base
+
+    def label(self, name: str) -> str:
+        """A model variable's axis label, with its SI unit when its column named one."""
+        unit = self.unit(name)
+        return name if unit is None else f"{name} [{unit}]"
+
+    @property
+    def coordinate_unit(self) -> str | None:
+        """The unit all coordinates share, if they share one."""
+        assert self.recording is not None
+        units = {self.unit(name) for name in self.recording.model.coordinates}
+        return units.pop() if len(units) == 1 else None
+
+    @property
+    def per_unit_mass(self) -> bool:
+        """Whether the energy's parameter-free part (a unit-mass kinetic energy) sets its
+        scale, so that energies are per unit mass (docs/output.md, method.scale)."""
+        return (self.report["method"].get("scale") or {}).get("source") == "energy"
+
+    def energy_name(self, what: str) -> str:
+        """An energy axis's name: per unit mass when so."""
+        return f"{what} per unit mass" if self.per_unit_mass else what
+
+    @property
+    def energy_unit(self) -> str | None:
+        """The unit of an energy per unit mass, (m/s)² or (rad/s)², when the coordinates
+        share a unit; else none is known (an input's work is in units the data do not
+        name)."""
+        unit = self.coordinate_unit if self.per_unit_mass else None
+        return f"{unit}²/s²" if unit else None
 
     def title(self, panel: str) -> str:
-        """The panel's title: what it shows, the files and the method."""
+        """The panel's title: what it shows, the files and the method, wrapped to fit."""
+        import textwrap
+
         report = self.report
-        sources = [_plain(os.path.basename(s).strip("<>")) for s in report["data"]["sources"]]
+        sources = [labels.source_name(s) for s in report["data"]["sources"]]
         files = ", ".join(sources[:2]) + (f" and {len(sources) - 2} more"
                                           if len(sources) > 2 else "")
         method = report["method"]
         refined = (method.get("refinement") or {}).get("applied")
-        return (f"{PANELS.index(panel) + 1}. {_TITLES[panel]}: {files or 'data'} — "
-                f"{_plain(report['model']['name'])}, method {method['kind']}"
-                f"{' + trajectory refinement' if refined else ''}")
-
-
-def _ticks(n: int) -> Any:
-    """A locator of at most n ticks at round numbers."""
-    from matplotlib.ticker import MaxNLocator
-
-    return MaxNLocator(n, steps=[1, 2, 2.5, 5, 10])
+        return textwrap.fill(f"{PANELS.index(panel) + 1}. {_TITLES[panel]}: {files or 'data'} "
+                             f"— {labels.plain(report['model']['name'])}, method {method['kind']}"
+                             f"{' + trajectory refinement' if refined else ''}", _TITLE_WIDTH)
 
 
 def _middle(fig: Figure | SubFigure) -> Any:
@@ -251,32 +290,52 @@ def _colour(j: int) -> str:
     return OKABE_ITO[j % len(OKABE_ITO)]
 
 
-def _legend_above(ax: Axes, columns: int) -> None:
-    """The axes' legend in a row above it, outside the data."""
-    ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncols=columns, frameon=False,
-              fontsize="small")
+@dataclass(frozen=True)
+class _Drawn:
+    """What a panel drew: its caption, and the axes whose legend goes in a row above it
+    (entries of at most `longest` characters)."""
+
+    caption: str
+    legend: Axes | None = None
+    longest: int = 12
+
+
+def _legend_row(head: SubFigure, drawn: _Drawn) -> float:
+    """The legend of a panel in `head`, the strip between its title and its plots (a
+    figure legend "outside" ran into the title); returns the strip's height in inches."""
+    if drawn.legend is None:
+        return 0.05
+    handles, names = drawn.legend.get_legend_handles_labels()
+    columns = max(1, min(len(names), 4, 100 // (drawn.longest + 8)))
+    head.legend(handles, names, loc="center", ncols=columns, frameon=False, fontsize="small")
+    return 0.1 + 0.22 * -(-len(names) // columns)
 
 
 def _draw_energy(fig: Figure | SubFigure, ctx: _Context) -> str:
     e = ctx.energies
-    axes = fig.subplots(len(ctx.shown), 1, sharex=True, squeeze=False)[:, 0]
-    for ax, j in zip(axes, ctx.shown, strict=True):
-        rows = ctx.rows(j)
-        step = _thin(rows.stop - rows.start)
-        t, level, band = e.time[rows][step], e.level[rows][step], 2 * e.noise[rows][step]
-        ax.fill_between(t, level - band, level + band, color=OKABE_ITO[5], alpha=0.35,
-                        linewidth=0, label="±2σ of the measurement noise")
-        ax.plot(t, e.energy[rows][step], color=OKABE_ITO[0], linewidth=0.9,
-                label="E(q, v; θ) at the fitted θ")
-        ax.plot(t, level, color="black", linestyle="--", linewidth=1.2,
-                label="h − dissipated work" if ctx.damped else
-                "mean energy (weak rows fit no level)" if ctx.report["method"]["kind"] == "weak"
-                else "fitted level h")
-        ax.set_ylabel(f"E, trajectory {ctx.labels[j]}")
+    shown = ctx.shown
+    axes = fig.subplots(len(shown), 1, sharex=True, squeeze=False)[:, 0]
+    for ax, k in zip(axes, shown, strict=True):
+        name, pieces = ctx.records[k]
+        for n, j in enumerate(pieces):
+            rows = ctx.rows(j)
+            step = _thin(rows.stop - rows.start)
+            t, level, band = e.time[rows][step], e.level[rows][step], 2 * e.noise[rows][step]
+            ax.fill_between(t, level - band, level + band, color=OKABE_ITO[5], alpha=0.35,
+                            linewidth=0, label="_" * n + "±2σ of the measurement noise")
+            ax.plot(t, e.energy[rows][step], color=OKABE_ITO[0], linewidth=0.9,
+                    label="_" * n + "E(q, v; θ) at the fitted θ")
+            ax.plot(t, level, color="black", linestyle="--", linewidth=1.2,
+                    label="_" * n + ("h − dissipated work" if ctx.damped else
+                                     "mean energy (weak rows fit no level)"
+                                     if ctx.report["method"]["kind"] == "weak"
+                                     else "fitted level h"))
+        ax.set_title(name, fontsize="small", loc="left")
+        labels.label_axis(ax, "y", "E", ctx.energy_unit)
     axes[-1].set_xlabel(ctx.time_label)
-    _legend_above(axes[0], 3)
-    return ("the band is twice the standard deviation the measurement noise puts into E at "
-            f"each sample{ctx.shown_note}")
+    fig.supylabel(ctx.energy_name("energy"), fontsize="medium")
+    return _Drawn("the band is twice the standard deviation the measurement noise puts into "
+                  f"E at each sample{ctx.shown_note(shown)}", axes[0], 30)
 
 
 def _autocorrelation(residual: np.ndarray, bounds: list[tuple[int, int]],
@@ -295,14 +354,17 @@ def _autocorrelation(residual: np.ndarray, bounds: list[tuple[int, int]],
 def _draw_residuals(fig: Figure | SubFigure, ctx: _Context) -> str:
     e = ctx.energies
     series, histogram, correlation = fig.subplots(1, 3, width_ratios=(2.2, 1, 1))
-    for j in ctx.shown:
-        rows = ctx.rows(j)
-        step = _thin(rows.stop - rows.start)
-        series.plot(e.time[rows][step], e.residual[rows][step], color=_colour(j),
-                    linewidth=0.7, label=f"trajectory {ctx.labels[j]}")
+    listed = len(ctx.records) <= MAX_SHOWN
+    for k, (name, pieces) in enumerate(ctx.records):
+        for n, j in enumerate(pieces):
+            rows = ctx.rows(j)
+            step = _thin(rows.stop - rows.start)
+            series.plot(e.time[rows][step], e.residual[rows][step], color=_colour(k),
+                        linewidth=0.7, alpha=1.0 if listed else 0.6,
+                        label=name if listed and n == 0 else "_")
     series.axhline(0.0, color="grey", linewidth=0.8)
-    series.set(xlabel=ctx.time_label, ylabel="energy residual r")
-    _legend_above(series, min(3, len(ctx.shown)))
+    series.set_xlabel(ctx.time_label)
+    labels.label_axis(series, "y", ctx.energy_name("energy residual r"), ctx.energy_unit)
     r = e.residual
     # in units of the noise band: N(0, 1) when the model is right and the noise is white
     z = r[e.noise > 0] / e.noise[e.noise > 0]
@@ -314,18 +376,19 @@ def _draw_residuals(fig: Figure | SubFigure, ctx: _Context) -> str:
                                    label="r / σ")
     x = np.linspace(*span, 200)
     histogram.plot(x, np.exp(-x**2 / 2) / np.sqrt(2 * np.pi), color=OKABE_ITO[3],
-                   linewidth=1.5, label="standard normal")
+                   linewidth=1.5, label="N(0, 1)")
     spread = float(np.std(z)) if z.size else 1.0
     if not 0.5 < spread < 2.0:   # misfit beyond the noise: the residuals' own scale too
         histogram.plot(x, np.exp(-(x / spread)**2 / 2) / (spread * np.sqrt(2 * np.pi)),
                        color=OKABE_ITO[5], linewidth=1.2, linestyle="--",
-                       label=f"normal, sd {spread:.3g}")
+                       label=f"N(0, {spread:.3g}²)")
         # scaled to the residuals: the standard normal's peak runs off the top
         histogram.set_ylim(0.0, max(heights.max(initial=0.0),
                                     1 / (spread * np.sqrt(2 * np.pi))))
     histogram.set(xlabel="r / σ", ylabel="density", title="histogram")
-    histogram.legend(fontsize="small", loc="upper left")
-    histogram.set_ylim(top=1.35 * histogram.get_ylim()[1])   # room for the legend
+    histogram.legend(fontsize="x-small", loc="upper left", frameon=False, handlelength=1.2)
+    histogram.set_ylim(top=1.45 * histogram.get_ylim()[1])   # room for the legend
+    histogram.xaxis.set_major_locator(labels.ticks(3))
     bounds = ctx.recording.records.bounds()  # type: ignore[union-attr]
     lags = max(1, min(40, min(stop - start for start, stop in bounds) // 4))
     # lag 0 is 1 by definition: from lag 1 on, the scale shows what matters
@@ -334,13 +397,34 @@ def _draw_residuals(fig: Figure | SubFigure, ctx: _Context) -> str:
     limit = 1.96 / np.sqrt(len(r))
     correlation.axhspan(-limit, limit, color="grey", alpha=0.25, linewidth=0)
     correlation.axhline(0.0, color="grey", linewidth=0.8)
-    correlation.set(xlabel="lag [samples]", ylabel="autocorrelation", title="autocorrelation")
-    series.ticklabel_format(axis="y", style="sci", scilimits=(-2, 3))
-    histogram.xaxis.set_major_locator(_ticks(3))
-    return (f"r = E(q, v; θ) − h{' + the dissipated work' if ctx.damped else ''}; σ: the "
-            "standard deviation the measurement noise puts into E (the energy panel's band); "
-            "autocorrelation over pairs within trajectories, grey: the 95% band of white noise"
-            f"{ctx.shown_note}")
+    correlation.set(xlabel="lag [samples]", title="autocorrelation")
+    labels.label_axis(correlation, "y", "autocorrelation")
+    every = "" if listed else f"; all {len(ctx.records)} {ctx.kind}, a colour each"
+    return _Drawn(f"r = E(q, v; θ) − h{' + the dissipated work' if ctx.damped else ''}; σ: "
+                  "the standard deviation the measurement noise puts into E (the energy "
+                  "panel's band); autocorrelation over pairs within trajectories, grey: the "
+                  f"95% band of white noise{every}", series if listed else None,
+                  max(len(name) for name, _ in ctx.records))
+
+
+def _phase_cells(n_records: int, n_coordinates: int) -> tuple[int, int, list[list[int]]]:
+    """The phase panel's grid: rows, columns and the cell of each (recording, coordinate),
+    a recording's coordinates side by side (wrapped at three), one degree of freedom's
+    recordings three to a row."""
+    if n_coordinates == 1:
+        columns = min(3, n_records)
+        return -(-n_records // columns), columns, [[k] for k in range(n_records)]
+    columns = min(n_coordinates, 3)
+    per_record = -(-n_coordinates // columns)
+    cells = [[k * per_record * columns + i for i in range(n_coordinates)]
+             for k in range(n_records)]
+    return n_records * per_record, columns, cells
+
+
+def _phase_shown(ctx: _Context) -> list[int]:
+    """The recordings the phase panel draws: six plots' worth, at least two."""
+    n = len(ctx.recording.model.coordinates)  # type: ignore[union-attr]
+    return ctx.spread(max(2, MAX_SHOWN // n))
 
 
 def _draw_phase(fig: Figure | SubFigure, ctx: _Context) -> str:
@@ -349,83 +433,116 @@ def _draw_phase(fig: Figure | SubFigure, ctx: _Context) -> str:
     model, records = ctx.recording.model, ctx.recording.records  # type: ignore[union-attr]
     e = ctx.energies
     N = len(model.coordinates)
-    columns = min(N, 3)
-    if N == 1:   # alone it would stretch across the page: the middle, its colour bar beside
-        axes = np.array([fig.add_subplot(_middle(fig))])
-    else:
-        axes = fig.subplots(-(-N // columns), columns, squeeze=False).ravel()
-    shown = np.concatenate([np.arange(ctx.rows(j).start, ctx.rows(j).stop) for j in ctx.shown])
-    scale = float(np.quantile(np.abs(e.residual[shown]), 0.99)) or 1.0
+    shown = _phase_shown(ctx)
+    n_rows, columns, cells = _phase_cells(len(shown), N)
+    axes = fig.subplots(n_rows, columns, squeeze=False).ravel()
+    every = np.concatenate([np.arange(ctx.rows(j).start, ctx.rows(j).stop)
+                            for k in shown for j in ctx.records[k][1]])
+    scale = float(np.quantile(np.abs(e.residual[every]), 0.99)) or 1.0
     norm = Normalize(-scale, scale)
     h = [level["h"] for level in ctx.report["energy_levels"]]
     points = None
-    for i, ax in enumerate(axes[:N]):
-        q, v = records.X[shown, i], records.X[shown, N + i]
-        margin_q, margin_v = 0.12 * np.ptp(q) or 1.0, 0.12 * np.ptp(v) or 1.0
-        grid_q = np.linspace(q.min() - margin_q, q.max() + margin_q, 100)
-        grid_v = np.linspace(v.min() - margin_v, v.max() + margin_v, 100)
-        for j in ctx.shown:
-            rows = ctx.rows(j)
-            step = _thin(rows.stop - rows.start)
-            points = ax.scatter(records.X[rows, i][step], records.X[rows, N + i][step],
-                                c=e.residual[rows][step], cmap=_RESIDUAL_MAP, norm=norm,
-                                s=4, linewidths=0, zorder=2)
+    for kk, k in enumerate(shown):
+        name, pieces = ctx.records[k]
+        rows = np.concatenate([np.arange(ctx.rows(j).start, ctx.rows(j).stop)
+                               for j in pieces])
+        step = _thin(len(rows))
+        for i in range(N):
+            ax = axes[cells[kk][i]]
+            q, v = records.X[rows, i], records.X[rows, N + i]
+            points = ax.scatter(q[step], v[step], c=e.residual[rows][step],
+                                cmap=_RESIDUAL_MAP, norm=norm, s=3, linewidths=0, zorder=2)
+            margin_q, margin_v = 0.12 * np.ptp(q) or 1.0, 0.12 * np.ptp(v) or 1.0
+            grid_q = np.linspace(q.min() - margin_q, q.max() + margin_q, 100)
+            grid_v = np.linspace(v.min() - margin_v, v.max() + margin_v, 100)
             lowest = fitted.lowest_energy(ctx.report, ctx.recording,  # type: ignore[arg-type]
-                                          i, j, grid_q, grid_v)
-            # solid whatever the sign: matplotlib dashes the contours of negative levels
-            ax.contour(grid_q, grid_v, lowest, levels=[h[j]], colors=[_colour(j)],
-                       linewidths=1.0, linestyles="solid", zorder=1)
-            ax.plot([], [], color=_colour(j), label=f"E = h, trajectory {ctx.labels[j]}")
-        ax.set(xlabel=ctx.label(model.coordinates[i]), ylabel=ctx.label(model.velocities[i]))
-    for ax in axes[N:]:
-        ax.set_axis_off()
-    bar = fig.colorbar(points, ax=list(axes[:N]), label="energy residual r", shrink=0.9)
-    bar.formatter.set_powerlimits((-2, 3))
-    _legend_above(axes[0], min(3, len(ctx.shown)))
-    return ("points: the samples, coloured by their energy residual; lines: "
-            + ("E = h of each trajectory" if N == 1 else
-               "where E reaches each trajectory's level h, the other coordinates as recorded "
-               "and their velocities at rest (the bound of the motion at that level)")
-            + ("; with damping, h is the energy at the start" if ctx.damped else "")
-            + ctx.shown_note)
+                                          i, pieces[0], grid_q, grid_v)
+            # above the points; solid whatever the sign (matplotlib dashes negative levels)
+            ax.contour(grid_q, grid_v, lowest, levels=[h[pieces[0]]], colors=[OKABE_ITO[1]],
+                       linewidths=1.6, linestyles="solid", zorder=3)
+            ax.set_title(name, fontsize="small", loc="left")
+            ax.xaxis.set_major_locator(labels.ticks(4))
+            labels.label_axis(ax, "x", model.coordinates[i], ctx.unit(model.coordinates[i]))
+            labels.label_axis(ax, "y", model.velocities[i], ctx.unit(model.velocities[i]))
+    used = {cell for row in cells for cell in row}
+    for c, ax in enumerate(axes):
+        if c not in used:
+            ax.set_axis_off()
+    axes[0].plot([], [], color=OKABE_ITO[1], linewidth=1.6,
+                 label="E = h, the fitted level" + (" at the start" if ctx.damped else ""))
+    bar = fig.colorbar(points, ax=[axes[c] for c in sorted(used)], shrink=0.9)
+    labels.label_axis(bar.ax, "y", ctx.energy_name("energy residual r"), ctx.energy_unit)
+    return _Drawn("points: the samples, coloured by their energy residual; line: "
+                  + ("E = h" if N == 1 else
+                     "where E reaches the level h, the other coordinates as recorded and their "
+                     "velocities at rest (the bound of the motion at that level)")
+                  + ("; with damping, h is the energy at the start" if ctx.damped else "")
+                  + ctx.shown_note(shown), axes[0], 40)
 
 
 def _draw_motion(fig: Figure | SubFigure, ctx: _Context) -> str:
-    model = ctx.recording.model  # type: ignore[union-attr]
-    axes = fig.subplots(2 * len(ctx.shown), 1, height_ratios=[3, 1] * len(ctx.shown),
+    model, records = ctx.recording.model, ctx.recording.records  # type: ignore[union-attr]
+    shown, driven = ctx.shown, bool(model.inputs)
+    ratios = [3, 1.4, 1.4] if driven else [3, 1.4]
+    axes = fig.subplots(len(ratios) * len(shown), 1, height_ratios=ratios * len(shown),
                         squeeze=False)[:, 0]
-    for k, j in enumerate(ctx.shown):
-        motion, misfit = axes[2 * k], axes[2 * k + 1]
-        segment = fitted.segment_motion(ctx.report, ctx.recording,  # type: ignore[arg-type]
-                                        j)
-        step = _thin(len(segment.t))
-        t = segment.t[step]
-        for i, name in enumerate(model.coordinates):
-            recorded, integrated = segment.recorded[step, i], segment.model[step, i]
-            motion.plot(t, recorded, linestyle="none", marker="o", markersize=2, alpha=0.45,
-                        color=_colour(i), label=f"{name} recorded", zorder=2)
-            motion.plot(t, integrated, color=_colour(i), linewidth=1.4,
-                        label=f"{name} fitted model", zorder=3)
-            misfit.plot(t, recorded - integrated, color=_colour(i), linewidth=0.7)
-        motion.set_ylabel(f"trajectory {ctx.labels[j]}")
-        misfit.set_ylabel("recorded\n− model", fontsize="small")
+    unit = ctx.coordinate_unit
+    seconds = fitted.segment_seconds(ctx.report)
+    for kk, k in enumerate(shown):
+        name, pieces = ctx.records[k]
+        motion, misfit = axes[len(ratios) * kk], axes[len(ratios) * kk + 1]
+        for n, j in enumerate(pieces):
+            segment = fitted.segment_motion(ctx.report, ctx.recording,  # type: ignore[arg-type]
+                                            j)
+            step = _thin(len(segment.t))
+            t = segment.t[step]
+            for i, coordinate in enumerate(model.coordinates):
+                recorded, integrated = segment.recorded[step, i], segment.model[step, i]
+                motion.plot(t, recorded, linestyle="none", marker="o", markersize=2,
+                            alpha=0.45, color=_colour(i), zorder=2,
+                            label="_" * n + f"{coordinate} recorded")
+                motion.plot(t, integrated, color=_colour(i), linewidth=1.4, zorder=3,
+                            label="_" * n + f"{coordinate} fitted model")
+                misfit.plot(t, recorded - integrated, color=_colour(i), linewidth=0.7)
+            if driven:
+                rows = slice(*records.bounds()[j])
+                for u, input_name in enumerate(model.inputs):
+                    axes[3 * kk + 2].plot(records.t[rows][step], records.U[rows, u][step],
+                                          color=_colour(len(model.coordinates) + u),
+                                          linewidth=0.8, label="_" * n + f"{input_name} input")
+        motion.set_title(name, fontsize="small", loc="left")
+        labels.label_axis(motion, "y", "q", unit)
         misfit.axhline(0.0, color="grey", linewidth=0.8)
-        motion.sharex(misfit)
-        motion.tick_params(labelbottom=False)
-        misfit.ticklabel_format(axis="y", style="sci", scilimits=(-2, 3))
+        labels.label_axis(misfit, "y", "misfit\n", unit)
+        misfit.yaxis.label.set_fontsize("small")
+        below = axes[len(ratios) * kk + len(ratios) - 1]
+        for ax in axes[len(ratios) * kk:len(ratios) * kk + len(ratios) - 1]:
+            ax.sharex(below)
+            ax.tick_params(labelbottom=False)
+        if driven:
+            labels.label_axis(below, "y", "input")
+            below.yaxis.label.set_fontsize("small")
     axes[-1].set_xlabel(ctx.time_label)
-    _legend_above(axes[0], 2 * len(model.coordinates))
-    return ("the first refinement segment of each trajectory, the fitted model integrated "
-            f"from its best-fitting initial state{ctx.shown_note}")
+    if driven:
+        for handle, label in zip(*axes[2].get_legend_handles_labels(), strict=True):
+            axes[0].plot([], [], color=handle.get_color(), label=label)
+    length = f"its first {seconds:.3g} s" if seconds is not None else "the whole record"
+    return _Drawn(f"each trajectory over the refinement's longest segment ({length}), the "
+                  "fitted model integrated from its best-fitting initial state; misfit: "
+                  "recorded − model"
+                  f"{ctx.shown_note(shown)}", axes[0], 20)
 
 
 def _draw_parameters(fig: Figure | SubFigure, ctx: _Context) -> str:
+    from matplotlib.ticker import FuncFormatter
+
     parameters = ctx.report["parameters"]
     level = ctx.report["method"]["level"]
     axes = fig.subplots(len(parameters), 1, squeeze=False)[:, 0]
     for ax, p in zip(axes, parameters, strict=True):
+        name = labels.plain(p["name"])
         estimate, low, high, truth = p["estimate"], p["ci_low"], p["ci_high"], p["truth"]
-        text = f"{_plain(p['name'])} = {estimate:.6g}"
+        text = f"{name} = {estimate:.6g}"
         if low is not None and high is not None:
             ax.errorbar([estimate], [0], xerr=[[estimate - low], [high - estimate]],
                         fmt="o", color=OKABE_ITO[0], capsize=4, markersize=5)
@@ -440,22 +557,31 @@ def _draw_parameters(fig: Figure | SubFigure, ctx: _Context) -> str:
             ax.axvline(truth, color=OKABE_ITO[3], linestyle="--", linewidth=1.3)
             text += f"; truth {truth:.6g}"
         ax.set_yticks([])
-        ax.set_title(text, fontsize="medium", loc="left")
-        if reach < 1e-4 * abs(estimate):
-            # ticks as distances from a round number near the estimate
-            offset = float(np.round(estimate, -int(np.floor(np.log10(reach))) - 1))
-            ax.ticklabel_format(axis="x", useOffset=offset, style="sci", scilimits=(-3, 4))
+        ax.xaxis.set_major_locator(labels.ticks(7))
+        power = int(np.floor(np.log10(reach)))
+        if reach < 1e-3 * abs(estimate):
+            # ticks as distances from a round number near the estimate, said in the title
+            centre = float(np.round(estimate, -power - 1))
+            ax.xaxis.set_major_formatter(FuncFormatter(
+                lambda x, _, c=centre, p=power:
+                labels.number(round((x - c) / 10.0**p, 3) + 0.0, 4)))
+            text += f"; ticks: {name} − {centre:.10g}, in {labels.power_text(power)}"
         else:
-            ax.ticklabel_format(axis="x", useOffset=False, style="plain")
-        ax.xaxis.set_major_locator(_ticks(7))
+            labels.label_axis(ax, "x", "")
+            scaled = ax.get_xlabel()
+            if scaled:
+                ax.set_xlabel("")
+                text += f"; ticks in {scaled.strip('[] ')}"
+        ax.set_title(text, fontsize="medium", loc="left")
     axes[-1].set_xlabel("estimate")
     truth = ", dashed: the truth" if any(p["truth"] is not None for p in parameters) else ""
-    return f"bars: {100 * level:g}% confidence intervals{truth}; each row on its own scale"
+    return _Drawn(f"bars: {100 * level:g}% confidence intervals{truth}; each row on its own "
+                  "scale")
 
 
 def _draw_correlation(fig: Figure | SubFigure, ctx: _Context) -> str:
     covariance = ctx.report["covariance"]
-    names = [_plain(name) for name in covariance["names"]]
+    names = [labels.plain(name) for name in covariance["names"]]
     matrix = np.array([[np.nan if x is None else x for x in row]
                        for row in covariance["matrix"]], dtype=float)
     sd = np.sqrt(np.diag(matrix))
@@ -472,10 +598,10 @@ def _draw_correlation(fig: Figure | SubFigure, ctx: _Context) -> str:
                     va="center", color="white" if abs(value) > 0.6 else "black",
                     fontsize="small")
     fig.colorbar(image, ax=ax, label="correlation")
-    return "the correlations of the free parameters' estimates, from their covariance"
+    return _Drawn("the correlations of the free parameters' estimates, from their covariance")
 
 
-_DRAW: dict[str, Callable[[Any, _Context], str]] = {
+_DRAW: dict[str, Callable[[Any, _Context], _Drawn]] = {
     "energy": _draw_energy, "residuals": _draw_residuals, "phase": _draw_phase,
     "motion": _draw_motion, "parameters": _draw_parameters, "correlation": _draw_correlation,
 }
@@ -484,12 +610,13 @@ _DRAW: dict[str, Callable[[Any, _Context], str]] = {
 def _height(panel: str, ctx: _Context) -> float:
     """The panel's height in inches, for its number of rows."""
     if panel == "energy":
-        return 0.9 + 2.0 * len(ctx.shown)
+        return 1.2 + 2.0 * len(ctx.shown)
     if panel == "motion":
-        return 0.9 + 2.8 * len(ctx.shown)
+        driven = bool(ctx.recording.model.inputs)  # type: ignore[union-attr]
+        return 1.2 + (3.4 if driven else 2.8) * len(ctx.shown)
     if panel == "phase":
         n = len(ctx.recording.model.coordinates)  # type: ignore[union-attr]
-        return 0.8 + 3.6 * -(-n // 3)
+        return 1.4 + 3.2 * _phase_cells(len(_phase_shown(ctx)), n)[0]
     if panel == "parameters":
         return 1.0 + 0.85 * len(ctx.report["parameters"])
     if panel == "correlation":
@@ -498,11 +625,16 @@ def _height(panel: str, ctx: _Context) -> float:
 
 
 def _draw(fig: Figure | SubFigure, panel: str, ctx: _Context) -> None:
+    """A panel in `fig`: its title, a strip for its legend, its plots and its caption."""
     import textwrap
 
     fig.suptitle(ctx.title(panel), fontsize="large")
-    caption = _DRAW[panel](fig, ctx)
-    fig.supxlabel(textwrap.fill(caption, 140), fontsize="small")
+    grid = fig.add_gridspec(2, 1)
+    head, body = fig.add_subfigure(grid[0]), fig.add_subfigure(grid[1])
+    drawn = _DRAW[panel](body, ctx)
+    strip = _legend_row(head, drawn)
+    grid.set_height_ratios([strip, max(_height(panel, ctx) - strip, 1.0)])
+    fig.supxlabel(textwrap.fill(drawn.caption, 140), fontsize="small")
 
 
 def figure(report: Mapping[str, Any], recording: Recording | None,
@@ -575,14 +707,21 @@ def save(report: Mapping[str, Any], recording: Recording | None, path: str,
     """Draw the panels and write them: a PDF of a page per panel, or a PNG or SVG file per
     panel (`output_paths`), each atomically (inside `writing.all_or_nothing` all or none of
     them); returns the notes on panels left out."""
+    check_output(path)
+    drawn, notes = pages(report, recording, panels)
+    write_pages(drawn, path)
+    return notes
+
+
+def write_pages(drawn: Sequence[tuple[str, Figure]], path: str) -> None:
+    """Write figures named by panel: a PDF of a page each, or a PNG or SVG file each
+    (`output_paths`), each atomically, with no dates in them (the same fit draws the same
+    bytes)."""
     import io
 
     from hamid.data import writing
 
-    check_output(path)
-    drawn, notes = pages(report, recording, panels)
     extension = os.path.splitext(path)[1].lower()
-    # no dates in the files: the same fit draws the same bytes
     metadata = {".pdf": {"CreationDate": None}, ".svg": {"Date": None}}.get(extension)
     buffers = []
     if extension == ".pdf":
@@ -600,4 +739,3 @@ def save(report: Mapping[str, Any], recording: Recording | None, path: str,
             buffers.append(buffer.getvalue())
     for data, target in zip(buffers, output_paths(path, [n for n, _ in drawn]), strict=True):
         writing.write_bytes(data, target)
-    return notes

@@ -24,7 +24,7 @@ from hamid.prediction import noise_levels
 from hamid.safe_text import counted
 
 __all__ = ["Energies", "Segment", "energies", "lowest_energy", "noise_levels",
-           "read_recording", "segment_motion"]
+           "read_recording", "segment_motion", "segment_seconds"]
 
 Array = npt.NDArray[np.float64]
 # Recorded configurations of the other coordinates over which `lowest_energy` minimises.
@@ -115,10 +115,20 @@ def lowest_energy(report: Mapping[str, Any], recording: Recording, coordinate: i
     return E.reshape(len(others), *Q.shape).min(axis=0)
 
 
+def segment_seconds(report: Mapping[str, Any]) -> float | None:
+    """The length of the refinement's longest segment in seconds: of the lengthened fit
+    the estimates come from when it was lengthened, else of its first segments; None when
+    the report gives none (the whole trajectory)."""
+    refinement = report["method"]["refinement"]
+    lengthened = (refinement.get("lengthening") or {}).get("segment_seconds")
+    return lengthened if lengthened is not None else refinement.get("segment_seconds")
+
+
 @dataclass(frozen=True)
 class Segment:
-    """One trajectory's first refinement segment: times (s), the recorded states and the
-    fitted model's motion from the initial state that fits them best."""
+    """The start of one trajectory, as long as the refinement's longest segment: times
+    (s), the recorded states and the fitted model's motion from the initial state that
+    fits them best."""
 
     t: Array
     recorded: Array
@@ -127,15 +137,17 @@ class Segment:
 
 def segment_motion(report: Mapping[str, Any], recording: Recording,
                    trajectory: int) -> Segment:
-    """The fitted model integrated over the first segment of a trajectory (the length of
-    the refinement's segments), from the initial state that fits the recorded samples best
+    """The fitted model integrated over the start of a trajectory as long as the
+    refinement's longest segment (`segment_seconds`: the lengthened record when the fit
+    was lengthened), from the initial state that fits the recorded samples best
     in the noise-weighted squares the refinement minimised, the parameters held."""
     records = recording.records
     assert records.t is not None
     start, stop = records.bounds()[trajectory]
     t = records.t[start:stop]
-    length = report["method"]["refinement"]["segment_seconds"]
-    stop = start + max(int(np.searchsorted(t, t[0] + length, side="right")), 2)
+    length = segment_seconds(report)
+    if length is not None:
+        stop = start + max(int(np.searchsorted(t, t[0] + length, side="right")), 2)
     tau, recorded = records.t[start:stop] - records.t[start], records.X[start:stop]
     integration = prediction.Integration.of(report, recording).over(records, start, stop)
     x0 = prediction.fit_start(integration, tau, recorded,

@@ -154,13 +154,16 @@ def test_phase_panel_draws_every_sample_and_a_contour_per_trajectory(fit, table)
     figure = _page(fit, "phase")
     _check_picture(figure)
     axes = _data_axes(figure)
-    assert [(ax.get_xlabel(), ax.get_ylabel()) for ax in axes] == [("x", "vx"), ("y", "vy")]
-    for ax, (q, v) in zip(axes, [("x", "vx"), ("y", "vy")], strict=True):
-        points = [c for c in ax.collections if isinstance(c, PathCollection)]
-        assert [len(p.get_offsets()) for p in points] == [801, 801]
-        np.testing.assert_array_equal(np.vstack([p.get_offsets() for p in points]),
-                                      table[[q, v]].to_numpy())
-        assert sum(isinstance(c, ContourSet) for c in ax.collections) == 2
+    # a row per trajectory, a plot per coordinate
+    cells = [(k, q, v) for k in (1, 2) for q, v in [("x", "vx"), ("y", "vy")]]
+    assert [(ax.get_xlabel(), ax.get_ylabel()) for ax in axes] == [c[1:] for c in cells]
+    for ax, (k, q, v) in zip(axes, cells, strict=True):
+        (points,) = [c for c in ax.collections if isinstance(c, PathCollection)]
+        np.testing.assert_array_equal(points.get_offsets(),
+                                      table.loc[table.trajectory == k, [q, v]].to_numpy())
+        (contour,) = [c for c in ax.collections if isinstance(c, ContourSet)]
+        assert contour.get_zorder() > points.get_zorder()    # the line above the points
+        assert ax.get_title(loc="left") == f"trajectory {k}"
 
 
 def test_phase_contour_of_one_degree_of_freedom_is_the_orbit(clean_records):
@@ -191,7 +194,9 @@ def test_motion_panel_fits_the_recording_to_its_noise(fit, table, noise):
     _check_picture(figure)
     axes = _data_axes(figure)
     assert len(axes) == 4        # motion and misfit, per trajectory
-    length = fit.method["refinement"]["segment_seconds"]
+    # the lengthened segments the estimates come from, not the first ones
+    length = fit.method["refinement"]["lengthening"]["segment_seconds"]
+    assert length > fit.method["refinement"]["segment_seconds"]
     first = table[(table.trajectory == 1) & (table.t <= length + 1e-9)]
     lines = axes[0].get_lines()
     assert len(lines) == 4       # recorded and fitted, per coordinate
@@ -243,7 +248,8 @@ def test_a_panel_in_a_given_subplot(fit):
     left, right = figure.subplots(1, 2)
     assert fit.plot("parameters", ax=right) is figure
     assert left in figure.axes and right not in figure.axes
-    assert len(figure.subfigs) == 1 and len(figure.subfigs[0].axes) == len(fit.parameters)
+    (panel,) = figure.subfigs    # its legend strip and its plots
+    assert sum(len(part.axes) for part in panel.subfigs) == len(fit.parameters)
     with pytest.raises(UsageError, match="ax: give one panel"):
         fit.plot(["parameters", "correlation"], ax=left)
 
@@ -388,7 +394,7 @@ def test_residuals_far_beyond_the_noise_are_drawn_on_their_own_scale():
     standard, own = histogram.get_lines()
     energies = fitted.energies(result.to_dict(), result.recording)
     z = energies.residual / energies.noise
-    assert own.get_label() == f"normal, sd {np.std(z):.3g}" and np.std(z) > 10
+    assert own.get_label() == f"N(0, {np.std(z):.3g}²)" and np.std(z) > 10
     assert histogram.get_ylim()[1] < 0.1 < standard.get_ydata().max()
     low, high = histogram.get_xlim()
     assert low <= np.percentile(z, 0.5) and high >= np.percentile(z, 99.5)
@@ -396,11 +402,15 @@ def test_residuals_far_beyond_the_noise_are_drawn_on_their_own_scale():
 
 def test_parameters_known_to_rounding_get_short_tick_labels():
     """Clean data determine the estimates to 1e-13: the ticks are distances from a round
-    offset, not 17-digit numbers running into each other."""
+    number the row's title names, not 17-digit numbers running into each other, and no
+    offset text ("1e−4+1.508") beside them."""
     result = hamid.fit(str(SAMPLE.parent / "peng_quadratic.csv"))
     figure = _page(result, "parameters")
     _png(figure)   # labels and offsets are set when drawn
     for ax in _data_axes(figure):
         labels = [t.get_text() for t in ax.get_xticklabels() if t.get_text()]
         assert labels and max(len(text) for text in labels) <= 6, labels
-        assert ax.xaxis.get_offset_text().get_text(), ax.get_title(loc="left")
+        assert not ax.xaxis.get_offset_text().get_text()
+        name = ax.get_title(loc="left").split(" = ")[0]
+        assert re.search(rf"; ticks: {re.escape(name)} − [-\d.e]+, in 10[⁻¹²³⁴⁵⁶⁷⁸⁹⁰]+$",
+                         ax.get_title(loc="left")), ax.get_title(loc="left")
