@@ -41,7 +41,7 @@ from hamid.errors import DataError, ModelError
 from hamid.model.dissipation import Dissipation
 from hamid.model.models import Model
 
-__all__ = ["Cycle", "Orbit", "Rim", "Well"]
+__all__ = ["Cycle", "Fitted", "Orbit", "Rim", "Well"]
 
 Array = npt.NDArray[np.float64]
 # Offsets from a point, in units of the well's scale, where V' is looked at.
@@ -274,3 +274,29 @@ class Cycle:
     def damping_ratio(self) -> float | None:
         """ζ = ΔE / (4π (E − V(q*))): the equivalent viscous damping ratio."""
         return None if self.lost is None else self.lost / (4 * math.pi * self.excess)
+
+
+@dataclass(frozen=True, eq=False)
+class Fitted:
+    """A fitted model of one coordinate: its energy and dissipation at the estimates (name
+    -> value, the dissipation's coefficients among them), and where its well is looked for
+    (`Well.of`'s `near` and `scale`)."""
+
+    model: Model
+    estimates: Mapping[str, float]
+    dissipation: Dissipation | None = None
+    near: float = 0.0
+    scale: float = 1.0
+
+    def well(self) -> Well:
+        return Well.of(self.model, self.estimates, near=self.near, scale=self.scale)
+
+    def cycle(self, well: Well, orbit: Orbit) -> Cycle:
+        """The orbit's period and the energy the fitted dissipation takes over it."""
+        names = self.dissipation.names if self.dissipation is not None else ()
+        return well.cycle(orbit, self.dissipation, [self.estimates[n] for n in names])
+
+    def at_amplitude(self, amplitude: float) -> Cycle:
+        """The cycle of the orbit of this amplitude."""
+        well = self.well()
+        return self.cycle(well, well.orbit_at(amplitude))
