@@ -104,7 +104,7 @@ class Well:
                              f"{len(model.coordinates)}")
         _ = model.lagrangian   # a natural energy, or a one-line ModelError
         theta = np.array([estimates[name] for name in model.parameters], dtype=float)
-        probe = cls(model, theta, scale, near, 0.0, None, (near, near))
+        probe = cls(model, theta, scale, bottom=near, floor=0.0, rim=None, reach=(near, near))
         offsets = np.concatenate([-_STEPS[::-1], _STEPS]) * scale
         points = near + offsets
         slope = probe.slope(points)
@@ -127,8 +127,8 @@ class Well:
             else:
                 reach.append(float(walk[-1]))
         rim = min(barriers, key=lambda b: b.energy) if barriers else None
-        return cls(model, theta, scale, bottom, float(probe.potential(bottom)[0]), rim,
-                   (reach[1], reach[0]))
+        return cls(model, theta, scale, bottom=bottom, floor=float(probe.potential(bottom)[0]),
+                   rim=rim, reach=(reach[1], reach[0]))
 
     def _energy(self, q: Array, v: float) -> Array:
         X = np.column_stack([np.atleast_1d(np.asarray(q, dtype=float)),
