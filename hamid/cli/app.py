@@ -23,6 +23,7 @@ import click
 
 from hamid import __version__
 from hamid.cli import console, option_groups
+from hamid.cli.backbone_command import backbone
 from hamid.cli.predict_command import predict
 from hamid.cli.select_command import select
 from hamid.errors import DataError, HamidError, UsageError
@@ -195,6 +196,7 @@ def cli(debug: bool) -> None:
 
 cli.add_command(select)
 cli.add_command(predict)
+cli.add_command(backbone)
 
 
 @cli.command()

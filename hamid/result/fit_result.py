@@ -387,6 +387,50 @@ class FitResult:
 
         return prediction.predict(self.to_dict(), data, reading, from_rest=from_rest)
 
+    def backbone(self, amplitudes: Sequence[float] | None = None,
+                 energies: Sequence[float] | None = None, *, mode: int = 1,
+                 coordinate: str | None = None, points: int = 25, data: Any = None,
+                 **reading: Any) -> pd.DataFrame:
+        """The fitted model's backbone: frequency (Hz) and equivalent damping ratio of its
+        conservative orbits against amplitude, with bands at the fit's level
+        (`hamid.backbone`).
+
+        Parameters
+        ----------
+        amplitudes, energies : sequence of float, optional
+            The orbits, by amplitude (half the peak-to-peak range of `coordinate`) or by
+            level of the model's energy; neither: `points` amplitudes up to the largest
+            recorded (`hamid.backbone.backbone_table`).
+        mode : int
+            The mode (1 for a model of one coordinate).
+        data : str, path, list of them, or pandas.DataFrame, optional
+            The recording, read as the fit read it unless `reading` says otherwise: its
+            points (zero-crossing periods) go to the report, and its amplitudes set the
+            default range.
+
+        Returns
+        -------
+        pandas.DataFrame
+            A row per point: ``mode``, ``energy``, ``amplitude_<q>``, ``frequency_hz``,
+            ``frequency_hz_low``, ``frequency_hz_high``, ``damping_ratio``,
+            ``damping_ratio_low``, ``damping_ratio_high``; the ``hamid.backbone/1`` report
+            in ``.attrs["report"]``.
+        """
+        from hamid import prediction
+        from hamid.backbone import backbone_table
+
+        report = self.to_dict()
+        records = None if data is None else prediction.read(report, data, reading).records
+        request = backbone_table.Request(
+            amplitudes=None if amplitudes is None else tuple(map(float, amplitudes)),
+            energies=None if energies is None else tuple(map(float, energies)),
+            mode=mode, coordinate=coordinate, points=points)
+        document = backbone_table.backbone_report(backbone_table.Source.of_report(report),
+                                                  request, records=records)
+        table = backbone_table.frame(document)
+        table.attrs["report"] = document
+        return table
+
     @property
     def estimates(self) -> dict[str, float]:
         """Parameter name -> estimate."""

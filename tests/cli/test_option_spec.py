@@ -140,7 +140,7 @@ def _help_flags(command: str) -> dict[str, str]:
             for flag in re.findall(r"--[a-z-]+", re.split(r"\s{2,}", entry.strip())[0])}
 
 
-def test_fit_select_plot_and_predict_list_the_same_reading_options():
+def test_fit_select_plot_predict_and_backbone_list_the_same_reading_options():
     reading = _options(_command(option_groups.reading), READING_OPTIONS)
     flags = {flag for option in reading for flag in [*option.opts, *option.secondary_opts]}
     assert flags == {"--columns", "--time", "--time-unit", "--scale", "--gaps", "--trajectory",
@@ -148,14 +148,15 @@ def test_fit_select_plot_and_predict_list_the_same_reading_options():
                      "--no-units-row"}
     shown = {command: {flag: text for flag, text in _help_flags(command).items()
                        if flag in flags}
-             for command in ("fit", "select", "plot", "predict")}
+             for command in ("fit", "select", "plot", "predict", "backbone")}
     assert set(shown["fit"]) == flags
-    assert shown["fit"] == shown["select"] == shown["plot"] == shown["predict"]
+    assert shown["fit"] == shown["select"] == shown["plot"] == shown["predict"] \
+        == shown["backbone"]
 
 
 @pytest.mark.parametrize(("command", "groups"), [
     ("fit", list(OPTION_GROUPS)), ("select", ["reading", "velocities"]), ("plot", ["reading"]),
-    ("predict", ["reading"]),
+    ("predict", ["reading"]), ("backbone", ["reading"]),
 ])
 def test_the_help_lists_each_groups_options_under_its_heading(command, groups):
     sections = _help_sections(command)

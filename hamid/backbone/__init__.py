@@ -1,0 +1,1 @@
+"""Backbone curves: the fitted model's frequency and damping ratio against amplitude."""

@@ -1,0 +1,160 @@
+"""`hamid backbone` and `FitResult.backbone`: the report, its table, CSV, JSON and figure,
+and the errors of bad input (one line, nothing on stdout, no file left)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+
+import numpy as np
+import pandas as pd
+import pytest
+from helpers import hamid_command, one_line_error
+from scipy.special import ellipk
+
+import hamid
+from hamid.result.fit_result import FitResult
+
+HAMID = hamid_command()
+SYSTEM = {"model": {"builtin": "duffing"}, "parameters": {"k": 1.0, "k3": 0.5},
+          "damping": {"c_x": 0.04},
+          "initial": [{"x": 1.2, "v": 0.0}, {"x": 0.5, "v": 0.2}],
+          "simulate": {"t_end": 30.0, "dt": 0.02}}
+COLUMNS = ["mode", "energy", "amplitude_x", "frequency_hz", "frequency_hz_low",
+           "frequency_hz_high", "damping_ratio", "damping_ratio_low", "damping_ratio_high"]
+
+
+def _frequency(amplitude: float, k: float = 1.0, k3: float = 0.5) -> float:
+    omega2 = k + k3 * amplitude**2
+    return math.sqrt(omega2) / (4 * ellipk(k3 * amplitude**2 / (2 * omega2)))
+
+
+@pytest.fixture(scope="module")
+def data() -> pd.DataFrame:
+    return hamid.simulate(SYSTEM)
+
+
+@pytest.fixture(scope="module")
+def result(data) -> FitResult:
+    return hamid.fit(data, model="duffing", damping="viscous")
+
+
+@pytest.fixture()
+def files(tmp_path, result, data):
+    report, recording = tmp_path / "fit.json", tmp_path / "decay.csv"
+    report.write_text(json.dumps(result.to_dict()))
+    data.to_csv(recording, index=False)
+    return report, recording
+
+
+def _run(*args, cwd=None):
+    return subprocess.run([*HAMID, "backbone", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd)
+
+
+def test_fit_result_backbone_is_the_true_backbone(result):
+    table = result.backbone([0.2, 0.6, 1.0])
+    assert list(table.columns) == COLUMNS
+    assert table["amplitude_x"].to_numpy() == pytest.approx([0.2, 0.6, 1.0], rel=1e-12)
+    for _, row in table.iterrows():
+        assert row["frequency_hz"] == pytest.approx(_frequency(row["amplitude_x"]), rel=1e-5)
+        assert row["frequency_hz_low"] < row["frequency_hz"] < row["frequency_hz_high"]
+        assert row["damping_ratio_low"] < row["damping_ratio"] < row["damping_ratio_high"]
+    # viscous c = 0.04 at small amplitude: c / (2 omega), omega = 1
+    small = result.backbone([1e-3])
+    assert small["damping_ratio"][0] == pytest.approx(0.02, rel=1e-3)
+    assert table.attrs["report"]["schema"] == "hamid.backbone/1"
+
+
+def test_fit_result_backbone_by_energy_and_with_data(result, data):
+    table = result.backbone(energies=[0.3])
+    amplitude = table["amplitude_x"][0]
+    assert amplitude**2 / 2 + 0.5 * amplitude**4 / 4 == pytest.approx(0.3, rel=1e-6)
+    table = result.backbone(data=data, points=5)
+    document = table.attrs["report"]
+    assert len(table) == 5
+    assert [d["trajectory"] for d in document["data"]] == [1, 2]
+    largest = max(p["amplitude"] for d in document["data"] for p in d["points"])
+    assert table["amplitude_x"].to_numpy() == pytest.approx(
+        np.linspace(0.02 * largest, largest, 5), rel=1e-9)
+    for d in document["data"]:
+        for p in d["points"]:   # decaying: within 1% of the conservative backbone
+            assert p["frequency_hz"] == pytest.approx(_frequency(p["amplitude"]), rel=1e-2)
+
+
+def test_the_command_writes_table_json_and_csv(files, tmp_path):
+    report, recording = files
+    done = _run(report, "--amplitudes", "0.2,1")
+    assert done.returncode == 0, done.stderr
+    assert "amplitude x" in done.stdout and "mode 1" in done.stdout
+    done = _run(report, recording, "--points", "4", "--format", "json")
+    document = json.loads(done.stdout)
+    assert document["schema"] == "hamid.backbone/1"
+    assert set(document) >= {"schema", "model", "level", "modes", "data"}
+    assert len(document["modes"][0]["points"]) == 4
+    assert set(document["modes"][0]["points"][0]) == {
+        "energy", "amplitude", "frequency_hz", "frequency_hz_low", "frequency_hz_high",
+        "damping_ratio", "damping_ratio_low", "damping_ratio_high"}
+    assert document["data"][0]["points"][0].keys() == {"t", "amplitude", "frequency_hz"}
+    out = tmp_path / "curve.csv"
+    done = _run(report, "--energies", "0.1,0.4", "-o", out)
+    assert done.returncode == 0 and done.stdout == ""
+    table = pd.read_csv(out)
+    assert list(table.columns) == COLUMNS
+    assert table["energy"].to_numpy() == pytest.approx([0.1, 0.4], rel=1e-12)
+
+
+def test_the_command_draws_the_figure(files, tmp_path):
+    report, recording = files
+    out = tmp_path / "backbone.png"
+    done = _run(report, recording, "-o", out)
+    assert done.returncode == 0, done.stderr
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize(("args", "code", "words"), [
+    (["--amplitudes", "0.1,abc"], 2, ["--amplitudes", "0.1,abc", "numbers"]),
+    (["--amplitudes", "0.1", "--energies", "1"], 2, ["--amplitudes", "--energies"]),
+    (["--mode", "2"], 2, ["--mode 2", "1 mode"]),
+    (["--coordinate", "y"], 2, ["--coordinate", "'y'"]),
+    (["--amplitudes", "-0.5"], 1, ["amplitude -0.5", "not positive"]),
+    (["-o", "out.xyz"], 2, ["out.xyz", "extension"]),
+])
+def test_bad_options_are_one_line_errors(files, tmp_path, args, code, words):
+    report, _ = files
+    done = _run(report, *args, "-o", tmp_path / "out.json") if "-o" not in args \
+        else _run(report, *args, cwd=tmp_path)
+    one_line_error(done, code, *words)
+    assert not (tmp_path / "out.json").exists() and not (tmp_path / "out.xyz").exists()
+
+
+def test_a_level_above_the_rim_is_a_one_line_error(result, tmp_path):
+    report = result.to_dict()
+    for p in report["parameters"]:   # a softening spring: V = x²/2 − x⁴/4, rim 0.25
+        p["estimate"] = {"k": 1.0, "k3": -1.0}.get(p["name"], p["estimate"])
+    path = tmp_path / "soft.json"
+    path.write_text(json.dumps(report))
+    done = _run(path, "--energies", "0.1,0.8", "-o", tmp_path / "out.json")
+    one_line_error(done, 1, "energy 0.8", "above the well's rim at 0.25", "x = ")
+    assert not (tmp_path / "out.json").exists()
+
+
+def test_missing_files_and_reports_without_the_parts_needed(files, tmp_path):
+    report, _ = files
+    one_line_error(_run(tmp_path / "none.json"), 1, "none.json")
+    one_line_error(_run(report, tmp_path / "none.csv"), 1, "none.csv")
+    not_a_report = tmp_path / "other.json"
+    not_a_report.write_text(json.dumps({"schema": "hamid.fit/1", "model": {}}))
+    one_line_error(_run(not_a_report), 1, "other.json")
+
+
+def test_models_of_several_coordinates_wait_for_normal_modes(tmp_path):
+    system = {"model": {"builtin": "henon-heiles"},
+              "parameters": {"a": 1.0, "b": 1.0, "c": 1.0, "d": -1 / 3},
+              "initial": [{"x": 0.1, "y": 0.05, "vx": 0.0, "vy": 0.1}],
+              "simulate": {"t_end": 20.0, "dt": 0.05}}
+    fitted = hamid.fit(hamid.simulate(system), model="henon-heiles")
+    path = tmp_path / "hh.json"
+    path.write_text(json.dumps(fitted.to_dict()))
+    one_line_error(_run(path), 2, "models with 2 coordinates need normal modes")
