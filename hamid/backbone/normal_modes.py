@@ -63,6 +63,8 @@ _CORRECTOR_TOL = 1e-8   # the continuation's points, which only seed the targets
 _NEWTON_ITERATIONS = 12
 _FIRST_STEP, _LONGEST_STEP, _SHORTEST_STEP = 0.05, 0.25, 1e-7
 _MOST_STEPS = 400
+_PATH_NODES, _PATH_WEIGHTS = np.polynomial.legendre.leggauss(32)
+_PATH_NODES, _PATH_WEIGHTS = (_PATH_NODES + 1) / 2, _PATH_WEIGHTS / 2   # on [0, 1]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -85,7 +87,6 @@ class _Linear:
     """The equilibrium and the linear modes about it."""
 
     equilibrium: Array          # q*
-    potential: float            # V(q*)
     frequencies: Array          # (N,) rad/s, increasing
     shapes: Array               # (N, N): column j is mode j, M-normalised
 
@@ -156,11 +157,16 @@ class _Branch:
     # -- what places an orbit on the branch ---------------------------------------------
 
     def energy(self, q0: Array) -> tuple[float, Array]:
-        """V(q0) - V(q*) and its gradient in (q0, T)."""
-        X = np.concatenate([q0, np.zeros(self.n)])[None]
-        value = float(self.model.total_energy(X, self.theta)[0]) - self.linear.potential
-        gradient = self.model.energy_gradient(X, self.theta)[0, :self.n]
-        return value, np.append(gradient, 0.0)
+        """V(q0) - V(q*) and its gradient in (q0, T). The difference is the integral of dV
+        along the segment from q*, by Gauss-Legendre (exact for polynomials of degree up to
+        63): subtracting V(q*) would lose the small energies of a potential with a large
+        constant (a pendulum's -g cos q) to rounding."""
+        N, d = self.n, q0 - self.linear.equilibrium
+        X = np.zeros((len(_PATH_NODES) + 1, 2 * N))
+        X[:-1, :N] = self.linear.equilibrium + _PATH_NODES[:, None] * d
+        X[-1, :N] = q0
+        gradients = self.model.energy_gradient(X, self.theta)[:, :N]
+        return float(_PATH_WEIGHTS @ (gradients[:-1] @ d)), np.append(gradients[-1], 0.0)
 
     def extremes(self, shot: _Shot, coordinate: int) -> tuple[Array, Array]:
         """The times in [0, T/2] where the coordinate's velocity vanishes (both ends and
@@ -224,25 +230,23 @@ def _linear_modes(model: Model, theta: Array) -> _Linear:
     N = len(model.coordinates)
     lagrangian = model.lagrangian
 
-    def potential(q: Array) -> tuple[float, Array]:
-        X = np.concatenate([q, np.zeros(N)])[None]
-        return (float(model.total_energy(X, theta)[0]),
-                model.energy_gradient(X, theta)[0, :N])
+    def gradient(q: Array) -> Array:
+        return model.energy_gradient(np.concatenate([q, np.zeros(N)])[None], theta)[0, :N]
 
     def hessians(q: Array) -> tuple[Array, Array]:
-        X = np.concatenate([q, np.ones(N)])[None]
+        X = np.concatenate([q, np.zeros(N)])[None]   # at rest: K without the kinetic part
         d_dv, d_dq = lagrangian.second_derivatives(X, theta)
         return d_dv[0, :, N:], -d_dq[0, :, :N]
 
     q = np.zeros(N)
-    if not np.all(np.isfinite(potential(q)[1])):
+    if not np.all(np.isfinite(gradient(q))):
         raise ModelError(f"model {model.name!r}: the potential is not finite at the origin")
     for _ in range(50):   # Newton on dV = 0 from the origin, the exact Hessian
-        gradient = potential(q)[1]
+        slope = gradient(q)
         M, K = hessians(q)
-        if np.all(np.abs(gradient) <= 1e-14 * (1 + np.abs(K).max() * (1 + np.abs(q).max()))):
+        if np.all(np.abs(slope) <= 1e-14 * (1 + np.abs(K).max() * (1 + np.abs(q).max()))):
             break
-        q = q - np.linalg.lstsq(K, gradient, rcond=None)[0]
+        q = q - np.linalg.lstsq(K, slope, rcond=None)[0]
     else:
         raise ModelError(f"model {model.name!r}: no equilibrium found near the origin")
     M, K = hessians(q)
@@ -254,7 +258,7 @@ def _linear_modes(model: Model, theta: Array) -> _Linear:
     if w2[0] <= 0:
         raise ModelError(f"model {model.name!r}: the equilibrium {_where(model, q)} is not a "
                          f"minimum of the potential (a stiffness eigenvalue {w2[0]:.6g})")
-    return _Linear(q, potential(q)[0], np.sqrt(w2), shapes)
+    return _Linear(q, np.sqrt(w2), shapes)
 
 
 def _where(model: Model, q: Array) -> str:
@@ -263,18 +267,24 @@ def _where(model: Model, q: Array) -> str:
 
 
 @dataclass(frozen=True)
-class _Target:
-    """The condition that picks an orbit on the branch: energy or a coordinate's amplitude."""
+class _Measure:
+    """What places an orbit on the branch: its energy, or a coordinate's amplitude."""
 
+    branch: _Branch
     coordinate: int | None      # None: the energy
-    value: float
 
-    def residual(self, branch: _Branch, shot: _Shot) -> tuple[float, Array]:
+    def __call__(self, shot: _Shot) -> tuple[float, Array]:
+        """The measure of the orbit and its gradient in (q0, T)."""
         if self.coordinate is None:
-            value, gradient = branch.energy(shot.z[:branch.n])
-        else:
-            value, gradient = branch.amplitude(shot, self.coordinate)
-        return value - self.value, gradient
+            return self.branch.energy(shot.z[:self.branch.n])
+        return self.branch.amplitude(shot, self.coordinate)
+
+    def equal_to(self, value: float) -> Callable[[_Shot], tuple[float, Array]]:
+        """The condition measure = value, for `_newton`."""
+        def condition(shot: _Shot) -> tuple[float, Array]:
+            measure, gradient = self(shot)
+            return measure - value, gradient
+        return condition
 
 
 def _newton(branch: _Branch, z: Array, condition: Callable[[_Shot], tuple[float, Array]],
@@ -315,18 +325,12 @@ def normal_mode_branch(model: Model, estimates: Mapping[str, float], *, mode: in
     N = len(model.coordinates)
     if not 1 <= mode <= N:
         raise UsageError(f"mode {mode}: the model {model.name!r} has modes 1 to {N}")
-    if (amplitudes is None) == (energies is None):
-        raise UsageError("give either amplitudes or energies of the normal mode, not "
-                         f"{'both' if amplitudes is not None else 'neither'}")
     if coordinate is not None and not 0 <= coordinate < N:
         raise UsageError(f"coordinate {coordinate}: the model {model.name!r} has coordinates "
                          f"0 to {N - 1}")
     if samples < 2:
         raise UsageError(f"samples {samples}: an orbit needs at least 2")
-    kind = "amplitude" if amplitudes is not None else "energy"
-    targets = np.asarray(amplitudes if amplitudes is not None else energies, dtype=float)
-    if targets.ndim != 1 or not len(targets) or not np.all(np.isfinite(targets) & (targets > 0)):
-        raise UsageError(f"the {kind} targets must be finite positive numbers, at least one")
+    targets = _targets(amplitudes, energies)
     missing = [p for p in model.parameters if p not in estimates]
     if missing:
         raise UsageError(f"no estimate of {', '.join(map(repr, missing))} for the model "
@@ -336,58 +340,63 @@ def normal_mode_branch(model: Model, estimates: Mapping[str, float], *, mode: in
     linear = _linear_modes(model, theta)
     w, shape = linear.frequencies[mode - 1], linear.shapes[:, mode - 1]
     lead = int(np.argmax(np.abs(shape))) if coordinate is None else coordinate
-    # the linear amplitude of the whole displacement for each target, its largest component
-    if kind == "energy":
-        reach = np.sqrt(2 * targets) / w * np.abs(shape).max()
+    largest = np.abs(shape).max()
+    # each target's linear displacement (its largest coordinate): the scale of the branch
+    if energies is not None:
+        reach = np.sqrt(2 * targets) / w * largest
+    elif abs(shape[lead]) <= 1e-12 * largest:
+        raise UsageError(f"coordinate {lead} ({model.coordinates[lead]}) does not move in "
+                         f"linear mode {mode}: pick another to set its amplitudes")
     else:
-        if abs(shape[lead]) <= 1e-12 * np.abs(shape).max():
-            raise UsageError(f"coordinate {lead} ({model.coordinates[lead]}) does not move in "
-                             f"linear mode {mode}: pick another to set its amplitudes")
-        reach = targets / abs(shape[lead]) * np.abs(shape).max()
+        reach = targets / abs(shape[lead]) * largest
     branch = _Branch(model, theta, float(reach.max()))
-    condition = _Target(None if kind == "energy" else lead, 0.0)
-    order = np.argsort(targets)
+    measure = _Measure(branch, None if energies is not None else lead)
+    walk = _Walk(branch, mode, measure, lead,
+                 start=min(1e-3 * reach.max(), 0.5 * reach.min()) / largest)
     found: dict[int, PeriodicOrbit] = {}
-    walk = _Walk(branch, mode, condition, lead)
-    walk.start(min(1e-3 * reach.max(), 0.5 * reach.min()) / np.abs(shape).max())
-    for index in order:
+    for index in np.argsort(targets):
         walk.advance_past(float(targets[index]))
         found[int(index)] = branch.orbit(walk.solve_at(float(targets[index])), samples)
     return [found[i] for i in range(len(targets))]
 
 
+def _targets(amplitudes: Sequence[float] | None, energies: Sequence[float] | None) -> Array:
+    """The amplitudes or the energies asked, checked."""
+    if (amplitudes is None) == (energies is None):
+        raise UsageError("give either amplitudes or energies of the normal mode, not "
+                         f"{'both' if amplitudes is not None else 'neither'}")
+    kind = "amplitude" if amplitudes is not None else "energy"
+    targets = np.asarray(amplitudes if amplitudes is not None else energies, dtype=float)
+    if targets.ndim != 1 or not len(targets) or not np.all(np.isfinite(targets) & (targets > 0)):
+        raise UsageError(f"the {kind} targets must be finite positive numbers, at least one")
+    return targets
+
+
 class _Walk:
     """Pseudo-arclength continuation along one branch, in scaled (q0 / scale, T / T0)."""
 
-    def __init__(self, branch: _Branch, mode: int, target: _Target, lead: int):
-        self.branch, self.mode, self.target, self.lead = branch, mode, target, lead
-        linear = branch.linear
-        self.period0 = 2 * math.pi / linear.frequencies[mode - 1]
-        N = branch.n
-        self.units = np.append(np.full(N, branch.scale), self.period0)
+    def __init__(self, branch: _Branch, mode: int, measure: _Measure, lead: int, *,
+                 start: float):
+        """Start from the orbit of the linear mode's shape times `start`, at the mode's
+        linear energy, headed up in energy."""
+        self.branch, self.mode, self.measure, self.lead = branch, mode, measure, lead
+        linear, N = branch.linear, branch.n
+        shape, w = linear.shapes[:, mode - 1], linear.frequencies[mode - 1]
+        period = 2 * math.pi / w
+        self.units = np.append(np.full(N, branch.scale), period)
         self.step = _FIRST_STEP
-
-    def measure(self, shot: _Shot) -> float:
-        return self.target.residual(self.branch, shot)[0] + self.target.value
-
-    def start(self, size: float) -> None:
-        """The orbit of the linear mode's shape times `size`, at its linear energy."""
-        linear, N = self.branch.linear, self.branch.n
-        shape = linear.shapes[:, self.mode - 1]
-        w = linear.frequencies[self.mode - 1]
-        z = np.append(linear.equilibrium + size * shape, self.period0)
-        energy = _Target(None, 0.5 * (w * size) ** 2)
+        z = np.append(linear.equilibrium + start * shape, period)
         try:
-            shot = _newton(self.branch, z, lambda s: energy.residual(self.branch, s))
+            shot = _newton(branch, z, _Measure(branch, None).equal_to(0.5 * (w * start) ** 2))
         except _NoConvergence:
-            raise ModelError(f"mode {self.mode}: no periodic orbit found near the linear mode "
-                             "at small amplitude") from None
+            raise ModelError(f"mode {mode}: no periodic orbit found near the linear mode at "
+                             "small amplitude") from None
         self.previous = self.current = shot
         tangent = self._tangent(shot)
-        if self.branch.energy(shot.z[:N])[1] @ (tangent * self.units) < 0:
+        if branch.energy(shot.z[:N])[1] @ (tangent * self.units) < 0:
             tangent = -tangent
         self.tangent = tangent
-        self.angles = self.branch.angles(shot)
+        self.angles = branch.angles(shot)
         self._check_resonance(shot, self.angles)
 
     def _tangent(self, shot: _Shot) -> Array:
@@ -397,12 +406,11 @@ class _Walk:
     def advance_past(self, value: float) -> None:
         """Step along the branch until the measure (energy or amplitude) reaches `value`."""
         steps = 0
-        while self.measure(self.current) < value:
+        while self.measure(self.current)[0] < value:
             steps += 1
             if steps > _MOST_STEPS:
                 raise self._stuck(f"the branch did not reach it in {_MOST_STEPS} steps", value)
             self._one_step(value)
-
     def _one_step(self, value: float) -> None:
         branch, units = self.branch, self.units
         base = self.current.z / units
@@ -436,15 +444,14 @@ class _Walk:
 
     def solve_at(self, value: float) -> _Shot:
         """Newton's method on the target from the two points about it."""
-        before, after = self.measure(self.previous), self.measure(self.current)
+        before, after = self.measure(self.previous)[0], self.measure(self.current)[0]
         if after == before or value <= before:
             z = self.current.z if value >= after else self.previous.z
         else:
             share = (value - before) / (after - before)
             z = self.previous.z + share * (self.current.z - self.previous.z)
-        target = _Target(self.target.coordinate, value)
         try:
-            return _newton(self.branch, z, lambda s: target.residual(self.branch, s))
+            return _newton(self.branch, z, self.measure.equal_to(value))
         except _NoConvergence:
             raise self._stuck("Newton's method did not converge on it", value) from None
 
@@ -457,7 +464,7 @@ class _Walk:
                 f"{2 * math.pi / shot.z[-1]:.6g} rad/s)")
 
     def _stuck(self, why: str, value: float) -> ModelError:
-        kind = "energy" if self.target.coordinate is None else "amplitude"
+        kind = "energy" if self.measure.coordinate is None else "amplitude"
         return ModelError(f"mode {self.mode}, continued to {kind} {value:.6g}: {why}; reached "
                           f"{self._reached()}")
 

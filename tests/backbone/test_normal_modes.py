@@ -144,6 +144,46 @@ def test_second_mode_by_energy_hardens():
     assert start[0] * start[1] < 0
 
 
+def _double_pendulum_rhs(g: float):
+    """The double pendulum of unit masses and lengths, its equations written out by hand."""
+    def rhs(t, y):
+        p, q, wp, wq = y
+        s, c, den = np.sin(p - q), np.cos(p - q), 3 - np.cos(2 * (p - q))
+        return [wp, wq,
+                (-3 * g * np.sin(p) - g * np.sin(p - 2 * q) - 2 * s * (wq**2 + wp**2 * c)) / den,
+                2 * s * (2 * wp**2 + 2 * g * np.cos(p) + wq**2 * c) / den]
+    return rhs
+
+
+def test_double_pendulum_a_mass_matrix_that_moves():
+    # the kinetic energy's cross term turns with p - q, and -g cos puts V(q*) far from zero
+    model = model_from_expression(
+        "double", "wp**2 + wq**2/2 + wp*wq*cos(p - q) - g*(2*cos(p) + cos(q))",
+        ["p", "q"], ["wp", "wq"])
+    g, A = 9.81, 0.3
+    tiny, orbit = normal_mode_branch(model, {"g": g}, mode=1, amplitudes=[1e-6, A],
+                                     coordinate=0)
+    # linear limit: M = [[2, 1], [1, 1]], K = g diag(2, 1), so w^2 = g (2 - sqrt 2)
+    assert 2 * math.pi / tiny.period == pytest.approx(math.sqrt(g * (2 - math.sqrt(2))),
+                                                      rel=1e-8)
+    # x K x / 2 with x = 1e-6 (1, sqrt 2), the linear mode's shape: 2 g 1e-12, where
+    # V(q) - V(q*) itself would keep no digit of it beside V(q*) = -3 g
+    assert tiny.energy == pytest.approx(2 * g * 1e-12, rel=1e-6)
+    # on the orbit: the energy above the equilibrium's, all along
+    energy = model.total_energy(orbit.states.T, [g]) + 3 * g
+    assert np.abs(energy - orbit.energy).max() < 1e-12 * 3 * g * 10
+
+    def residual(u):
+        b, T = u
+        end = solve_ivp(_double_pendulum_rhs(g), (0, T / 2), [A, b, 0, 0], method="DOP853",
+                        rtol=1e-12, atol=1e-13).y[:, -1]
+        return [end[0] + A, end[1] + b]
+
+    b, T = root(residual, [A * math.sqrt(2), tiny.period], tol=1e-13).x
+    assert orbit.period == pytest.approx(T, rel=1e-6)
+    assert orbit.amplitudes == pytest.approx([A, b], rel=1e-6)
+
+
 RESONANT = ("res", "(v1**2 + v2**2)/2 + x1**2/2 + w2sq*x2**2/2 + k3*x1**4/4 + c*x1**3*x2",
             ["x1", "x2"], ["v1", "v2"])
 
