@@ -100,22 +100,22 @@ class _Shot:
     end: Array                  # (2N,) state at T/2
     jacobian: Array             # (N, N + 1): d v(T/2) / d(q0, T)
     half_flow: Array            # (2N, 2N): Phi_h
-    solution: object            # solve_ivp's dense output over [0, T/2]
+    solution: Callable[[Array | float], Array]   # solve_ivp's dense output over [0, T/2]
 
 
 class _Branch:
     """The shooting problem of one model at its estimates: motion, energy, amplitudes."""
 
-    def __init__(self, model: Model, theta: Array, scale: float):
-        self.model, self.theta = model, theta
-        inputs = None
-        if model.forcing is not None:   # the free motion: every input at zero
-            zeros = np.zeros(len(model.inputs))
-            inputs = lambda t: zeros  # noqa: E731
-        self.motion: Motion = Dynamics(model).at(np.concatenate([[1.0], theta]), inputs=inputs)
+    def __init__(self, model: Model, theta: Array, linear: _Linear, scale: float):
+        self.model, self.theta, self.linear, self.scale = model, theta, linear, scale
+        zeros = np.zeros(len(model.inputs))
+
+        def at_rest(t: float) -> Array:   # a driven model's free motion: its inputs at zero
+            return zeros
+
+        self.motion: Motion = Dynamics(model).at(
+            np.concatenate([[1.0], theta]), inputs=None if model.forcing is None else at_rest)
         self.n = len(model.coordinates)
-        self.scale = scale
-        self.linear = _linear_modes(model, theta)
         self.steps = scale * 1e-6 * np.concatenate(
             [np.ones(self.n), np.full(self.n, self.linear.frequencies[-1])])
 
@@ -349,7 +349,7 @@ def normal_mode_branch(model: Model, estimates: Mapping[str, float], *, mode: in
                          f"linear mode {mode}: pick another to set its amplitudes")
     else:
         reach = targets / abs(shape[lead]) * largest
-    branch = _Branch(model, theta, float(reach.max()))
+    branch = _Branch(model, theta, linear, float(reach.max()))
     measure = _Measure(branch, None if energies is not None else lead)
     walk = _Walk(branch, mode, measure, lead,
                  start=min(1e-3 * reach.max(), 0.5 * reach.min()) / largest)

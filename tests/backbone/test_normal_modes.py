@@ -14,7 +14,7 @@ from scipy.special import ellipk
 
 from hamid.backbone.normal_modes import InternalResonanceError, normal_mode_branch
 from hamid.errors import ModelError, UsageError
-from hamid.model.models import builtin_model, model_from_expression
+from hamid.model.models import builtin_model, forcing_table, model_from_expression, model_from_spec
 
 TWO = ("two", "(v1**2 + v2**2)/2 + k1*x1**2/2 + k2*(x2 - x1)**2/2 + k3*x1**4/4",
        ["x1", "x2"], ["v1", "v2"])
@@ -75,6 +75,17 @@ def test_duffing_by_energies():
         assert orbit.energy == pytest.approx(E, rel=1e-12)
         assert orbit.amplitudes[0] == pytest.approx(A, rel=1e-10)
         assert orbit.period == pytest.approx(_duffing_period(1.0, 0.5, A), rel=1e-8)
+
+
+def test_a_driven_model_orbits_freely():
+    # the recorded input at zero: the free Duffing of mass m, x'' = -(k x + k3 x^3) / m
+    model = forcing_table(model_from_spec(
+        {"coordinates": ["x"], "velocities": ["v"], "energy": "m*v**2/2 + k*x**2/2 + k3*x**4/4",
+         "parameters": ["m", "k", "k3"]}), {"inputs": ["F"], "work": "b*F*x",
+                                             "parameters": ["b"]})
+    orbit, = normal_mode_branch(model, {"m": 1.5, "k": 4.0, "k3": 2.0, "b": 3.0}, mode=1,
+                                amplitudes=[0.7])
+    assert orbit.period == pytest.approx(_duffing_period(4.0 / 1.5, 2.0 / 1.5, 0.7), rel=1e-8)
 
 
 def test_equilibrium_away_from_the_origin():
