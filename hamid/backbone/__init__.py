@@ -1,1 +1,2 @@
-"""Backbone curves: the fitted model's frequency and damping ratio against amplitude."""
+"""Backbone curves: the free periodic orbits of a fitted model, their frequency and equivalent
+damping against amplitude, with bands."""
