@@ -25,11 +25,13 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
 from hamid import safe_text
-from hamid.backbone.bands import Uncertainty, bands
+from hamid.backbone.bands import Band, Uncertainty, bands, bands_along
 from hamid.backbone.from_data import decay_points
-from hamid.backbone.one_degree import Fitted, Well
+from hamid.backbone.normal_modes import ModeFitted
+from hamid.backbone.one_degree import Cycle, Fitted, Well
 from hamid.data import column_roles
 from hamid.data.records import Records
 from hamid.errors import UsageError
@@ -44,6 +46,7 @@ SCHEMA = "hamid.backbone/1"
 FORMATS = ("table", "json", "csv")
 SMALLEST = 0.02    # the default amplitudes start at this share of the largest recorded
 _RIM_SHARE = 0.9   # without a level in the well: the orbit this far up to the rim
+_SMALL_ENERGY = 1e-6   # of the largest level: the orbit that finds a mode's equilibrium
 _SI = {**{unit: "m" for unit in ("m", "cm", "mm", "um", "nm")},
        **{unit: "rad" for unit in ("rad", "mrad", "deg")}}
 
@@ -114,13 +117,8 @@ def _unit(data: Mapping[str, Any], coordinate: str) -> str | None:
 
 
 def _one_degree(source: Source, request: Request) -> Fitted:
-    """The one place a model of several coordinates is turned away (their backbones are
-    nonlinear normal modes)."""
+    """The fitted model of one coordinate, the request checked against it."""
     model = source.fitted.model
-    n = len(model.coordinates)
-    if n != 1:
-        raise UsageError(f"backbone: models with {n} coordinates need normal modes "
-                         "(not yet)")
     if request.mode != 1:
         raise UsageError(f"--mode {request.mode}: model {model.name!r} has 1 mode (one per "
                          "coordinate)")
@@ -149,8 +147,8 @@ def backbone_report(source: Source, request: Request, *, records: Records | None
     """The ``hamid.backbone/1`` dict (docs/output.md): the curve at the requested levels,
     bands at the fit's level, and with `records` (read from the files `names`) the
     recorded points."""
-    from hamid import __version__
-
+    if len(source.fitted.model.coordinates) > 1:
+        return _normal_modes_report(source, request, records=records, names=names)
     fitted = _one_degree(source, request)
     coordinate = fitted.model.coordinates[0]
     if records is not None:
@@ -173,31 +171,106 @@ def backbone_report(source: Source, request: Request, *, records: Records | None
         cycle = fitted.cycle(well, orbit)
         band = (bands(replace(fitted, near=well.bottom), orbit.amplitude, source.uncertainty,
                       centre=cycle) if source.uncertainty is not None else None)
-        f_band = band.frequency if band and band.frequency else (None, None)
-        z_band = band.damping_ratio if band and band.damping_ratio else (None, None)
-        points.append({"energy": orbit.energy, "amplitude": {coordinate: orbit.amplitude},
-                       "frequency_hz": cycle.frequency, "frequency_hz_low": f_band[0],
-                       "frequency_hz_high": f_band[1], "damping_ratio": cycle.damping_ratio,
-                       "damping_ratio_low": z_band[0], "damping_ratio_high": z_band[1]})
-    return _plain({
-        "schema": SCHEMA, "hamid_version": __version__,
-        "model": fitted.model.name, "level": source.level,
-        "bands": None if source.uncertainty is None else
-        "delta method: central differences of each value in each free parameter at fixed "
-        "amplitude, with the fit's covariance, times the fit's interval multiplier "
-        f"{source.uncertainty.multiplier:.4g}",
-        "units": {"amplitude": source.units, "time": source.time_unit},
+        points.append({**_point(cycle, {coordinate: orbit.amplitude}, band),
+                       "energy": orbit.energy})
+    return _document(source, fitted.model.name, {
         "equilibrium": {coordinate: well.bottom},
         "rim": None if well.rim is None else {"energy": well.rim.energy,
                                               coordinate: well.rim.position},
         "modes": [{"mode": 1, "coordinate": coordinate, "points": points}],
-        "data": [{"source": ", ".join(names) or None, "trajectory": d.trajectory,
-                  "coordinate": coordinate,
-                  "points": [{"t": t, "amplitude": a, "frequency_hz": f}
-                             for t, a, f in zip(d.t.tolist(), d.amplitude.tolist(),
-                                                d.frequency.tolist(), strict=True)]}
-                 for d in data],
-    })
+        "data": _data(data, coordinate, names)})
+
+
+def _point(cycle: Cycle, amplitude: dict[str, float], band: Band | None) -> dict[str, Any]:
+    """One point of a curve: its level, frequency and damping ratio with their bands."""
+    f_band = band.frequency if band and band.frequency else (None, None)
+    z_band = band.damping_ratio if band and band.damping_ratio else (None, None)
+    return {"energy": cycle.excess, "amplitude": amplitude, "frequency_hz": cycle.frequency,
+            "frequency_hz_low": f_band[0], "frequency_hz_high": f_band[1],
+            "damping_ratio": cycle.damping_ratio, "damping_ratio_low": z_band[0],
+            "damping_ratio_high": z_band[1]}
+
+
+def _data(data: Sequence[Any], coordinate: str, names: Sequence[str]) -> list[dict[str, Any]]:
+    """The recorded points, trajectory by trajectory."""
+    return [{"source": ", ".join(names) or None, "trajectory": d.trajectory,
+             "coordinate": coordinate,
+             "points": [{"t": t, "amplitude": a, "frequency_hz": f}
+                        for t, a, f in zip(d.t.tolist(), d.amplitude.tolist(),
+                                           d.frequency.tolist(), strict=True)]}
+            for d in data]
+
+
+def _document(source: Source, model: str, curve: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``hamid.backbone/1`` dict around a curve (equilibrium, rim, modes, data)."""
+    from hamid import __version__
+
+    return _plain({
+        "schema": SCHEMA, "hamid_version": __version__, "model": model, "level": source.level,
+        "bands": None if source.uncertainty is None else
+        "delta method: central differences of each value in each free parameter at fixed "
+        "amplitude, with the fit's covariance, times the fit's interval multiplier "
+        f"{source.uncertainty.multiplier:.4g}",
+        "units": {"amplitude": source.units, "time": source.time_unit}, **curve})
+
+
+def _normal_modes_report(source: Source, request: Request, *, records: Records | None,
+                         names: Sequence[str]) -> dict[str, Any]:
+    """The backbone of a model of several coordinates: a nonlinear normal mode continued
+    from its linear mode (`hamid.backbone.normal_modes`), led by `request.coordinate`
+    (default: the mode's largest). Default levels: `points` energies evenly spaced from 2%
+    of the highest fitted level above the equilibrium's to it (with data, amplitudes of
+    the leading coordinate up to the largest recorded one)."""
+    model = source.fitted.model
+    if request.coordinate is not None and request.coordinate not in model.coordinates:
+        raise UsageError(f"--coordinate {request.coordinate!r}: not a coordinate of model "
+                         f"{model.name!r} ({', '.join(model.coordinates)})")
+    lead = (None if request.coordinate is None
+            else model.coordinates.index(request.coordinate))
+    mode = ModeFitted(model, source.fitted.estimates, source.fitted.dissipation,
+                      request.mode, lead)
+    first = mode.orbits(energies=[_SMALL_ENERGY * max(abs(h) for h in source.levels)
+                                  if source.levels else _SMALL_ENERGY])[0][1]
+    lead = int(np.argmax(first.amplitudes)) if lead is None else lead
+    coordinate = model.coordinates[lead]
+    equilibrium = (first.states[:len(model.coordinates)].max(axis=1)
+                   + first.states[:len(model.coordinates)].min(axis=1)) / 2
+    data = ([] if records is None
+            else decay_points(records, lead, float(equilibrium[lead])))
+    amplitudes, energies = request.amplitudes, request.energies
+    if amplitudes is None and energies is None:
+        recorded = [a for d in data for a in d.amplitude.tolist()]
+        if recorded:
+            amplitudes = tuple(np.linspace(SMALLEST * max(recorded), max(recorded),
+                                           request.points).tolist())
+        else:
+            top = max(h for h in source.levels) - _equilibrium_energy(source, equilibrium)
+            if not top > 0:
+                raise UsageError("backbone: no fitted level lies above the equilibrium; "
+                                 "give --amplitudes or --energies")
+            energies = tuple(np.linspace(SMALLEST * top, top, request.points).tolist())
+    mode = replace(mode, lead=lead)
+    found = mode.orbits(amplitudes=amplitudes, energies=energies)
+    at = [float(orbit.amplitudes[lead]) for _, orbit in found]   # bands at fixed amplitude
+    found_bands = ([None] * len(found) if source.uncertainty is None else bands_along(
+        mode, [cycle for cycle, _ in found], source.uncertainty,
+        lambda nudged: [cycle for cycle, _ in nudged.orbits(amplitudes=at)]))
+    points = [_point(cycle, dict(zip(model.coordinates, orbit.amplitudes.tolist(),
+                                     strict=True)), band)
+              for (cycle, orbit), band in zip(found, found_bands, strict=True)]
+    return _document(source, model.name, {
+        "equilibrium": dict(zip(model.coordinates, equilibrium.tolist(), strict=True)),
+        "rim": None,
+        "modes": [{"mode": request.mode, "coordinate": coordinate, "points": points}],
+        "data": _data(data, coordinate, names)})
+
+
+def _equilibrium_energy(source: Source, equilibrium: npt.NDArray[np.float64]) -> float:
+    """The fitted energy at rest at the equilibrium."""
+    model = source.fitted.model
+    theta = [source.fitted.estimates[p] for p in model.parameters]
+    state = np.concatenate([equilibrium, np.zeros(len(model.velocities))])[None]
+    return float(model.total_energy(state, theta)[0])
 
 
 def _plain(value: Any) -> Any:

@@ -13,15 +13,20 @@ covariance has unknown entries, or where a perturbed well no longer holds the or
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
 from hamid.backbone.one_degree import Cycle, Fitted
+
+if TYPE_CHECKING:
+    from hamid.backbone.normal_modes import ModeFitted
 from hamid.errors import HamidError
 
-__all__ = ["STEP", "Band", "Uncertainty", "bands"]
+__all__ = ["STEP", "Band", "Uncertainty", "bands", "bands_along"]
 
 Array = npt.NDArray[np.float64]
 STEP = 1e-4
@@ -60,22 +65,33 @@ def bands(fitted: Fitted, amplitude: float, uncertainty: Uncertainty, *,
           centre: Cycle | None = None) -> Band:
     """The bands of the frequency and the damping ratio at `amplitude` (`centre`: its
     cycle at the estimates, when already computed)."""
-    centre = centre or fitted.at_amplitude(amplitude)
-    zeta = centre.damping_ratio
+    return bands_along(fitted, [centre or fitted.at_amplitude(amplitude)], uncertainty,
+                       lambda nudged: [nudged.at_amplitude(amplitude)])[0]
+
+
+def bands_along(fitted: Fitted | ModeFitted, centres: Sequence[Cycle],
+                uncertainty: Uncertainty,
+                cycles: Callable[[Fitted | ModeFitted], Sequence[Cycle]]) -> list[Band]:
+    """The bands of several points of one curve (`centres`, their cycles at the
+    estimates), `cycles` giving those points' cycles of a model nudged in one parameter:
+    a normal mode's branch is continued once per nudge for all its points."""
     if not np.all(np.isfinite(uncertainty.matrix)):
-        return Band(None, None)
+        return [Band(None, None)] * len(centres)
     sigma = np.sqrt(np.maximum(np.diag(uncertainty.matrix), 0.0))
-    slopes = np.full((2, len(uncertainty.names)), np.nan)
+    slopes = np.full((len(centres), 2, len(uncertainty.names)), np.nan)
     for k, name in enumerate(uncertainty.names):
         theta = fitted.estimates[name]
         h = STEP * (abs(theta) + sigma[k]) or STEP
         try:
-            ends = [replace(fitted, estimates={**fitted.estimates, name: theta + s * h})
-                    .at_amplitude(amplitude) for s in (1.0, -1.0)]
+            up, down = (cycles(replace(fitted, estimates={**fitted.estimates,
+                                                          name: theta + s * h}))
+                        for s in (1.0, -1.0))
         except HamidError:
             continue
-        slopes[0, k] = (ends[0].frequency - ends[1].frequency) / (2 * h)
-        if zeta is not None:
-            slopes[1, k] = (ends[0].damping_ratio - ends[1].damping_ratio) / (2 * h)
-    return Band(_interval(centre.frequency, slopes[0], uncertainty),
-                _interval(zeta, slopes[1], uncertainty))
+        for j, (a, b) in enumerate(zip(up, down, strict=True)):
+            slopes[j, 0, k] = (a.frequency - b.frequency) / (2 * h)
+            if centres[j].damping_ratio is not None:
+                slopes[j, 1, k] = (a.damping_ratio - b.damping_ratio) / (2 * h)
+    return [Band(_interval(centre.frequency, slope[0], uncertainty),
+                 _interval(centre.damping_ratio, slope[1], uncertainty))
+            for centre, slope in zip(centres, slopes, strict=True)]

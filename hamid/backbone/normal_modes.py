@@ -45,13 +45,16 @@ import numpy as np
 import numpy.typing as npt
 import scipy.linalg
 import scipy.optimize
-from scipy.integrate import solve_ivp
+from scipy.integrate import solve_ivp, trapezoid
 
+from hamid.backbone.one_degree import Cycle
 from hamid.errors import ModelError, UsageError
+from hamid.model.dissipation import Dissipation
 from hamid.model.dynamics import Dynamics, Motion
 from hamid.model.models import Model
 
-__all__ = ["RESONANCE_ANGLE", "InternalResonanceError", "PeriodicOrbit", "normal_mode_branch"]
+__all__ = ["RESONANCE_ANGLE", "InternalResonanceError", "ModeFitted", "PeriodicOrbit",
+           "normal_mode_branch"]
 
 Array = npt.NDArray[np.float64]
 
@@ -358,6 +361,42 @@ def normal_mode_branch(model: Model, estimates: Mapping[str, float], *, mode: in
         walk.advance_past(float(targets[index]))
         found[int(index)] = branch.orbit(walk.solve_at(float(targets[index])), samples)
     return [found[i] for i in range(len(targets))]
+
+
+@dataclass(frozen=True, eq=False)
+class ModeFitted:
+    """A fitted model of several coordinates and one of its normal modes (1-based), led by
+    coordinate number `lead` (None: the mode's largest): the counterpart of
+    `hamid.backbone.one_degree.Fitted` that the bands perturb."""
+
+    model: Model
+    estimates: Mapping[str, float]
+    dissipation: Dissipation | None
+    mode: int
+    lead: int | None = None
+
+    def orbits(self, *, amplitudes: Sequence[float] | None = None,
+               energies: Sequence[float] | None = None) -> list[tuple[Cycle, PeriodicOrbit]]:
+        """Each orbit asked (`normal_mode_branch`) with its cycle: the energy the fitted
+        dissipation takes over one period, the closed integral of its power v.dR/dv along
+        the conservative orbit (the trapezoidal rule, exact to rounding for a smooth
+        periodic integrand sampled over its period)."""
+        found = normal_mode_branch(self.model, self.estimates, mode=self.mode,
+                                   amplitudes=amplitudes, energies=energies,
+                                   coordinate=self.lead)
+        return [(self._cycle(orbit), orbit) for orbit in found]
+
+    def _cycle(self, orbit: PeriodicOrbit) -> Cycle:
+        lost = None
+        if self.dissipation is not None:
+            coefficients = np.array([self.estimates[n] for n in self.dissipation.names])
+            power = self.dissipation.power_parts(orbit.states.T) @ coefficients
+            lost = float(trapezoid(power, orbit.t))
+        return Cycle(orbit.period, lost, orbit.energy)
+
+    def at_amplitude(self, amplitude: float) -> Cycle:
+        """The cycle of the orbit whose leading coordinate has this amplitude."""
+        return self.orbits(amplitudes=[amplitude])[0][0]
 
 
 def _targets(amplitudes: Sequence[float] | None, energies: Sequence[float] | None) -> Array:

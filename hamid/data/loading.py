@@ -212,7 +212,8 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
                                                 period))
     derivation = None
     if derived:
-        records, derivation = _derive_velocities(records, m, options.window, options.order,
+        records, derivation = measurement.derive_velocities(records, len(m.coordinates),
+                                                             options.window, options.order,
                                                  period)
         notes.append(f"velocities derived from the positions (Savitzky-Golay, window "
                      f"{derivation[0]} samples, order {options.order}); their noise is "
@@ -752,27 +753,6 @@ def _truth(metadata: Mapping[str, Any] | None, m: Model) -> dict[str, float]:
     values = {**undamped, **(metadata.get("parameters") or {}),
               **(metadata.get("damping") or {})}
     return {k: float(v) for k, v in values.items() if isinstance(v, int | float)}
-
-
-def _derive_velocities(records: Records, model: Model, window: int | None, order: int,
-                       period: float | None) -> tuple[Records, tuple[int, float]]:
-    """Records whose velocities come from Savitzky-Golay differentiation of the positions
-    (`period`, the dominant one, sets the default window)."""
-    from hamid.data import measurement
-
-    if records.t is None:
-        raise UsageError("--velocity savgol needs a time column; name it with --time COL "
-                         "(and its unit with --time-unit)")
-    N = len(model.coordinates)
-    if window is None:
-        dt = float(np.median(np.diff(records.t)))
-        window = measurement.default_savgol_window(None if period is None else period / dt,
-                                                   order)
-    V, gain = measurement.savgol_velocities(records.X[:, :N], records.t, records.bounds(),
-                                            window=window, order=order)
-    X = records.X.copy()
-    X[:, N:] = V
-    return dataclasses.replace(records, X=X), (window, gain)
 
 
 def noise_levels(loaded: Source,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 
@@ -11,8 +12,8 @@ import numpy.typing as npt
 from hamid.data.records import Records, ranges, runs
 from hamid.errors import DataError, UsageError
 
-__all__ = ["DIFFERENCE_ORDER", "VelocitySums", "estimate_noise", "savgol_velocities",
-           "velocity_check"]
+__all__ = ["DIFFERENCE_ORDER", "VelocitySums", "derive_velocities", "estimate_noise",
+           "savgol_velocities", "velocity_check"]
 
 # Differences of this order remove a smooth signal (its k-th difference is ~ (w dt)^k) and
 # keep white noise, scaled by sqrt(C(2k, k)).
@@ -61,6 +62,25 @@ def estimate_noise(X: npt.NDArray[np.float64],
         differences -= np.median(differences, overwrite_input=True)
         mad[column] = np.median(np.abs(differences, out=differences), overwrite_input=True)
     return _MAD_TO_SIGMA * mad / math.sqrt(math.comb(2 * k, k))
+
+
+def derive_velocities(records: Records, n_coordinates: int, window: int | None, order: int,
+                      period: float | None) -> tuple[Records, tuple[int, float]]:
+    """Records whose velocities come from Savitzky-Golay differentiation of the positions
+    (`period`, the dominant one, sets the default window), and the window and the noise
+    gain (`savgol_velocities`)."""
+    if records.t is None:
+        raise UsageError("--velocity savgol needs a time column; name it with --time COL "
+                         "(and its unit with --time-unit)")
+    N = n_coordinates
+    if window is None:
+        dt = float(np.median(np.diff(records.t)))
+        window = default_savgol_window(None if period is None else period / dt, order)
+    V, gain = savgol_velocities(records.X[:, :N], records.t, records.bounds(), window=window,
+                                order=order)
+    X = records.X.copy()
+    X[:, N:] = V
+    return dataclasses.replace(records, X=X), (window, gain)
 
 
 def savgol_velocities(Q: npt.NDArray[np.float64], t: npt.NDArray[np.float64],

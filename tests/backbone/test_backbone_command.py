@@ -149,12 +149,45 @@ def test_missing_files_and_reports_without_the_parts_needed(files, tmp_path):
     one_line_error(_run(not_a_report), 1, "other.json")
 
 
-def test_models_of_several_coordinates_wait_for_normal_modes(tmp_path):
-    system = {"model": {"builtin": "henon-heiles"},
-              "parameters": {"a": 1.0, "b": 1.0, "c": 1.0, "d": -1 / 3},
-              "initial": [{"x": 0.1, "y": 0.05, "vx": 0.0, "vy": 0.1}],
-              "simulate": {"t_end": 20.0, "dt": 0.05}}
-    fitted = hamid.fit(hamid.simulate(system), model="henon-heiles")
-    path = tmp_path / "hh.json"
+def test_a_model_of_two_coordinates_has_the_backbone_of_each_normal_mode(tmp_path):
+    """Two masses with viscous dampers: at small amplitude each mode's frequency is the
+    linear eigenfrequency sqrt(eig(K, M)) of the fitted parameters, and its damping ratio
+    the modal phi' C phi / (2 omega) (phi mass-normalised), written out here; the bands
+    hold it; the curve through the command line as JSON."""
+    import scipy.linalg
+
+    model = ('[model]\nname = "two-mass"\ncoordinates = ["x1", "x2"]\n'
+             'velocities = ["v1", "v2"]\nenergy = "(v1**2 + m*v2**2)/2 + k1*x1**2/2 + '
+             'k2*(x2 - x1)**2/2 + k3*(x2 - x1)**4/4"\nparameters = ["m", "k1", "k2", "k3"]\n')
+    (tmp_path / "two.toml").write_text(model)
+    system = {"model": {"name": "two-mass", "coordinates": ["x1", "x2"],
+                        "velocities": ["v1", "v2"],
+                        "energy": "(v1**2 + m*v2**2)/2 + k1*x1**2/2 + k2*(x2 - x1)**2/2"
+                                  " + k3*(x2 - x1)**4/4"},
+              "parameters": {"m": 2.0, "k1": 1.5, "k2": 0.8, "k3": 0.3},
+              "damping": {"c_x1": 0.02, "c_x2": 0.03},
+              "initial": [{"x1": 0.5, "x2": -0.3, "v1": 0.0, "v2": 0.2}],
+              "simulate": {"t_end": 60.0, "dt": 0.04}}
+    fitted = hamid.fit(hamid.simulate(system), tmp_path / "two.toml", damping="viscous")
+    e = fitted.estimates
+    K = np.array([[e["k1"] + e["k2"], -e["k2"]], [-e["k2"], e["k2"]]])
+    M, C = np.diag([1.0, e["m"]]), np.diag([e["c_x1"], e["c_x2"]])
+    omega2, shapes = scipy.linalg.eigh(K, M)
+    for mode in (1, 2):
+        omega, phi = np.sqrt(omega2[mode - 1]), shapes[:, mode - 1]
+        curve = fitted.backbone(amplitudes=[1e-4], mode=mode, coordinate="x1")
+        assert curve["frequency_hz"][0] == pytest.approx(omega / (2 * np.pi), rel=1e-7)
+        assert curve["damping_ratio"][0] == pytest.approx(phi @ C @ phi / (2 * omega),
+                                                          rel=1e-6)
+        assert curve["frequency_hz_low"][0] < curve["frequency_hz"][0] \
+            < curve["frequency_hz_high"][0]
+    path = tmp_path / "two.json"
     path.write_text(json.dumps(fitted.to_dict()))
-    one_line_error(_run(path), 2, "models with 2 coordinates need normal modes")
+    done = _run(path, "--amplitudes", "0.1,0.3", "--mode", "1", "--coordinate", "x2",
+                "--format", "json")
+    assert done.returncode == 0, done.stderr
+    [mode] = json.loads(done.stdout)["modes"]
+    assert mode["coordinate"] == "x2"
+    assert [p["amplitude"]["x2"] for p in mode["points"]] == pytest.approx([0.1, 0.3])
+    # the quartic coupling hardens the mode
+    assert mode["points"][1]["frequency_hz"] > mode["points"][0]["frequency_hz"]
