@@ -60,6 +60,20 @@ ELASTIC_PENDULUM = {
     "simulate": {"t_end": 20.0, "dt": 0.02},
 }
 # Two masses on springs, the second mass unknown: a parameter in the kinetic energy.
+# a Duffing oscillator with a free mass, driven by a recorded force F
+DRIVEN_DUFFING_MODEL = """
+[model]
+name = "driven-duffing"
+coordinates = ["x"]
+velocities = ["v"]
+energy = "m*v**2/2 + k*x**2/2 + k3*x**4/4"
+parameters = ["m", "k", "k3"]
+
+[forcing]
+inputs = ["F"]
+work = "F*x"
+"""
+
 TWO_MASS = {
     "model": {"name": "two-mass", "coordinates": ["x1", "x2"], "velocities": ["v1", "v2"],
               "energy": "(v1**2 + m*v2**2)/2 + k1*x1**2/2 + k2*(x2 - x1)**2/2"

@@ -5,21 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import DRIVEN_DUFFING_MODEL
 
 import hamid
 
-DUFFING_MODEL = """
-[model]
-name = "driven-duffing"
-coordinates = ["x"]
-velocities = ["v"]
-energy = "m*v**2/2 + k*x**2/2 + k3*x**4/4"
-parameters = ["m", "k", "k3"]
-
-[forcing]
-inputs = ["F"]
-work = "F*x"
-"""
+DUFFING_MODEL = DRIVEN_DUFFING_MODEL
 
 DUFFING_TRUTH = {"m": 1.5, "k": 4.0, "k3": 2.0, "c_x": 0.08}
 

@@ -15,7 +15,6 @@ from hamid.errors import UsageError
 __all__ = ["backbone"]
 
 # The outputs an extension of -o chooses (a figure by .png, .svg or .pdf).
-_SUFFIXES = {".json": "json", ".csv": "csv", ".txt": "table"}
 _FIGURES = (".png", ".svg", ".pdf")
 
 
@@ -75,7 +74,8 @@ def backbone(result_file: str, data: tuple[str, ...], amplitudes: str | None,
     figure = os.path.splitext(output)[1].lower() in _FIGURES
     if figure:
         backbone_figure.check_output(output)
-    fmt = fmt or ("json" if figure else _format(output))
+    fmt = fmt or ("json" if figure else console.format_of(
+        output, ".json, .csv, .txt, or a figure's .png, .svg, .pdf"))
     source = readers.STDIN if readers.is_stdio(result_file) else result_file
     report = FitResult.from_dict(documents.read_json(result_file), source=source).to_dict()
     records = (prediction.read(report, list(data), option_groups.fit_keywords(reading)).records
@@ -87,13 +87,3 @@ def backbone(result_file: str, data: tuple[str, ...], amplitudes: str | None,
         backbone_figure.save(document, output)
         return
     writing.write_text(backbone_table.render(document, fmt), output)
-
-
-def _format(output: str) -> str:
-    """The format -o's extension tells; table for standard output."""
-    suffix = os.path.splitext(output)[1].lower()
-    if output == "-" or suffix in _SUFFIXES:
-        return _SUFFIXES.get(suffix, "table")
-    shown = f"unknown extension {suffix!r}" if suffix else "no extension"
-    raise UsageError(f"-o {output!r}: {shown}; the output's format is told by .json, .csv, "
-                     ".txt, or a figure's .png, .svg, .pdf, or give --format")

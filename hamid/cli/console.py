@@ -3,6 +3,7 @@ error (only when it is a terminal)."""
 
 from __future__ import annotations
 
+import os
 import sys
 from typing import Any
 
@@ -80,3 +81,20 @@ class Status:
     def __exit__(self, *exc: object) -> None:
         if self.line is not None:
             self.line.stop()
+
+
+# An output's extension -> the format it is written in (the commands that write reports)
+REPORT_SUFFIXES = {".json": "json", ".csv": "csv", ".txt": "table"}
+
+
+def format_of(output: str, told: str = ".json, .csv or .txt") -> str:
+    """The format -o's extension tells (`REPORT_SUFFIXES`); table for standard output.
+    `told` lists the extensions the command takes, for the error."""
+    from hamid.errors import UsageError
+
+    suffix = os.path.splitext(output)[1].lower()
+    if output == "-" or suffix in REPORT_SUFFIXES:
+        return REPORT_SUFFIXES.get(suffix, "table")
+    shown = f"unknown extension {suffix!r}" if suffix else "no extension"
+    raise UsageError(f"-o {output!r}: {shown}; the output's format is told by {told}, or "
+                     "give --format")

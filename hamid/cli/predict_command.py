@@ -9,12 +9,10 @@ from typing import Any
 import click
 
 from hamid.cli import console, option_groups
-from hamid.errors import UsageError
 
 __all__ = ["predict"]
 
 # The output formats an extension of -o chooses.
-_SUFFIXES = {".json": "json", ".csv": "csv", ".txt": "table"}
 
 
 @click.command(cls=option_groups.GroupedCommand)
@@ -40,7 +38,7 @@ def predict(result_file: str, data: tuple[str, ...], from_rest: bool, fmt: str |
 
     outputs = click.get_current_context().with_resource(writing.Outputs([result_file, *data]))
     outputs.claim("-o", output)
-    fmt = fmt or _format(output)
+    fmt = fmt or console.format_of(output)
     source = readers.STDIN if readers.is_stdio(result_file) else result_file
     report = FitResult.from_dict(documents.read_json(result_file), source=source).to_dict()
     with console.Status("predicting"):
@@ -50,13 +48,3 @@ def predict(result_file: str, data: tuple[str, ...], from_rest: bool, fmt: str |
     text = predicted.render(fmt, color=to_terminal and "NO_COLOR" not in os.environ)
     writing.write_text(console.printable_lines(text) if fmt == "csv" and to_terminal else text,
                        output)
-
-
-def _format(output: str) -> str:
-    """The format -o's extension tells; table for standard output."""
-    suffix = os.path.splitext(output)[1].lower()
-    if output == "-" or suffix in _SUFFIXES:
-        return _SUFFIXES.get(suffix, "table")
-    shown = f"unknown extension {suffix!r}" if suffix else "no extension"
-    raise UsageError(f"-o {output!r}: {shown}; the output's format is told by .json, .csv "
-                     "or .txt, or give --format")

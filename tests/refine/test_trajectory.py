@@ -7,7 +7,15 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import DUFFING, ELASTIC_PENDULUM, PENG, TWO_MASS, spread_band, with_noise
+from conftest import (
+    DRIVEN_DUFFING_MODEL,
+    DUFFING,
+    ELASTIC_PENDULUM,
+    PENG,
+    TWO_MASS,
+    spread_band,
+    with_noise,
+)
 
 import hamid
 from hamid import options
@@ -403,18 +411,6 @@ def test_a_fit_stopped_sooner_is_settled_from_where_it_stopped():
     assert trajectory.settle(settled) is settled
 
 
-DRIVEN_DUFFING = """
-[model]
-coordinates = ["x"]
-velocities = ["v"]
-energy = "m*v**2/2 + k*x**2/2 + k3*x**4/4"
-parameters = ["m", "k", "k3"]
-
-[forcing]
-inputs = ["F"]
-work = "F*x"
-"""
-
 
 @pytest.mark.parametrize("tied", [False, True])
 def test_the_inputs_noise_moves_the_parameters_as_a_fit_on_the_noisy_inputs_does(
@@ -427,14 +423,15 @@ def test_the_inputs_noise_moves_the_parameters_as_a_fit_on_the_noisy_inputs_does
     from hamid.data.records import Records
 
     truth = {"m": 1.5, "k": 4.0, "k3": 2.0, "c_x": 0.08}
-    system = {**tomllib.loads(DRIVEN_DUFFING), "parameters": {"m": 1.5, "k": 4.0, "k3": 2.0},
+    system = {**tomllib.loads(DRIVEN_DUFFING_MODEL),
+              "parameters": {"m": 1.5, "k": 4.0, "k3": 2.0},
               "damping": {"c_x": 0.08}, "initial": [{"x": 0.0, "v": 0.0}],
               "simulate": {"t_end": 30.0, "dt": 0.02}}
     system["forcing"]["signals"] = {"F": {"kind": "multisine", "amplitude": 1.0,
                                           "band": [0.05, 1.0], "seed": 3}}
     frame = with_noise(hamid.simulate(system), 0.01, seed=4)
     path = tmp_path / "driven.toml"
-    path.write_text(DRIVEN_DUFFING)
+    path.write_text(DRIVEN_DUFFING_MODEL)
     model = hamid.load_model(path)
     damping = model.dissipative(["viscous"])
     X, U = frame[["x", "v"]].to_numpy(), frame[["F"]].to_numpy()
