@@ -17,16 +17,16 @@ if TYPE_CHECKING:
 
 __all__ = ["label_axis", "number", "plain", "power_text", "recordings", "source_name", "ticks"]
 
-_LONGEST_NAME = 40           # characters of a name from the report shown in a figure
+LONGEST_NAME = 40           # characters of a name from the report shown in a figure
 
 
 def plain(name: Any) -> str:
-    """A name from the report as plain text in a figure: cut to `_LONGEST_NAME`
+    """A name from the report as plain text in a figure: cut to `LONGEST_NAME`
     characters, its dollar signs escaped (mathtext parsed an edited report's "$x^$", and
     3,000 nested braces overflowed its parser's recursion)."""
     text = str(name)
-    if len(text) > _LONGEST_NAME:
-        text = text[:_LONGEST_NAME - 1] + "…"
+    if len(text) > LONGEST_NAME:
+        text = text[:LONGEST_NAME - 1] + "…"
     return text.replace("$", r"\$")
 
 

@@ -196,15 +196,15 @@ def test_parameter_names_are_drawn_as_plain_text(tmp_path, report, name):
     """A name of nested braces overflowed mathtext's parser (RecursionError)."""
     import json
 
-    from hamid.plot import figures
+    from hamid.plot import figures, labels
 
     edited = json.loads((tmp_path / _edited(report, tmp_path, name=name)).read_text())
     drawn, _ = figures.pages(edited, None, "parameters,correlation")
     for _, figure in drawn:
         figure.savefig(tmp_path / "f.png")   # the text is parsed when drawn
     title = drawn[0][1].axes[0].get_title(loc="left")
-    assert title.startswith(name[:figures._LONGEST_NAME - 1].replace("$", r"\$") + "…"
-                            if len(name) >= figures._LONGEST_NAME else
+    assert title.startswith(name[:labels.LONGEST_NAME - 1].replace("$", r"\$") + "…"
+                            if len(name) >= labels.LONGEST_NAME else
                             name.replace("$", r"\$"))
 
 
