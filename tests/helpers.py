@@ -128,3 +128,17 @@ def snapshot(folder) -> dict:
         else:
             entries[entry] = ("other", stat.S_IFMT(mode))
     return entries
+
+
+def double_pendulum_rhs(g: float):
+    """The double pendulum of unit masses and lengths, its equations written out by hand
+    (solve_ivp's right-hand side over (p, q, wp, wq)): a truth independent of hamid's."""
+    import numpy as np
+
+    def rhs(t, y):
+        p, q, wp, wq = y
+        s, c, den = np.sin(p - q), np.cos(p - q), 3 - np.cos(2 * (p - q))
+        return [wp, wq,
+                (-3 * g * np.sin(p) - g * np.sin(p - 2 * q) - 2 * s * (wq**2 + wp**2 * c)) / den,
+                2 * s * (2 * wp**2 + 2 * g * np.cos(p) + wq**2 * c) / den]
+    return rhs

@@ -13,6 +13,7 @@ import re
 import numpy as np
 import pandas as pd
 import pytest
+from helpers import double_pendulum_rhs
 from scipy.integrate import cumulative_simpson, quad, solve_ivp
 from scipy.special import ellipj
 
@@ -158,16 +159,6 @@ def polar_rhs(k, a, c):
     def rhs(t, y):
         r, th, vr, w = y
         return [vr, w, r * w**2 - k * r - a * r**3 - c * vr, -2 * vr * w / r]
-    return rhs
-
-
-def double_pendulum_rhs(g):
-    def rhs(t, y):
-        p, q, wp, wq = y
-        s, c, den = np.sin(p - q), np.cos(p - q), 3 - np.cos(2 * (p - q))
-        return [wp, wq,
-                (-3 * g * np.sin(p) - g * np.sin(p - 2 * q) - 2 * s * (wq**2 + wp**2 * c)) / den,
-                2 * s * (2 * wp**2 + 2 * g * np.cos(p) + wq**2 * c) / den]
     return rhs
 
 

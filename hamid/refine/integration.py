@@ -123,8 +123,6 @@ class SampledInputs:
                 i = piece[0] = min(max(bisect.bisect_right(bounds, t) - 1, 0), last)
             h = t - bounds[i]
             value = np.array([h * h * h, h * h, h, 1.0]) @ c[i]
-            if not n_draws:
-                return np.repeat(value.reshape(n_inputs, -1), copies, axis=1)
             return value.reshape(n_inputs, -1, 1 + n_draws)[:, :, pick].reshape(n_inputs, -1)
 
         return u

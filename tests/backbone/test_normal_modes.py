@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import scipy.linalg
+from helpers import double_pendulum_rhs
 from scipy.integrate import solve_ivp
 from scipy.optimize import root
 from scipy.special import ellipk
@@ -155,17 +156,6 @@ def test_second_mode_by_energy_hardens():
     assert start[0] * start[1] < 0
 
 
-def _double_pendulum_rhs(g: float):
-    """The double pendulum of unit masses and lengths, its equations written out by hand."""
-    def rhs(t, y):
-        p, q, wp, wq = y
-        s, c, den = np.sin(p - q), np.cos(p - q), 3 - np.cos(2 * (p - q))
-        return [wp, wq,
-                (-3 * g * np.sin(p) - g * np.sin(p - 2 * q) - 2 * s * (wq**2 + wp**2 * c)) / den,
-                2 * s * (2 * wp**2 + 2 * g * np.cos(p) + wq**2 * c) / den]
-    return rhs
-
-
 def test_double_pendulum_a_mass_matrix_that_moves():
     # the kinetic energy's cross term turns with p - q, and -g cos puts V(q*) far from zero
     model = model_from_expression(
@@ -186,7 +176,7 @@ def test_double_pendulum_a_mass_matrix_that_moves():
 
     def residual(u):
         b, T = u
-        end = solve_ivp(_double_pendulum_rhs(g), (0, T / 2), [A, b, 0, 0], method="DOP853",
+        end = solve_ivp(double_pendulum_rhs(g), (0, T / 2), [A, b, 0, 0], method="DOP853",
                         rtol=1e-12, atol=1e-13).y[:, -1]
         return [end[0] + A, end[1] + b]
 
