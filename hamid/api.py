@@ -33,7 +33,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         velocity: str = "measured", window: int | None = None, order: int = SAVGOL_ORDER,
         # method
         method: str = "auto", weak_window: float | None = None,
-        damping: str | Sequence[str] = "none", fix: Mapping[str, float] | None = None,
+        damping: str | Sequence[str] | None = "none", fix: Mapping[str, float] | None = None,
         noise: str | Mapping[str, float] | None = None, bias_correct: bool = False,
         # covariance
         cov: str = "hac", level: float = 0.95, bootstrap: int = 200, seed: int | None = None,
@@ -84,8 +84,8 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         trajectories to the recording (`hamid.refine.trajectory`), and says why.
     weak_window : float, optional
         Length of the weak-form windows in seconds; by default half the dominant period.
-    damping : str or list of str
-        Dissipative forces to fit: "none", or any of "viscous", "coulomb", "quadratic"
+    damping : str or list of str, optional
+        Dissipative forces to fit: "none" (or None), or any of "viscous", "coulomb", "quadratic"
         (a comma list or a list), one coefficient per coordinate and kind.
     fix : dict, optional
         Parameters held at known values.

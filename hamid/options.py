@@ -328,11 +328,13 @@ def _check_choice(value: str, choices: tuple[str, ...], option: str) -> None:
         raise UsageError(f"{option} must be one of {', '.join(choices)}, found {value!r}")
 
 
-def parse_damping(damping: str | Sequence[str]) -> tuple[str, ...]:
+def parse_damping(damping: str | Sequence[str] | None) -> tuple[str, ...]:
     """Damping kinds from "none", "viscous,coulomb" or a list; unknown kinds are errors.
 
-    An empty list is no damping (FitOptions' default, and what it parses "none" into); an
-    empty text is a mistake on the command line."""
+    None or an empty list is no damping (FitOptions' default, and what it parses "none"
+    into); an empty text is a mistake on the command line."""
+    if damping is None:
+        return ()
     items = damping.split(",") if isinstance(damping, str) else list(damping)
     kinds = [item.strip() for item in items if item.strip()]
     if not kinds and not isinstance(damping, str) and not items:

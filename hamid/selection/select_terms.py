@@ -238,7 +238,7 @@ def _collinear(source: loading.Loaded, library: Library, kept: Sequence[int],
 
 
 def choose(data: Any, options: SelectOptions, *, reading: Mapping[str, Any] | None = None,
-           damping: str | Sequence[str] = "none",
+           damping: str | Sequence[str] | None = "none",
            progress: Callable[[str], None] | None = None) -> Choice:
     """Search the library's subsets on the records in `data`, read with `reading` (the
     reading and velocity keywords of `hamid.fit`, `READING_KEYWORDS`), with no refit (see
@@ -291,7 +291,7 @@ def _name(library: Library, k: int) -> str:
 
 def select(data: Any, library: str | os.PathLike[str] | Model | None = None, *,
            keep: Sequence[str] = (), criterion: str = "bic", stability: int = 0,
-           seed: int | None = 0, damping: str | Sequence[str] = "none",
+           seed: int | None = 0, damping: str | Sequence[str] | None = "none",
            progress: Callable[[str], None] | None = None, **reading: Any) -> Selection:
     """Choose the terms of the energy from a library, and refit the chosen model.
 

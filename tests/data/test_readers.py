@@ -1108,3 +1108,11 @@ def test_importing_io_loads_neither_pandas_nor_pyarrow():
         cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
     )
     assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize(("damping", "kinds"), [
+    (None, ()), ("none", ()), ([], ()), ("viscous, coulomb", ("viscous", "coulomb")),
+    (["quadratic"], ("quadratic",))])
+def test_parse_damping_none_and_lists(damping, kinds):
+    """None is no damping, as "none" and [] are (the Python API's callers pass it)."""
+    assert options.parse_damping(damping) == kinds
