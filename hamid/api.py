@@ -11,7 +11,6 @@ from hamid.data import input_size, loading
 from hamid.data.records import Recording
 from hamid.executor import one_blas_thread
 from hamid.linear import chunked, estimate, plan
-from hamid.linear.design import RowKind
 from hamid.linear.unknowns import Unknowns
 from hamid.model.models import Model, load_model
 from hamid.options import SAVGOL_ORDER, FitOptions
@@ -165,7 +164,7 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
     linear, fit_plan, rows = step.fit, step.plan, step.rows
     # refine
     fitted, refinement = linear, None
-    if opts.method == "auto" and fit_plan.kind == RowKind.JOINT:
+    if fit_plan.refines:
         obstacle = plan.refinement_obstacle(opts, source.whole_bytes())
         if obstacle is None:
             records = source.whole()

@@ -7,6 +7,7 @@ too few weak-form windows.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,12 +34,16 @@ class FitPlan:
     window : the weak-form window in seconds (None for energy rows).
     scales : each trajectory's period and time step (None without a time column, or when
         the energy rows were asked for and no window needs sizing).
+    refines : whether the trajectory refinement follows: an automatic joint fit, and one
+        that fell back to the energy rows for want of windows (the linear start exists, and
+        the refinement fits the samples whatever the windows).
     """
 
     kind: RowKind
     reason: str
     window: float | None
     scales: list[tuple[float | None, float]] | None
+    refines: bool = False
 
     def check_windows(self, n_windows: int, free_names: list[str], n_trajectories: int,
                       options: FitOptions) -> FitPlan:
@@ -54,7 +59,7 @@ class FitPlan:
                     f"fewer than the {needed} that {needed - 1} unknowns need")
         if options.method == "auto" and options.weak_window is None:
             return FitPlan(RowKind.ENERGY, f"{shortage}; fitted the energy rows", None,
-                           self.scales)
+                           self.scales, refines=self.refines)
         if n_windows == 0:
             raise DataError(f"the records are too short for one weak-form window of "
                             f"{self.window:.4g} s; use --method energy or a shorter "
@@ -67,7 +72,7 @@ class FitPlan:
         why (`refused`)."""
         note = ("; refined by fitting the integrated trajectories" if refused is None
                 else f"; not refined by fitting trajectories: {refused}")
-        return FitPlan(self.kind, self.reason + note, self.window, self.scales)
+        return dataclasses.replace(self, reason=self.reason + note)
 
 
 def decide(options: FitOptions, model: Model,
@@ -113,7 +118,7 @@ def decide(options: FitOptions, model: Model,
         return FitPlan(RowKind.ENERGY, f"{obstacle}; fitted the energy rows", None, scales)
     if method == "auto":
         return FitPlan(RowKind.JOINT, "time column sampled finely enough for weak-form windows "
-                       f"of {window:.3g} s ({how})", window, scales)
+                       f"of {window:.3g} s ({how})", window, scales, refines=True)
     return FitPlan(RowKind(method), f"asked for with --method {method}; windows of "
                    f"{window:.3g} s ({how})", window, scales)
 
