@@ -223,6 +223,18 @@ def test_the_real_pendulum_is_refined_near_the_authors_value():
                "sandwich" in w for w in result.warnings)
 
 
+def test_the_real_pendulum_from_its_angles_alone_agrees_with_angles_and_velocities(tmp_path):
+    """The encoder pendulum without its velocity column (the angles alone, as a video or an
+    encoder gives them): each estimate lies within the other fit's 95% interval."""
+    frame = pd.read_csv("sample_data/pendulum_encoder.csv")
+    frame.drop(columns="omega").to_csv(tmp_path / "angles.csv", index=False)
+    fits = [hamid.fit(path, "sample_data/pendulum.toml", damping="viscous").to_frame()
+            for path in ("sample_data/pendulum_encoder.csv", tmp_path / "angles.csv")]
+    for one, other in (fits, fits[::-1]):
+        assert np.all((one.ci_low <= other.estimate) & (other.estimate <= one.ci_high))
+    assert fits[1].loc["K", "estimate"] == pytest.approx(64.22, rel=0.01)
+
+
 @pytest.mark.slow
 def test_bounds_cover_the_truth_with_smoothed_velocities_and_unmodelled_friction(friction):
     """40 realizations, 1% noise, smoothed velocities, Coulomb friction the model lacks:
