@@ -29,7 +29,7 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         format: str | None = None, delimiter: str | None = None, decimal: str | None = None,
         skip_rows: int = 0, units_row: bool | None = None,
         # velocities
-        velocity: str = "measured", window: int | None = None, order: int = SAVGOL_ORDER,
+        velocity: str = "auto", window: int | None = None, order: int = SAVGOL_ORDER,
         # method
         method: str = "auto", weak_window: float | None = None,
         damping: str | Sequence[str] | None = "none", fix: Mapping[str, float] | None = None,
@@ -73,10 +73,13 @@ def fit(data: Any, model: str | os.PathLike[str] | Model | None = None, *,
         ';' files with decimal commas are), lines to skip before the header, and whether
         a units row follows the header (detected: a row without numbers above rows with
         them; its units convert like name suffixes).
-    velocity : {"measured", "savgol"}
-        Take the velocities from the file, or derive them from the positions by
-        Savitzky-Golay differentiation with an odd `window` (samples; default about a tenth
-        of the dominant period) and polynomial `order`.
+    velocity : {"auto", "measured", "savgol"}
+        Take the velocities from the file ("measured"), or derive them from the positions
+        by Savitzky-Golay differentiation with an odd `window` (samples; default about a
+        tenth of the dominant period) and polynomial `order` ("savgol"); "auto" takes them
+        from the file but sets them aside and derives them when they disagree with the
+        positions' rate of change (a gain or a lag: a channel filtered or derived before
+        recording; docs/method.md, "Channels that disagree"), and when the file has none.
     method : {"auto", "joint", "weak", "energy"}
         Which rows to fit: energy rows, weak-form equations of motion, or both; ``auto``
         takes ``joint`` when the data allow it, refined by fitting the model's integrated

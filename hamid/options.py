@@ -118,7 +118,7 @@ def percent(level: float | Decimal) -> str:
 
 METHODS = ("auto", "joint", "weak", "energy")
 COVARIANCE_KINDS = ("hac", "classical", "hc", "bootstrap")
-VELOCITY_SOURCES = ("measured", "savgol")
+VELOCITY_SOURCES = ("auto", "measured", "savgol")
 TIME_UNITS = ("s", "ms", "us", "ns")   # naming.TIME_UNITS, without importing it
 GAP_POLICIES = ("split", "error")
 # hamid.model.dissipation.SHORTHAND, without importing numpy at the CLI's start
@@ -208,7 +208,7 @@ class FitOptions:
     skip_rows: int = 0
     units_row: bool | None = None
     # velocities
-    velocity: str = "measured"
+    velocity: str = "auto"
     window: int | None = None
     order: int = SAVGOL_ORDER
     # method
@@ -312,7 +312,7 @@ class FitOptions:
         if not isinstance(data, str | os.PathLike) or os.fspath(data) == "-" \
                 or not os.path.isfile(data):
             return "chunks need one file (not a list, a DataFrame or a device)"
-        if self.velocity != "measured":
+        if self.velocity == "savgol":
             return "derived velocities (--velocity savgol) need the data in memory"
         if self.weighted:
             return "noise weighting (--noise) needs the data in memory"

@@ -77,10 +77,11 @@ _GROUPS: dict[str, tuple[Callable[[Any], Any], ...]] = {
                           "(default: when it has no number and the next row has)."),
     ),
     "velocities": (
-        _option("--velocity", default="measured", show_default=True,
+        _option("--velocity", default="auto", show_default=True,
                      type=click.Choice(VELOCITY_SOURCES),
-                     help="Velocities from the file, or derived from the positions "
-                          "(Savitzky-Golay)."),
+                     help="Velocities from the file (measured), derived from the positions "
+                          "(Savitzky-Golay), or from the file unless they disagree with the "
+                          "positions' rate of change (auto)."),
         _option("--window", type=click.IntRange(min=3), metavar="SAMPLES",
                      help="Savitzky-Golay window (odd; default about a tenth of the period)."),
         _option("--order", default=SAVGOL_ORDER, show_default=True,

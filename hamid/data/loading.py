@@ -41,6 +41,10 @@ __all__ = ["Chunked", "Loaded", "Source", "Survey", "load",
 # by zero, 1e-300 an SVD that did not converge).
 _LARGEST_TIME, _SMALLEST_STEP = 1e150, 1e-100
 _IN_MEMORY = ("<DataFrame>", "<dict>", "<array>")   # `input_size.in_memory_name`
+# What `--velocity auto` says of velocity columns that disagree with the positions.
+SET_ASIDE = ("; so they are set aside: the velocities are derived from the positions, and "
+             "the trajectory refinement fits the positions alone (--velocity measured fits "
+             "them as recorded)")
 
 
 class Source(Protocol):
@@ -208,8 +212,11 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
               else design.trajectory_scales(records, len(m.coordinates)))
     period = None if scales is None else design.median_period(scales)
     if not derived and records.t is not None:
-        notes.extend(measurement.velocity_check(records, m.coordinates, m.velocities, mapping,
-                                                period))
+        findings = measurement.velocity_check(records, m.coordinates, m.velocities, mapping,
+                                              period)
+        derived = options.velocity == "auto" and any(f.disagrees for f in findings)
+        notes.extend(f.text + ((SET_ASIDE if derived else measurement.DERIVE_ADVICE)
+                               if f.disagrees else "") for f in findings)
     derivation = None
     if derived:
         records, derivation = measurement.derive_velocities(records, len(m.coordinates),
@@ -220,6 +227,8 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
                      "correlated with the positions'")
     data_info = _data_info(sources, len(records.group), len(labels),
                            mapping, options, units)
+    if derived:   # the file had none, or they were set aside
+        data_info["velocity_source"] = "savgol"
     if derivation:
         data_info.update(velocity_window=derivation[0], velocity_order=options.order)
     if (options.damping or m.dissipation or m.forcing) and records.t is None:
@@ -579,7 +588,8 @@ def _data_info(sources: list[str], n_samples: int, n_trajectories: int,
     """What the report says about the data (docs/output.md, `data`)."""
     return {"sources": sources, "n_samples": n_samples,
             "n_trajectories": n_trajectories, "columns": dict(mapping),
-            "velocity_source": options.velocity, "time": units["time"],
+            "velocity_source": "savgol" if options.velocity == "savgol" else "measured",
+            "time": units["time"],
             "time_unit": units["time_unit"],
             "scale": {c: f for c, f in units["scale"].items() if f != 1.0},
             **({"reading": options.reading} if options.reading else {})}

@@ -12,8 +12,8 @@ import numpy.typing as npt
 from hamid.data.records import Records, ranges, runs
 from hamid.errors import DataError, UsageError
 
-__all__ = ["DIFFERENCE_ORDER", "VelocitySums", "derive_velocities", "estimate_noise",
-           "savgol_velocities", "velocity_check"]
+__all__ = ["DIFFERENCE_ORDER", "VelocityFinding", "VelocitySums", "derive_velocities",
+           "estimate_noise", "savgol_velocities", "velocity_check"]
 
 # Differences of this order remove a smooth signal (its k-th difference is ~ (w dt)^k) and
 # keep white noise, scaled by sqrt(C(2k, k)).
@@ -211,7 +211,24 @@ VELOCITY_SPAN = 8       # samples over which the positions' change is compared
 # about pi * lag / period (v(t - lag) = v - lag a, and a = -w^2 q for an oscillation); one
 # that would add more than this to the damping ratio is said.
 LAG_DAMPING_RATIO = 5e-4
-LAG_SIGNIFICANCE = 4.0   # standard errors: a lag the noise could fake is not said
+LAG_SIGNIFICANCE = 4.0   # standard errors: a lag or gain the noise could fake is not said
+# A velocity channel whose amplitude differs from the positions' rate of change by more than
+# this (a gain, a calibration, a filter's attenuation) is said: a gain 1 + e scales the
+# kinetic energy by (1 + e)^2, and so the stiffnesses found against the masses by about 2e.
+GAIN_TOLERANCE = 0.01
+JUDGED_SPANS = 20   # fewer spans judge no gain or lag: their standard errors are no guide
+
+
+@dataclasses.dataclass(frozen=True)
+class VelocityFinding:
+    """What the velocity check found of one velocity column: said in `text`; `disagrees`
+    when the column is a scaled or lagging copy of the positions' rate of change (a channel
+    filtered or derived before recording), which a fit does better to set aside, rather
+    than mixed units, which the user must correct."""
+
+    velocity: str
+    text: str
+    disagrees: bool
 
 
 def _velocity_spans(records: Records,
@@ -234,13 +251,13 @@ def _velocity_spans(records: Records,
 
 
 def velocity_check(records: Records, coordinates: Sequence[str], velocities: Sequence[str],
-                   mapping: Mapping[str, str], period: float | None) -> list[str]:
-    """Warnings when the measured velocities disagree with the rate of change of the
-    positions: a column in other units (mm with m/s), a wrong time unit, or a lag (a
-    velocity channel filtered after the fact); `VelocitySums` over all the records."""
+                   mapping: Mapping[str, str], period: float | None) -> list[VelocityFinding]:
+    """Where the measured velocities disagree with the rate of change of the positions: a
+    column in other units (mm with m/s), a wrong time unit, a gain or a lag (a velocity
+    channel filtered or derived before recording); `VelocitySums` over all the records."""
     sums = VelocitySums(len(coordinates))
     sums.add(records)
-    return sums.warnings(coordinates, velocities, mapping, period)
+    return sums.findings(coordinates, velocities, mapping, period)
 
 
 class VelocitySums:
@@ -250,11 +267,14 @@ class VelocitySums:
 
     Over spans of `VELOCITY_SPAN` samples, the change of each coordinate is regressed on
     the integral of its velocity and on the change of the velocity: x(t+s) - x(t) =
-    ratio * integral(v) + lag * (v(t+s) - v(t)) to first order in a lag. A ratio beyond
-    `VELOCITY_RATIO` either way is said, and so is a lag that acts like damping of ratio
-    over `LAG_DAMPING_RATIO` at the dominant `period` (None: no lag is judged) and is
-    `LAG_SIGNIFICANCE` standard errors from zero. Integrals rather than differences keep
-    the position noise from being amplified.
+    gain * integral(v) + lag * (v(t+s) - v(t)) to first order in a lag. A gain beyond
+    `VELOCITY_RATIO` either way is said as mixed units; one beyond `GAIN_TOLERANCE`, and a
+    lag that acts like damping of ratio over `LAG_DAMPING_RATIO` at the dominant `period`
+    (None: no lag is judged), each `LAG_SIGNIFICANCE` standard errors from zero, as a
+    channel that disagrees. Integrals rather than differences keep the position noise from
+    being amplified; over an even number of steps they are Simpson's, whose error at a few
+    samples a period, (w dt)^4 / 180, is far below the tolerance (the trapezoids' (w dt)^2 /
+    12 is 2% at 12 samples a period).
     """
 
     def __init__(self, n_coordinates: int) -> None:
@@ -313,18 +333,27 @@ class VelocitySums:
     def _add(self, k: int, records: Records, spans: dict[int, npt.NDArray[np.intp]]) -> None:
         """Add the spans of coordinate `k`."""
         assert records.t is not None
-        N = len(self.count)
-        with np.errstate(over="ignore", invalid="ignore"):
+        N, t = len(self.count), records.t
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             x, rate = records.X[:, k], records.X[:, N + k]
             # the integral of the velocity from each trajectory's start (the trapezoids
             # after its last sample, into the next one, are left out)
-            pieces = np.diff(records.t) * (rate[1:] + rate[:-1]) / 2
+            pieces = np.diff(t) * (rate[1:] + rate[:-1]) / 2
             pieces[np.diff(records.group) != 0] = 0.0
             integral = np.concatenate([[0.0], np.cumsum(pieces)])
+            # Simpson's rule over each two steps from each sample, uneven steps allowed
+            # (those across trajectories are never taken: spans stay within one)
+            h0, h1 = np.diff(t)[:-1], np.diff(t)[1:]
+            pairs = (h0 + h1) / 6 * ((2 - h1 / h0) * rate[:-2]
+                                     + (h0 + h1) ** 2 / (h0 * h1) * rate[1:-1]
+                                     + (2 - h0 / h1) * rate[2:])
             for length, first in spans.items():   # not finite: no warning (`warnings`)
                 a = x[first + length] - x[first]
-                B = np.column_stack([integral[first + length] - integral[first],
-                                     rate[first + length] - rate[first]])
+                if length % 2:
+                    over = integral[first + length] - integral[first]
+                else:
+                    over = sum(pairs[first + step] for step in range(0, length, 2))
+                B = np.column_stack([over, rate[first + length] - rate[first]])
                 self.normal[k] += B.T @ B
                 self.right[k] += B.T @ a
                 self.squares[k] += float(a @ a)
@@ -332,8 +361,14 @@ class VelocitySums:
 
     def warnings(self, coordinates: Sequence[str], velocities: Sequence[str],
                  mapping: Mapping[str, str], period: float | None) -> list[str]:
+        """What the sums say of each coordinate's velocity column, with what to do."""
+        return [finding.text + (DERIVE_ADVICE if finding.disagrees else "")
+                for finding in self.findings(coordinates, velocities, mapping, period)]
+
+    def findings(self, coordinates: Sequence[str], velocities: Sequence[str],
+                 mapping: Mapping[str, str], period: float | None) -> list[VelocityFinding]:
         """What the sums say of each coordinate's velocity column."""
-        warnings = []
+        findings = []
         for k, (q, v) in enumerate(zip(coordinates, velocities, strict=True)):
             normal, right = self.normal[k], self.right[k]
             if normal[0, 0] <= 0 or not np.all(np.isfinite(normal)):
@@ -345,25 +380,40 @@ class VelocitySums:
                 continue
             name_q, name_v = mapping.get(q, q), mapping.get(v, v)
             if not 1 / VELOCITY_RATIO <= ratio <= VELOCITY_RATIO:
-                warnings.append(
+                findings.append(VelocityFinding(name_v, (
                     f"the positions {name_q!r} change {ratio:.3g} times as fast as the "
                     f"velocities {name_v!r} say: are the units mixed (mm with m/s) or "
-                    "the time unit wrong? Give --time-unit, or --scale COL=FACTOR")
+                    "the time unit wrong? Give --time-unit, or --scale COL=FACTOR"), False))
                 continue
-            lag = float(fit[1] / fit[0])
-            # the lag's standard error from the residuals, the overlap of the spans counted
+            if self.count[k] < JUDGED_SPANS:
+                continue
+            gain, lag = float(fit[0]), float(fit[1] / fit[0])
+            # standard errors from the residuals, the overlap of the spans counted
             residual = (max(float(self.squares[k]) - float(fit @ right), 0.0)
                         / max(int(self.count[k]) - 2, 1))
             with np.errstate(all="ignore"):
-                spread = math.sqrt(residual * abs(np.linalg.pinv(normal)[1, 1])
-                                   * self.span) / abs(fit[0])
-            if (period and np.isfinite(lag) and abs(lag) > LAG_SIGNIFICANCE * spread
+                inverse = np.abs(np.diag(np.linalg.pinv(normal)))
+                gain_error, lag_error = np.sqrt(residual * inverse * self.span)
+                lag_error /= abs(fit[0])
+            said = []
+            # the velocities are 1 / gain of the positions' rate of change
+            if (np.isfinite(gain) and abs(gain - 1) > GAIN_TOLERANCE
+                    and abs(gain - 1) > LAG_SIGNIFICANCE * gain_error):
+                said.append(f"are {abs(1 / gain - 1):.2%} {'smaller' if gain > 1 else 'larger'}"
+                            f" than the rate of change of the positions {name_q!r}")
+            if (period and np.isfinite(lag) and abs(lag) > LAG_SIGNIFICANCE * lag_error
                     and math.pi * abs(lag) / period > LAG_DAMPING_RATIO):
-                warnings.append(
-                    f"the velocities {name_v!r} "
+                said.append(
                     f"{'lag behind' if lag > 0 else 'run ahead of'} the positions {name_q!r} "
-                    f"by {abs(lag):.3g} s ({abs(lag) / period:.2g} of a period; a filtered "
-                    "channel?): that acts like a damping ratio of "
-                    f"{'+' if lag < 0 else '-'}{math.pi * abs(lag) / period:.2g} and biases "
-                    "damping estimates; derive the velocities with --velocity savgol")
-        return warnings
+                    f"by {abs(lag):.3g} s ({abs(lag) / period:.2g} of a period), which acts "
+                    f"like a damping ratio of {'+' if lag < 0 else '-'}"
+                    f"{math.pi * abs(lag) / period:.2g}")
+            if said:
+                findings.append(VelocityFinding(name_v, (
+                    f"the velocities {name_v!r} {' and '.join(said)} (a channel filtered, "
+                    "scaled or derived before recording?); it biases the estimates"), True))
+        return findings
+
+
+# What a fit that keeps a disagreeing velocity column says to do.
+DERIVE_ADVICE = "; derive the velocities with --velocity savgol"

@@ -455,8 +455,8 @@ def test_velocity_sums_in_chunks_are_those_of_the_records_whole(noisy_files, siz
     for start in range(0, len(t), size):
         sums.add(records.slice(start, start + size), ended=False)
     sums.end()
-    assert sums.warnings(["u1", "u2"], ["v1", "v2"], {}, 2.0) == expected
-    assert any("'u1' change" in w for w in expected)
+    assert sums.findings(["u1", "u2"], ["v1", "v2"], {}, 2.0) == expected
+    assert any("'u1' change" in finding.text for finding in expected)
     whole = measurement.VelocitySums(2)
     whole.add(records)
     np.testing.assert_allclose(sums.normal, whole.normal, rtol=1e-12, atol=0)

@@ -254,8 +254,9 @@ def check(frame: pd.DataFrame) -> list[str]:
     groups = frame["trajectory"].to_numpy() - 1
     records = Records(frame[["x1", "x2", "v1", "v2"]].to_numpy(), frame["t"].to_numpy(),
                       groups, ("1", "2"))
-    return velocity_check(records, ("x1", "x2"), ("v1", "v2"), {},
-                          design.median_period(design.trajectory_scales(records, 2)))
+    return [finding.text for finding in velocity_check(
+        records, ("x1", "x2"), ("v1", "v2"), {},
+        design.median_period(design.trajectory_scales(records, 2)))]
 
 
 def test_a_lag_of_the_velocities_is_measured_and_said():
@@ -265,7 +266,7 @@ def test_a_lag_of_the_velocities_is_measured_and_said():
     assert len(notes) == 2 and all("lag behind" in n for n in notes)
     found = float(notes[0].split(" by ")[1].split(" s ")[0])
     assert found == pytest.approx(0.004, rel=0.05)
-    assert "--velocity savgol" in notes[0]
+    assert "a channel filtered" in notes[0]
 
 
 def test_noise_alone_is_not_a_lag():
