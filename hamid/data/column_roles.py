@@ -15,14 +15,18 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Collection, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 from hamid.data import readers
 from hamid.errors import DataError, UsageError
 
+if TYPE_CHECKING:
+    from hamid.options import FitOptions
+
 __all__ = ["COLUMN_UNITS", "TIME_UNITS", "column_scale", "default_time_column",
            "default_trajectory_column", "find_coordinates", "find_velocity",
-           "looks_like_time", "resolve_columns", "split_unit", "time_scale", "unit_text",
-           "velocity_names"]
+           "looks_like_time", "read_units", "resolve_columns", "split_unit", "time_scale",
+           "unit_text", "velocity_names"]
 
 
 VELOCITY_PATTERNS = ("v{}", "{}_dot", "{}dot", "d{}")
@@ -349,3 +353,46 @@ def default_time_column(columns: Sequence[str]) -> str | None:
 def default_trajectory_column(columns: Sequence[str]) -> str | None:
     """Return the trajectory column, ``trajectory``, if the table has one."""
     return TRAJECTORY_COLUMN if TRAJECTORY_COLUMN in columns else None
+
+
+def read_units(names: list[str], mapping: Mapping[str, str], time: str | None,
+           options: FitOptions, metadata: Mapping[str, Any] | None,
+           source: str) -> dict[str, Any]:
+    """The time column, its unit, and the factor bringing each column read to SI units
+    (seconds for time): --scale, else the column's unit suffix, else the unit the table's
+    metadata records (``{"units": {column: unit}}``), else 1."""
+    recorded = metadata.get("units") if isinstance(metadata, Mapping) else None
+    recorded = recorded if isinstance(recorded, Mapping) else {}
+    given = dict(options.scale or {})
+    read = [*mapping.values(), *([time] if time else [])]
+    for column in given:
+        if column not in read:
+            raise UsageError(f"--scale: {column!r} is not a column read from {source} "
+                             f"(read: {', '.join(read)})")
+    scale: dict[str, float] = {}
+    unknown = []
+    for column in mapping.values():
+        factor, unit = column_scale(column)
+        if unit is None and isinstance(recorded.get(column), str):
+            factor = COLUMN_UNITS.get(unit_text(recorded[column]), 1.0)
+            if unit_text(recorded[column]) not in COLUMN_UNITS \
+                    and column not in given:
+                unknown.append(f"{column!r} ({recorded[column]!r})")
+        scale[column] = given.get(column, factor)
+    time_unit = None
+    if time is not None:
+        unit = options.time_unit
+        if unit is None and split_unit(time, TIME_UNITS)[1] is None \
+                and isinstance(recorded.get(time), str) \
+                and unit_text(recorded[time]) in TIME_UNITS:
+            unit = unit_text(recorded[time])
+        scale[time], time_unit = time_scale(time, unit)
+        if time in given:
+            scale[time], time_unit = given[time], f"{given[time]:g} s"
+    elif options.time_unit is not None:
+        raise UsageError(f"--time-unit {options.time_unit}: {source} has no time column; "
+                         "name it with --time COL")
+    notes = [f"{source}: the units of {', '.join(unknown)} are not among those converted "
+             f"({', '.join(COLUMN_UNITS)}): read as SI; give --scale COL=FACTOR"
+             ] if unknown else []
+    return {"time": time, "time_unit": time_unit, "scale": scale, "notes": notes}

@@ -173,7 +173,8 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
                          "are derived from the positions (as --velocity savgol), and the "
                          "trajectory refinement fits the positions alone")
         time, trajectory = _special_columns(names, mapping, options, source, notes)
-        units = _units(names, mapping, time, options, table_metadata, source)
+        units = column_roles.read_units(names, mapping, time, options, table_metadata,
+                                        source)
         notes.extend(units["notes"])
         reader = Reader(m, mapping, time, trajectory, source,
                         typed=source in _IN_MEMORY or readers.is_parquet(source),
@@ -573,7 +574,8 @@ def open_chunks(path: str | os.PathLike[str], model: str | os.PathLike[str] | Mo
     mapping = column_roles.resolve_columns(table.columns, m.coordinates, m.velocities,
                                      mapping=options.columns, source=table.name)
     time, trajectory = _special_columns(table.columns, mapping, options, table.name, notes)
-    units = _units(table.columns, mapping, time, options, table.metadata, table.name)
+    units = column_roles.read_units(table.columns, mapping, time, options, table.metadata,
+                                     table.name)
     notes.extend(units["notes"])
     reader = Reader(m, mapping, time, trajectory, table.name,
                     typed=table.format == "parquet", scales=units["scale"], chunked=True)
@@ -593,49 +595,6 @@ def _data_info(sources: list[str], n_samples: int, n_trajectories: int,
             "time_unit": units["time_unit"],
             "scale": {c: f for c, f in units["scale"].items() if f != 1.0},
             **({"reading": options.reading} if options.reading else {})}
-
-
-def _units(names: list[str], mapping: Mapping[str, str], time: str | None,
-           options: FitOptions, metadata: Mapping[str, Any] | None,
-           source: str) -> dict[str, Any]:
-    """The time column, its unit, and the factor bringing each column read to SI units
-    (seconds for time): --scale, else the column's unit suffix, else the unit the table's
-    metadata records (``{"units": {column: unit}}``), else 1."""
-    recorded = metadata.get("units") if isinstance(metadata, Mapping) else None
-    recorded = recorded if isinstance(recorded, Mapping) else {}
-    given = dict(options.scale or {})
-    read = [*mapping.values(), *([time] if time else [])]
-    for column in given:
-        if column not in read:
-            raise UsageError(f"--scale: {column!r} is not a column read from {source} "
-                             f"(read: {', '.join(read)})")
-    scale: dict[str, float] = {}
-    unknown = []
-    for column in mapping.values():
-        factor, unit = column_roles.column_scale(column)
-        if unit is None and isinstance(recorded.get(column), str):
-            factor = column_roles.COLUMN_UNITS.get(column_roles.unit_text(recorded[column]), 1.0)
-            if column_roles.unit_text(recorded[column]) not in column_roles.COLUMN_UNITS \
-                    and column not in given:
-                unknown.append(f"{column!r} ({recorded[column]!r})")
-        scale[column] = given.get(column, factor)
-    time_unit = None
-    if time is not None:
-        unit = options.time_unit
-        if unit is None and column_roles.split_unit(time, column_roles.TIME_UNITS)[1] is None \
-                and isinstance(recorded.get(time), str) \
-                and column_roles.unit_text(recorded[time]) in column_roles.TIME_UNITS:
-            unit = column_roles.unit_text(recorded[time])
-        scale[time], time_unit = column_roles.time_scale(time, unit)
-        if time in given:
-            scale[time], time_unit = given[time], f"{given[time]:g} s"
-    elif options.time_unit is not None:
-        raise UsageError(f"--time-unit {options.time_unit}: {source} has no time column; "
-                         "name it with --time COL")
-    notes = [f"{source}: the units of {', '.join(unknown)} are not among those converted "
-             f"({', '.join(column_roles.COLUMN_UNITS)}): read as SI; give --scale COL=FACTOR"
-             ] if unknown else []
-    return {"time": time, "time_unit": time_unit, "scale": scale, "notes": notes}
 
 
 def in_memory_only(model: str | os.PathLike[str] | Model | None) -> str:
