@@ -56,15 +56,17 @@ def records(seconds: float) -> tuple:
 
 
 INPUTS_NOISE: list[float] = []   # seconds in the covariance of the inputs' noise, per fit
+INPUTS_NOISE_CPU: list[float] = []   # and the CPU seconds of this process
 
 
 def _timed(function):
     def timed(*args, **kwargs):
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         try:
             return function(*args, **kwargs)
         finally:
             INPUTS_NOISE.append(time.perf_counter() - start)
+            INPUTS_NOISE_CPU.append(time.process_time() - cpu)
     return timed
 
 
@@ -150,11 +152,11 @@ def terms(driven, free) -> None:
             hamid.fit(frame, model, damping="viscous", method="joint", fix=fix, jobs=1)
             linear = time.process_time() - start
             COUNTS.update(passes=0, stages=0, state_stages=0)
-            INPUTS_NOISE.clear()
+            INPUTS_NOISE_CPU.clear()
             start = time.process_time()
             hamid.fit(frame, model, damping="viscous", fix=fix, jobs=1)
             seconds = time.process_time() - start - linear
-            lines[name] = (dict(COUNTS), seconds, sum(INPUTS_NOISE), len(frame))
+            lines[name] = (dict(COUNTS), seconds, sum(INPUTS_NOISE_CPU), len(frame))
     free_cost = lines["free"][1] / lines["free"][0]["state_stages"]
     for name, (counts, seconds, noise, n) in lines.items():
         cost = seconds / counts["state_stages"]
