@@ -7,7 +7,7 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-from hamid.data import input_size, loading
+from hamid.data import input_size, loading, measurement
 from hamid.data.records import Recording
 from hamid.executor import one_blas_thread
 from hamid.linear import chunked, estimate, plan
@@ -194,6 +194,8 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
         loaded=source, rows=rows, fit=linear if fitted is linear else None, unknowns=unknowns,
         damping=damping_forces, options=opts, sigma=sigma)
     notes = source.notes + tuple(plan.window_warnings(fit_plan, source.durations()))
+    if m.forcing is not None:   # inputs the sampling does not resolve
+        notes += tuple(measurement.nyquist_warnings(m.forcing.inputs, source.whole()))
     provenance = summary.Provenance(data=source.data_info, labels=source.labels,
                                     truth=source.truth, notes=notes, noise=noise_info,
                                     noise_check=noise_check, skipped=step.skipped)

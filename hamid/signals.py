@@ -26,6 +26,7 @@ from __future__ import annotations
 import difflib
 import os
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -34,10 +35,22 @@ import numpy.typing as npt
 from hamid.errors import HamidError, ModelError
 from hamid.model.toml_values import check_keys, number, table
 
-__all__ = ["KINDS", "MAX_COMPONENTS", "signal"]
+__all__ = ["KINDS", "MAX_COMPONENTS", "Signal", "signal"]
 
 Array = npt.NDArray[np.float64]
-Signal = Callable[[Any], Any]   # t (a float or an array) -> the input at t
+
+
+@dataclass(frozen=True)
+class Signal:
+    """An input signal: its value at t (a float or an array), and the highest frequency
+    it holds over the run (Hz; None for a file's samples, whose spectrum is the sampled
+    record's), which the sampling must resolve (`hamid.simulation`'s Nyquist warning)."""
+
+    value: Callable[[Any], Any]
+    top: float | None
+
+    def __call__(self, t: Any) -> Any:
+        return self.value(t)
 
 KINDS = ("sine", "sweep", "multisine", "noise", "file")
 # Sines of a multisine or noise: each is evaluated at every integrator stage.
@@ -63,14 +76,15 @@ def signal(entry: Any, *, t_end: float, where: str, folder: str | None = None) -
                          f"{', '.join(KINDS)}")
     check_keys(entry, _KEYS[kind], where=where)
     if kind == "file":
-        return _from_file(entry, t_end, where, folder)
+        return Signal(_from_file(entry, t_end, where, folder), None)
     amplitude = number(_needed(entry, "amplitude", where), where=f"{where} amplitude",
                        non_negative=True)
     if kind == "sine":
         frequency = number(_needed(entry, "frequency", where), where=f"{where} frequency",
                            positive=True)
         phase = number(entry.get("phase", 0.0), where=f"{where} phase")
-        return lambda t: amplitude * np.sin(2 * np.pi * frequency * np.asarray(t) + phase)
+        return Signal(lambda t: amplitude * np.sin(2 * np.pi * frequency * np.asarray(t)
+                                                   + phase), frequency)
     if kind == "sweep":
         return _sweep(entry, amplitude, t_end, where)
     return _sum_of_sines(entry, kind, amplitude, t_end, where)
@@ -89,15 +103,18 @@ def _sweep(entry: Mapping[str, Any], amplitude: float, t_end: float, where: str)
     law = entry.get("law", "linear")
     if law not in ("linear", "log"):
         raise ModelError(f"{where}: law {law!r} is not 'linear' or 'log'")
+    # the frequency goes on by its law past `duration`: the highest is at 0 or at t_end
     if law == "linear":
         rate = (f1 - f0) / duration
-        return lambda t: amplitude * np.sin(2 * np.pi * (f0 * np.asarray(t)
-                                                         + rate * np.square(t) / 2))
+        return Signal(lambda t: amplitude * np.sin(2 * np.pi * (f0 * np.asarray(t)
+                                                                + rate * np.square(t) / 2)),
+                      max(f0, abs(f0 + rate * t_end)))
     if f0 == f1:
-        return lambda t: amplitude * np.sin(2 * np.pi * f0 * np.asarray(t))
+        return Signal(lambda t: amplitude * np.sin(2 * np.pi * f0 * np.asarray(t)), f0)
     growth = np.log(f1 / f0) / duration
-    return lambda t: amplitude * np.sin(2 * np.pi * f0 * np.expm1(growth * np.asarray(t))
-                                        / growth)
+    top = max(f0, float(f0 * np.exp(growth * t_end)))
+    return Signal(lambda t: amplitude * np.sin(2 * np.pi * f0 * np.expm1(growth * np.asarray(t))
+                                               / growth), top)
 
 
 def _sum_of_sines(entry: Mapping[str, Any], kind: str, amplitude: float, t_end: float,
@@ -134,11 +151,11 @@ def _sum_of_sines(entry: Mapping[str, Any], kind: str, amplitude: float, t_end: 
         t = np.asarray(t, dtype=np.float64)
         return np.sin(np.multiply.outer(t, omega) + phases) @ sizes
 
-    return value
+    return Signal(value, float(frequencies[-1]))
 
 
 def _from_file(entry: Mapping[str, Any], t_end: float, where: str,
-               folder: str | None) -> Signal:
+               folder: str | None) -> Callable[[Any], Any]:
     from scipy.interpolate import CubicSpline
 
     from hamid.data import column_roles, readers

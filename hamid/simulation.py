@@ -26,6 +26,8 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid import signals
+from hamid.data import measurement
+from hamid.data.records import Records
 from hamid.errors import ModelError, UsageError
 from hamid.model.dissipation import Dissipation
 from hamid.model.dynamics import Dynamics, Motion
@@ -285,6 +287,30 @@ def _stuck(t: float, dissipation: Dissipation) -> str:
     return text
 
 
+def _nyquist_warnings(system: System, times: npt.NDArray[np.float64],
+                      inputs: npt.NDArray[np.float64]) -> list[str]:
+    """A line for each input whose signal the sampling does not resolve: one with a
+    frequency at or above the Nyquist frequency 1 / (2 dt) (its samples alias it: a fit of
+    them sees another input), or, for a file's samples (`Signal.top` None), the sampled
+    column with much of its power near it (`measurement.nyquist_warning`)."""
+    nyquist = 1 / (2 * system.dt)
+    lines = []
+    for name, signal, values in zip(system.model.inputs, system.signals, inputs, strict=True):
+        if signal.top is None:
+            sampled = Records(values[:, None], times, np.zeros(len(times), np.int64), (1,))
+            line = measurement.nyquist_warning(name, values, sampled)
+        elif signal.top >= nyquist:
+            line = (f"input {name!r}: its signal reaches {signal.top:.4g} Hz, at or above the "
+                    f"Nyquist frequency {nyquist:.4g} Hz of the sampling (dt = {system.dt:g} "
+                    "s): its written samples alias it, and a fit of them sees another input "
+                    "(lower the signal's top frequency, or dt)")
+        else:
+            line = None
+        if line is not None:
+            lines.append(line)
+    return lines
+
+
 def realizations(system: System, count: int, *, seed: int | None = None,
                  progress: Callable[[float], None] | None = None
                  ) -> Iterator[tuple[dict[str, np.ndarray], dict[str, Any]]]:
@@ -383,6 +409,7 @@ def realizations(system: System, count: int, *, seed: int | None = None,
     input_sigma = {u: system.noise[u] if u in system.noise else
                    system.relative_noise * float(np.std(inputs[i]))
                    if system.relative_noise else 0.0 for i, u in enumerate(model.inputs)}
+    warnings = _nyquist_warnings(system, times, inputs)
     seed = system.seed if seed is None else seed
     if seed is None:
         seed = int(np.random.SeedSequence().entropy % 2**32)
@@ -416,6 +443,7 @@ def realizations(system: System, count: int, *, seed: int | None = None,
                            "atol": system.atol},
             "t_end": system.t_end,
             "dt": system.dt,
+            **({"warnings": warnings} if warnings else {}),
         }
 
 

@@ -78,6 +78,7 @@ def test_a_driven_duffing_with_free_mass_is_recovered_in_physical_units(duffing_
     result = hamid.fit(data, duffing_model, damping="viscous")
     for name, value in DUFFING_TRUTH.items():
         assert result.estimates[name] == pytest.approx(value, rel=1e-5), name
+    assert not any("Nyquist" in warning for warning in result.warnings)   # 1 Hz at 100 Hz
 
 
 def test_a_two_mass_chain_forced_on_its_second_mass_is_recovered(chain_model):
@@ -275,3 +276,34 @@ def test_a_driven_fit_is_refused_in_chunks(duffing_model, tmp_path):
     hamid.simulate(duffing_system()).to_csv(data, index=False)
     with pytest.raises(UsageError, match="the model's forcing needs the data in memory"):
         hamid.fit(data, duffing_model, chunk_rows=500)
+
+
+def test_a_recorded_input_near_the_nyquist_frequency_is_a_warning(duffing_model):
+    from hamid.data import measurement
+    from hamid.data.records import Records
+
+    data = hamid.simulate(duffing_system())
+    rng = np.random.default_rng(0)
+    # white noise as strong as the force: a fifth of the noise's power, a tenth of the
+    # input's, lies in the top fifth of the band up to the Nyquist frequency 50 Hz
+    data["F"] += data["F"].std() * rng.standard_normal(len(data))
+    result = hamid.fit(data, duffing_model, damping="viscous", method="joint")
+    [warning] = [w for w in result.warnings if "Nyquist" in w]
+    share = float(warning.split(" has ")[1].split("%")[0])
+    assert 8 < share < 12, warning
+    assert warning.startswith("input 'F' has ") and "Nyquist frequency 50 Hz" in warning
+    t = np.arange(4000) * 0.01
+    records = Records(np.zeros((len(t), 2)), t, np.zeros(len(t), np.int64), (1,))
+    for values, expected in ((np.sin(2 * np.pi * 1.0 * t), None),
+                             (np.sin(2 * np.pi * 30.0 * t), None),
+                             (rng.standard_normal(len(t)), "white"),
+                             (np.sin(2 * np.pi * 45.0 * t), "45 Hz")):
+        warning = measurement.nyquist_warning("F", values, records)
+        if expected is None:
+            assert warning is None
+        elif expected == "white":   # a fifth of its power above 40 Hz, up to the top
+            assert 17 < float(warning.split(" has ")[1].split("%")[0]) < 23, warning
+            assert "up to 49.75 Hz" in warning or "up to 50 Hz" in warning, warning
+            assert "(dt = 0.01 s)" in warning
+        else:   # all of it, at 45 Hz (the top said is its bin's, 0.25 Hz wide)
+            assert " has 100% of its power above 40 Hz, up to 45.25 Hz," in warning, warning

@@ -237,6 +237,8 @@ def simulate(config: str, output: str, fmt: str | None, seed: int | None, no_met
             meta = frame.attrs["hamid"]
             writing.write_table(frame, name, format=fmt, metadata=None if no_meta else meta)
     drift = max(t["energy_drift"] for t in meta["trajectories"])
+    for warning in meta.get("warnings", []):
+        click.echo(console.printable(f"warning: {warning}"), err=True)
     stderr.print(f"simulated {counted(len(meta['trajectories']), 'trajectory', 'trajectories')}, "
                  f"{counted(len(frame), 'sample', 'samples')} "
                  f"(t = 0..{frame['t'].iloc[-1]:g}, dt = {meta['dt']:g}); "

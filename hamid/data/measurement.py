@@ -12,8 +12,9 @@ import numpy.typing as npt
 from hamid.data.records import Records, ranges, runs
 from hamid.errors import DataError, UsageError
 
-__all__ = ["DIFFERENCE_ORDER", "VelocityFinding", "VelocitySums", "derive_velocities",
-           "estimate_noise", "savgol_velocities", "velocity_check"]
+__all__ = ["DIFFERENCE_ORDER", "NYQUIST_BAND", "NYQUIST_SHARE", "VelocityFinding",
+           "VelocitySums", "derive_velocities", "estimate_noise", "nyquist_warning",
+           "nyquist_warnings", "savgol_velocities", "velocity_check"]
 
 # Differences of this order remove a smooth signal (its k-th difference is ~ (w dt)^k) and
 # keep white noise, scaled by sqrt(C(2k, k)).
@@ -417,3 +418,56 @@ class VelocitySums:
 
 # What a fit that keeps a disagreeing velocity column says to do.
 DERIVE_ADVICE = "; derive the velocities with --velocity savgol"
+
+
+# A sampled input with more than NYQUIST_SHARE of its power above NYQUIST_BAND times the
+# Nyquist frequency is not resolved by its sampling: what lies beyond the Nyquist frequency
+# folds back (aliases), and the interpolation between samples, which the fits and the
+# refinement assume smooth, misses it. White noise puts 1 - NYQUIST_BAND of its power
+# there; an anti-aliased DAQ record, or a band well inside the Nyquist frequency, almost none.
+NYQUIST_BAND = 0.8
+NYQUIST_SHARE = 0.05
+_TOP_SHARE = 0.99   # the top frequency said: the one below which this share of power lies
+
+
+def nyquist_warning(name: str, values: npt.NDArray[np.float64], records: Records
+                    ) -> str | None:
+    """A one-line warning when the sampled input `name` (`values`, one per row of
+    `records`) holds more than NYQUIST_SHARE of its power near the Nyquist frequency of
+    the sampling (above NYQUIST_BAND of it), else None. Its power spectrum is that of
+    each trajectory less its mean, Hann-windowed (so that strong low frequencies leak
+    little power up to it), summed; the sampling step is the median one."""
+    assert records.t is not None
+    steps = np.concatenate([np.diff(records.t[a:b]) for a, b in records.bounds()])
+    if not len(steps) or not np.median(steps) > 0:
+        return None
+    dt = float(np.median(steps))
+    nyquist = 1 / (2 * dt)
+    bins = np.linspace(0.0, nyquist, 201)
+    power = np.zeros(len(bins) - 1)
+    for a, b in records.bounds():
+        segment = values[a:b][np.isfinite(values[a:b])]
+        if len(segment) < 4:
+            continue
+        windowed = (segment - segment.mean()) * np.hanning(len(segment))
+        spectrum = np.abs(np.fft.rfft(windowed)) ** 2
+        frequencies = np.fft.rfftfreq(len(segment), dt)
+        power += np.histogram(frequencies, bins, weights=spectrum)[0]
+    total = power.sum()
+    share = power[bins[:-1] >= NYQUIST_BAND * nyquist].sum() / total if total > 0 else 0.0
+    if not share > NYQUIST_SHARE:
+        return None
+    top = bins[1 + int(np.searchsorted(np.cumsum(power) / total, _TOP_SHARE))]
+    return (f"input {name!r} has {100 * share:.3g}% of its power above "
+            f"{NYQUIST_BAND * nyquist:.4g} Hz, up to {top:.4g} Hz, near the Nyquist frequency "
+            f"{nyquist:.4g} Hz of its sampling (dt = {dt:.4g} s): what lies beyond it is "
+            "aliased and the interpolation between samples misses it (sample faster, or "
+            "low-pass filter the input before sampling)")
+
+
+def nyquist_warnings(names: Sequence[str], records: Records) -> list[str]:
+    """The `nyquist_warning` of each recorded input (`records.U`, columns in `names`)."""
+    if records.U is None:
+        return []
+    return [warning for name, values in zip(names, records.U.T, strict=True)
+            if (warning := nyquist_warning(name, values, records)) is not None]

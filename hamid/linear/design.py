@@ -59,16 +59,21 @@ class Block:
                      weight=self.weight[start:stop], has_level=self.has_level)
 
 
-def _dissipated_work(records: Records, dissipation: Dissipation) -> npt.NDArray[np.float64]:
+def _dissipated_work(records: Records, dissipation: Dissipation,
+                     shared: quadrature.StatePoints | None = None) -> npt.NDArray[np.float64]:
     """Work done against each dissipative term since the start of its trajectory.
 
     Column k is integral_0^t sum_i v_i dR_k/dv_i dt, the power of coefficient k, integrated
-    between the samples and split at the term's kinks (`hamid.linear.quadrature`).
+    between the samples and split at the term's kinks (`hamid.linear.quadrature`). The
+    terms without kinks take the points `shared` when given (those of the input work,
+    whose first columns are the state's), not made again.
     """
     work = np.zeros((len(records.group), len(dissipation)))
+    width = records.X.shape[1]
     for kinks, terms in _by_kinks(dissipation).items():
-        points = quadrature.state_points(records, kinks)
-        power = dissipation.power_parts(points.X)
+        points = (shared if shared is not None and not kinks
+                  else quadrature.state_points(records, kinks))
+        power = dissipation.power_parts(points.X[:, :width])
         for k in terms:
             work[:, k] = points.cumulative(power[:, k], records)
     return work
@@ -83,18 +88,26 @@ def _by_kinks(dissipation: Dissipation) -> dict[tuple[Func, ...], list[int]]:
     return dict(groups.values())
 
 
-def input_work(model: Model, records: Records) -> tuple[np.ndarray, np.ndarray]:
+def _input_points(records: Records) -> quadrature.StatePoints:
+    """The quadrature points of the records' state and inputs side by side (X, then U)."""
+    assert records.U is not None
+    return quadrature.state_points(replace(records, X=np.hstack([records.X, records.U])))
+
+
+def input_work(model: Model, records: Records, points: quadrature.StatePoints | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """Work the recorded inputs have done on the system since the start of its trajectory:
     integral_0^t Q(q, u) . v dt, its parameter-free part W0 (n,) and its part per model
-    parameter W (n, P), Q = dW/dq the generalized force of `Model.forcing`.
+    parameter W (n, P), Q = dW/dq the generalized force of `Model.forcing`; at the
+    `_input_points` of the records, made here unless given.
 
     The inputs are interpolated between the samples by the same local quintic as the state
     (`hamid.linear.quadrature`): a DAQ samples its inputs, it does not hold them.
     """
     assert model.forcing is not None and records.U is not None
     width = records.X.shape[1]
-    joined = replace(records, X=np.hstack([records.X, records.U]))
-    points = quadrature.state_points(joined)
+    if points is None:
+        points = _input_points(records)
     Q0, Q = model.forcing.parts(points.X[:, :width], points.X[:, width:])
     V = points.X[:, len(model.coordinates):width]
     W0 = points.cumulative(np.einsum("pi,pi->p", Q0, V), records)
@@ -113,12 +126,14 @@ def energy_block(model: Model, records: Records,
     the recorded inputs did since then is taken away (its parameter-free part into b).
     """
     E0, Phi = model.energy_basis(records.X)   # rows of one array, which Phi keeps
+    points = None
     if model.forcing is not None:
-        W0, W = input_work(model, records)
+        points = _input_points(records)
+        W0, W = input_work(model, records, points)
         Phi -= W
         E0 -= W0
     if dissipation:
-        Phi = np.hstack([Phi, _dissipated_work(records, dissipation)])
+        Phi = np.hstack([Phi, _dissipated_work(records, dissipation, points)])
     time = records.t if records.t is not None else _sample_index(records)
     b = np.negative(E0, out=E0)   # in its row: no other array of the record's length
     return Block(RowKind.ENERGY, Phi, b, records.group, time, np.ones(len(E0)), has_level=True)

@@ -10,7 +10,12 @@ target being at most 1.3; and the driven one less the covariance of the inputs' 
 (`joint_refinement._inputs_covariance`), which a free fit has no counterpart of, also with
 the mass fixed as in the free fit (as many parameters).
 
-    python tests/benchmarks/driven_refinement.py [--seconds 200] [--repeat 3]
+With `--terms`, each fit is also made once in this process (jobs=1) with its integrations
+counted: passes over the segments, right-hand side calls (integrator stages) and states
+integrated per sample, and the CPU time per state and stage of the refinement, which
+compares the fits on equal terms (as many copies, passes and steps).
+
+    python tests/benchmarks/driven_refinement.py [--seconds 200] [--repeat 3] [--terms]
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 import hamid
-from hamid.refine import joint_refinement
+from hamid.refine import dop853, joint_refinement
 
 sys.path.insert(0, str(Path(__file__).parent.parent))
 from test_driven_fit import DUFFING_MODEL, DUFFING_TRUTH, duffing_system  # noqa: E402
@@ -51,19 +56,36 @@ def records(seconds: float) -> tuple:
 
 
 INPUTS_NOISE: list[float] = []   # seconds in the covariance of the inputs' noise, per fit
+INPUTS_NOISE_CPU: list[float] = []   # and the CPU seconds of this process
 
 
 def _timed(function):
     def timed(*args, **kwargs):
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         try:
             return function(*args, **kwargs)
         finally:
             INPUTS_NOISE.append(time.perf_counter() - start)
+            INPUTS_NOISE_CPU.append(time.process_time() - cpu)
     return timed
 
 
 joint_refinement._inputs_covariance = _timed(joint_refinement._inputs_covariance)
+
+COUNTS = {"passes": 0, "stages": 0, "state_stages": 0}   # of the integrations, per fit
+_integrate = dop853.integrate
+
+
+def _counted(fun, y0, *args, **kwargs):
+    def counted(t, y):
+        COUNTS["stages"] += 1
+        COUNTS["state_stages"] += len(y)
+        return fun(t, y)
+    COUNTS["passes"] += 1
+    return _integrate(counted, y0, *args, **kwargs)
+
+
+dop853.integrate = _counted
 
 
 def refinement_seconds(frame, model, **options) -> tuple[float, float]:
@@ -83,6 +105,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=200.0)
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--terms", action="store_true",
+                        help="count each fit's integrations, and compare on equal terms")
     args = parser.parse_args()
     driven, free = records(args.seconds)
     with tempfile.TemporaryDirectory() as folder:
@@ -107,6 +131,39 @@ def main() -> None:
     for key, value in median.items():
         print(f"{key:31s} refinement {1e6 * value:8.2f} us per sample, "
               f"{value / median['free']:.2f} x free")
+    if args.terms:
+        terms(driven, free)
+
+
+def terms(driven, free) -> None:
+    """Each fit's integrations per sample, and its refinement's CPU time per value
+    integrated and stage (the equal terms: as many copies, passes and steps), made once
+    in this process."""
+    with tempfile.TemporaryDirectory() as folder:
+        driven_model, free_model = Path(folder) / "driven.toml", Path(folder) / "free.toml"
+        driven_model.write_text(DUFFING_MODEL)
+        free_model.write_text(FREE_MODEL)
+        lines = {}
+        for name, frame, model, fix in (
+                ("driven", driven, driven_model, {}),
+                ("driven, m fixed", driven, driven_model, {"m": DUFFING_TRUTH["m"]}),
+                ("free", free, free_model, {"m": DUFFING_TRUTH["m"]})):
+            start = time.process_time()
+            hamid.fit(frame, model, damping="viscous", method="joint", fix=fix, jobs=1)
+            linear = time.process_time() - start
+            COUNTS.update(passes=0, stages=0, state_stages=0)
+            INPUTS_NOISE_CPU.clear()
+            start = time.process_time()
+            hamid.fit(frame, model, damping="viscous", fix=fix, jobs=1)
+            seconds = time.process_time() - start - linear
+            lines[name] = (dict(COUNTS), seconds, sum(INPUTS_NOISE_CPU), len(frame))
+    free_cost = lines["free"][1] / lines["free"][0]["state_stages"]
+    for name, (counts, seconds, noise, n) in lines.items():
+        cost = seconds / counts["state_stages"]
+        print(f"{name:16s} {counts['passes']} passes, {counts['stages'] / n:.3f} stages and "
+              f"{counts['state_stages'] / n:6.1f} values x stages per sample; CPU "
+              f"{1e6 * seconds / n:6.2f} us per sample ({1e6 * noise / n:5.2f} the inputs' "
+              f"noise), {1e9 * cost:5.1f} ns per value x stage, {cost / free_cost:.2f} x free")
 
 
 if __name__ == "__main__":

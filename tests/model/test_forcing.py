@@ -315,6 +315,7 @@ def test_hamid_simulate_writes_the_input_beside_the_motion(tmp_path):
     done = subprocess.run([*hamid_command(), "simulate", "--config", str(config), "-o",
                            str(out)], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
+    assert "warning" not in done.stderr   # 0.5 Hz, sampled at 100 Hz
     header = next(line for line in out.read_text().splitlines()
                   if line.startswith("trajectory"))
     assert header.split(",")[-3:] == ["x", "v", "F"]
@@ -330,3 +331,73 @@ def test_hamid_simulate_writes_the_input_beside_the_motion(tmp_path):
                            str(tmp_path / "bad.csv")], capture_output=True, text=True)
     one_line_error(done, 1, "[forcing.signals.F]", "gone.csv: no such file")
     assert not (tmp_path / "bad.csv").exists()
+
+
+@pytest.mark.parametrize(("signal", "top"), [
+    ('kind = "sine"\namplitude = 1.0\nfrequency = 60.0', "60 Hz"),
+    ('kind = "sine"\namplitude = 1.0\nfrequency = 50.0', "50 Hz"),
+    # on by its law past its duration: 1 + (30 - 1) / 0.5 * 1 Hz at t_end
+    ('kind = "sweep"\namplitude = 1.0\nf0 = 1.0\nf1 = 30.0\nduration = 0.5', "59 Hz"),
+    # 1 * (30 / 1)**(1 / 0.8) Hz at t_end
+    ('kind = "sweep"\namplitude = 1.0\nf0 = 1.0\nf1 = 30.0\nduration = 0.8\nlaw = "log"',
+     "70.21 Hz"),
+    # a sweep down: its highest frequency is its first
+    ('kind = "sweep"\namplitude = 1.0\nf0 = 70.0\nf1 = 1.0', "70 Hz"),
+    # the run's grid: multiples of 1/t_end = 1 Hz, up to 54 Hz in the band
+    ('kind = "multisine"\namplitude = 1.0\nband = [0.5, 54.9]', "54 Hz"),
+    ('kind = "noise"\namplitude = 1.0\nband = [0.5, 55.0]', "55 Hz"),
+])
+def test_a_signal_beyond_the_nyquist_frequency_is_a_warning(signal, top):
+    import tomllib
+
+    data = hamid.simulate(tomllib.loads(SYSTEM_TOML.format(signal=signal, t_end=1.0)))
+    [warning] = data.attrs["hamid"]["warnings"]
+    assert warning.startswith("input 'F': its signal reaches ")
+    assert f"reaches {top}," in warning and "Nyquist frequency 50 Hz" in warning
+
+
+@pytest.mark.parametrize("signal", [
+    'kind = "sine"\namplitude = 1.0\nfrequency = 49.0',
+    'kind = "sweep"\namplitude = 1.0\nf0 = 1.0\nf1 = 45.0',
+    'kind = "multisine"\namplitude = 1.0\nband = [0.5, 45.0]',
+])
+def test_a_signal_below_the_nyquist_frequency_is_no_warning(signal):
+    import tomllib
+
+    data = hamid.simulate(tomllib.loads(SYSTEM_TOML.format(signal=signal, t_end=1.0)))
+    assert "warnings" not in data.attrs["hamid"]
+
+
+def test_a_file_signal_near_the_nyquist_frequency_is_a_warning(tmp_path):
+    import tomllib
+
+    t = np.linspace(0.0, 1.0, 401)   # sampled 4 times finer than the run
+    for name, frequency in (("slow", 2.0), ("fast", 45.0)):   # the run's Nyquist: 50 Hz
+        load = np.sin(2 * np.pi * frequency * t)
+        (tmp_path / f"{name}.csv").write_text("t,load\n" + "\n".join(
+            f"{a:.17g},{b:.17g}" for a, b in zip(t, load, strict=True)))
+        signal = f'kind = "file"\npath = "{tmp_path / name}.csv"\ncolumn = "load"'
+        data = hamid.simulate(tomllib.loads(SYSTEM_TOML.format(signal=signal, t_end=1.0)))
+        warnings = data.attrs["hamid"].get("warnings", [])
+        if name == "slow":
+            assert warnings == []
+        else:
+            [warning] = warnings
+            assert warning.startswith("input 'F' has ")
+            assert "above 40 Hz" in warning and "Nyquist frequency 50 Hz" in warning
+
+
+def test_hamid_simulate_says_the_nyquist_warning_and_writes_the_record(tmp_path):
+    import subprocess
+
+    config = tmp_path / "driven.toml"
+    config.write_text(SYSTEM_TOML.format(
+        signal='kind = "sine"\namplitude = 1.0\nfrequency = 60.0', t_end=1.0))
+    out = tmp_path / "driven.csv"
+    done = subprocess.run([*hamid_command(), "simulate", "--config", str(config), "-o",
+                           str(out)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    warnings = [line for line in done.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and "60 Hz" in warnings[0] and "50 Hz" in warnings[0]
+    rows = [line for line in out.read_text().splitlines() if not line.startswith("#")]
+    assert rows[0].split(",")[-1] == "F" and len(rows) == 1 + 101
