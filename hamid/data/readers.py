@@ -54,6 +54,9 @@ _PARQUET_MAGIC = b"PAR1"
 METADATA_KEY = b"hamid"
 # pyarrow's block_size is an int32; a larger file falls back to reading text columns.
 _MAX_BLOCK = 2**31 - 1
+# Tables read whole use pyarrow's threads only past this size, where they gain: one still
+# running at exit aborts the process (apache/arrow#34314), not to be risked for small files.
+THREADED_BYTES = 16 << 20
 _MAX_LISTED_COLUMNS = 20
 _MAX_CELL_CHARS = 40
 
@@ -179,7 +182,7 @@ def _read_parquet(data: bytes, name: str) -> tuple[pa.Table, dict[str, Any] | No
         parquet = pq.ParquetFile(pa.BufferReader(data))
         names = parquet.schema_arrow.names
         check_unique(names, name)
-        table = parquet.read()
+        table = parquet.read(use_threads=len(data) > THREADED_BYTES)
         # Parquet readers do not check that text is UTF-8; a damaged page would only fail
         # later, in pandas.
         table.validate(full=True)
@@ -302,7 +305,8 @@ def _parse_csv(data: bytes, layout: text_layout.Layout, name: str) -> pa.Table:
     # Only an empty cell is missing: 'n/a' in a number column must be reported, not hidden.
     convert = pacsv.ConvertOptions(null_values=[""], decimal_point=layout.decimal)
     parse = pacsv.ParseOptions(delimiter=layout.delimiter)
-    read = pacsv.ReadOptions(skip_rows_after_names=layout.skip)
+    read = pacsv.ReadOptions(skip_rows_after_names=layout.skip, use_threads=body.size >
+                             THREADED_BYTES)
     try:
         return pacsv.read_csv(pa.BufferReader(body), read_options=read, parse_options=parse,
                               convert_options=convert)
@@ -337,16 +341,11 @@ def _parse_csv(data: bytes, layout: text_layout.Layout, name: str) -> pa.Table:
     except pa.ArrowException as exc:
         if bad_rows:
             row = bad_rows[0]
-            # lines before the header taken (skipped or comments) and those after it
-            preamble = text_layout.preamble_lines(data[layout.start:], layout.delimiter)
-            preamble += data.count(b"\n", 0, layout.start) if preamble else 0
             raise DataError(
                 f"{name}: row {row.number - 1 - layout.skip} has "
                 f"{counted(row.actual_columns, 'field', 'fields')} where the header has "
                 f"{row.expected_columns}: {_cell(row.text)}"
-                + (f"; the file seems to start with {counted(preamble, 'line', 'lines')} "
-                   f"before its header: give --skip-rows {preamble}" if preamble else "")
-            ) from exc
+                + text_layout.preamble_hint(data, layout)) from exc
         if body.size + 1 <= _MAX_BLOCK:
             raise DataError(f"{name}: not valid delimited text ({first_line(exc)})") from exc
     # Larger than one block can be: every column as text, numeric_column converts.

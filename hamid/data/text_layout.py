@@ -23,9 +23,10 @@ from typing import IO, Any
 from hamid import read_limits
 from hamid.errors import DataError, UsageError
 from hamid.read_limits import json_value
+from hamid.safe_text import counted
 
 __all__ = ["Layout", "TextOptions", "head", "json_kind", "layout", "parse_metadata", "points",
-           "preamble_lines"]
+           "preamble_hint", "preamble_lines"]
 
 UTF8_BOM = b"\xef\xbb\xbf"
 _METADATA_LINE = re.compile(rb"#\s*hamid:(.*)")
@@ -143,18 +144,36 @@ def head(stream: IO[bytes], name: str, skip_rows: int = 0) -> bytes:
 
 def preamble_lines(text: bytes, delimiter: str) -> int:
     """How many lines a preamble seems to take at the start of `text` (a data logger's lines
-    before the header): the leading lines whose number of fields, split at `delimiter`,
-    differs from the most common number among the first lines. A guess for a hint, not a
-    reading: 0 when the first line already has the common number."""
-    lines = text.removeprefix(UTF8_BOM).split(b"\n", _PREAMBLE_LINES)[:_PREAMBLE_LINES]
-    separator = delimiter.encode()
-    fields = [line.count(separator) + 1 if line.strip() else None for line in lines]
-    seen = [n for n in fields if n is not None]
-    if not seen:
-        return 0
-    # the most common number; of two as common, the one the later lines have (the data's)
-    common = max(set(seen), key=lambda n: (seen.count(n), fields[::-1].index(n) * -1))
-    return fields.index(common)
+    before the header): the first line from which on the header and the rows after it split
+    into as many fields, more than one, at `delimiter` or at the delimiter sniffed from that
+    line (a preamble's commas can make the whole text's sniffed delimiter wrong), the header
+    holding names (no number). A guess for a hint, not a reading: 0 when the first
+    line already starts such a table."""
+    lines = [line.decode("utf-8", "replace") for line in text.removeprefix(UTF8_BOM).split(
+        b"\n", _PREAMBLE_LINES)[:_PREAMBLE_LINES]]
+    for first, line in enumerate(lines):
+        rows = [row for row in lines[first + 1:] if row.strip()][:_SNIFF_ROWS]
+        if not line.strip():
+            continue
+        if not rows:
+            break
+        for separator in {delimiter, _sniff_delimiter(line, tabs=True)}:
+            fields = line.count(separator) + 1
+            if (fields > 1 and all(row.count(separator) + 1 == fields for row in rows)
+                    and not any(_is_number(cell, ",") for cell in _cells(line, separator))):
+                return first
+    return 0
+
+
+def preamble_hint(data: bytes, layout: Layout) -> str:
+    """The hint to a malformed row's error when the text seems to start with a preamble
+    (`preamble_lines`), counting the lines skipped before the header already; else ""."""
+    preamble = preamble_lines(data[layout.start:], layout.delimiter)
+    if not preamble:
+        return ""
+    preamble += data.count(b"\n", 0, layout.start)   # skipped lines, comments
+    return (f"; the file seems to start with {counted(preamble, 'line', 'lines')} before "
+            f"its header: give --skip-rows {preamble}")
 
 
 def points(column: Any) -> Any:

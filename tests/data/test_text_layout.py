@@ -216,6 +216,10 @@ def test_text_options_given(tmp_path):
     (b"a\nb\nt,x,v\n0,1,2\n", ",", 2),    # as common as the data: the data's number wins
     (b"t,x\n0,1\n1,2\n3\n", ",", 0),      # a short row at the end is no preamble
     (b"", ",", 0),
+    # the preamble's commas make ',' the text's delimiter; the table's is ';'
+    (b"Rig 2, cantilever; export\nsampling 20 Hz; two decays\ntrajectory;t [ms];x [mm]\n"
+     b"1;0,0;1011,3\n1;50,0;1000,4\n", ",", 2),
+    (b"Rig 2\nsampling 20 Hz\nDAQ\nt,x,v\n0,1,0\n1,2,0\n", ",", 3),
 ])
 def test_a_preamble_is_the_leading_lines_of_another_number_of_fields(text, delimiter, lines):
     assert preamble_lines(text, delimiter) == lines
