@@ -10,6 +10,8 @@ The convention, one for every page:
   stands for any number of lines left out;
 - a fenced ```sh block is a script run as it is (bash, `set -euo pipefail`): it must end
   with status 0;
+- a fenced ```python block is a script run as it is (this interpreter, this working tree): it
+  must end with status 0;
 - a ```text block shows a command that is not run here (it needs files that are not in the
   repository, or takes minutes), and says so beside it.
 
@@ -34,8 +36,9 @@ ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 FENCE = re.compile(r"^(\s*)```(\S*).*$")
 ELISION = "..."
-# pages whose commands take minutes (the real double pendulum, the Silverbox)
-SLOW_PAGES = {"driven.md", "damping.md"}
+# The README's commands run in every test run; the guide's, some 2 minutes of fits on a
+# busy machine, are marked slow (run in CI, and by `-m slow`).
+QUICK_PAGES = {"README.md"}
 
 
 @dataclass(frozen=True)
@@ -144,13 +147,17 @@ def _name(page: Path) -> str:
 
 @pytest.mark.parametrize("page", [
     pytest.param(page, id=_name(page),
-                 marks=[pytest.mark.slow] if page.name in SLOW_PAGES else [])
+                 marks=[] if page.name in QUICK_PAGES else [pytest.mark.slow])
     for page in PAGES])
 def test_every_command_shown_runs_and_prints_what_the_page_shows(page, tmp_path):
     folder = workspace(tmp_path)
     for block in blocks(page):
-        if block.kind == "sh":
-            done = run("\n".join(block.lines), folder)
+        if block.kind in {"sh", "python"}:
+            script = "\n".join(block.lines)
+            if block.kind == "python":
+                (folder / "example.py").write_text(script + "\n")
+                script = f'"{sys.executable}" example.py'
+            done = run(script, folder)
             assert done.returncode == 0, (f"{_name(page)}:{block.line}: the block ended with "
                                           f"status {done.returncode}:\n{done.stdout}")
         elif block.kind == "console":
@@ -170,6 +177,20 @@ def test_every_block_of_commands_follows_the_convention():
             if block.kind in {"bash", "shell", "zsh", ""}:
                 assert not any(line.lstrip().startswith("hamid ") for line in block.lines), (
                     f"{_name(page)}:{block.line}: commands go in a sh, console or text block")
+        assert not _indented_commands(page), (
+            f"{_name(page)}: commands in indented blocks, lines {_indented_commands(page)}: "
+            "put them in a sh, console or text block")
+
+
+def _indented_commands(page: Path) -> list[int]:
+    """Lines outside fences indented as a code block that start a hamid command."""
+    found, fenced = [], False
+    for number, line in enumerate(page.read_text().splitlines(), start=1):
+        if FENCE.match(line):
+            fenced = not fenced
+        elif not fenced and re.match(r"(    |\t)(\$ )?hamid ", line):
+            found.append(number)
+    return found
 
 
 def test_the_readme_shows_a_first_fit_with_its_output():
