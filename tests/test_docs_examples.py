@@ -201,6 +201,16 @@ def test_the_readme_shows_a_first_fit_with_its_output():
     assert ELISION not in first[0].output   # shown whole
 
 
+def test_the_readme_is_short_and_starts_with_its_set_up():
+    """At most 300 lines, the install and the test command within the first 60."""
+    readme = (ROOT / "README.md").read_text().splitlines()
+    assert len(readme) <= 300
+    head = [line.strip() for line in readme[:60]]
+    assert any(line.endswith("pip install . && hamid fit sample_data/peng_quadratic.csv")
+               for line in head)
+    assert any(line.endswith("pip install -q '.[test]' && python -m pytest") for line in head)
+
+
 def test_the_comparison_can_fail():
     """An output that differs by one digit, or has a line more or less, does not match."""
     assert matches(("a 1.0", "...", "z"), "a 1.0\nb\nc\nz\n")
