@@ -106,7 +106,7 @@ def _environment(folder: Path) -> dict[str, str]:
     paths = [str(ROOT), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
     return {**os.environ, "PATH": os.pathsep.join([str(bin_folder), os.environ["PATH"]]),
             "PYTHONPATH": os.pathsep.join(paths), "COLUMNS": "100",
-            "PYTHONUNBUFFERED": "1", "HAMID_DOCS_EXAMPLE": "1"}
+            "PYTHONUNBUFFERED": "1"}
 
 
 def run(script: str, folder: Path) -> subprocess.CompletedProcess:
