@@ -380,6 +380,8 @@ def factor_conditioning(factor: Factor, names: Sequence[str],
     K[:R_c.shape[0], :p] = R_c
     K[p:, :p] = R_b
     K[p:, p:] = np.eye(k)
+    if not np.all(np.isfinite(K)):   # a column zero over these rows: they do not determine it
+        return Conditioning(float("inf"), (), {}, "severe")
     _, s_block, Vt = np.linalg.svd(K)
     ones = len(W) - k
     s = np.sort(np.concatenate([s_block, np.ones(ones)]))[::-1]
