@@ -9,10 +9,11 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from hamid.data.records import Records, ranges, runs
+from hamid.data.records import Channels, Records, ranges, runs
 from hamid.errors import DataError, UsageError
 
 __all__ = ["DIFFERENCE_ORDER", "VelocitySums", "derive_velocities", "estimate_noise",
+           "integrated", "reconstruct",
            "savgol_velocities", "velocity_check"]
 
 # Differences of this order remove a smooth signal (its k-th difference is ~ (w dt)^k) and
@@ -64,23 +65,66 @@ def estimate_noise(X: npt.NDArray[np.float64],
     return _MAD_TO_SIGMA * mad / math.sqrt(math.comb(2 * k, k))
 
 
-def derive_velocities(records: Records, n_coordinates: int, window: int | None, order: int,
-                      period: float | None) -> tuple[Records, tuple[int, float]]:
-    """Records whose velocities come from Savitzky-Golay differentiation of the positions
-    (`period`, the dominant one, sets the default window), and the window and the noise
-    gain (`savgol_velocities`)."""
+def derive_velocities(records: Records, which: npt.NDArray[np.bool_], window: int | None,
+                      order: int, period: float | None
+                      ) -> tuple[Records, tuple[int, float]]:
+    """Records whose velocities of the coordinates `which` come from Savitzky-Golay
+    differentiation of their positions (`period`, the dominant one, sets the default
+    window), and the window and the noise gain (`savgol_velocities`)."""
     if records.t is None:
         raise UsageError("--velocity savgol needs a time column; name it with --time COL "
                          "(and its unit with --time-unit)")
-    N = n_coordinates
+    N = len(which)
     if window is None:
         dt = float(np.median(np.diff(records.t)))
         window = default_savgol_window(None if period is None else period / dt, order)
-    V, gain = savgol_velocities(records.X[:, :N], records.t, records.bounds(), window=window,
-                                order=order)
+    V, gain = savgol_velocities(records.X[:, :N][:, which], records.t, records.bounds(),
+                                window=window, order=order)
     X = records.X.copy()
-    X[:, N:] = V
+    X[:, N + np.flatnonzero(which)] = V
     return dataclasses.replace(records, X=X), (window, gain)
+
+
+def integrated(rates: npt.NDArray[np.float64], t: npt.NDArray[np.float64],
+               bounds: Sequence[tuple[int, int]]) -> npt.NDArray[np.float64]:
+    """Each column of `rates` integrated over time in each trajectory (cumulative
+    trapezoids on the recorded times, so across missing samples too), less the straight
+    line fitted to it there by least squares: the integration's unknown start and the drift
+    of a constant bias of the rate both go (a stated high-pass). The motion's own mean and
+    trend over a trajectory go with them: small for oscillations about a well's bottom."""
+    values = np.empty_like(rates)
+    for a, b in bounds:
+        tau = t[a:b] - t[a]
+        pieces = np.diff(tau)[:, None] * (rates[a + 1:b] + rates[a:b - 1]) / 2
+        integral = np.concatenate([np.zeros((1, rates.shape[1])), np.cumsum(pieces, axis=0)])
+        line = np.polynomial.polynomial.polyfit(tau, integral, 1)
+        values[a:b] = integral - line[0] - np.outer(tau, line[1])
+    return values
+
+
+def reconstruct(records: Records, channels: Channels) -> Records:
+    """The records as read (the model's variables, then the accelerations recorded) with
+    each velocity recorded by neither it nor a position integrated from the coordinate's
+    accelerations, each position not recorded integrated from its velocity (`integrated`),
+    and the accelerations let go. The velocities of recorded positions are derived apart
+    (`derive_velocities`)."""
+    records, accelerations = channels.split_accelerations(records)
+    if not channels.reconstructed or channels.derived.all():
+        return records
+    if records.t is None:
+        raise UsageError("channels not recorded are integrated over time: name the time "
+                         "column with --time COL")
+    N, bounds, X = len(channels.coordinates), records.bounds(), records.X.copy()
+    from_accelerations = [k for k, kinds in enumerate(channels.recorded)
+                          if not kinds & {"position", "velocity"}]
+    if from_accelerations:
+        X[:, [N + k for k in from_accelerations]] = integrated(
+            accelerations[:, from_accelerations], records.t, bounds)
+    from_velocities = [k for k, kinds in enumerate(channels.recorded) if "position" not in kinds]
+    if from_velocities:
+        X[:, from_velocities] = integrated(X[:, [N + k for k in from_velocities]], records.t,
+                                           bounds)
+    return dataclasses.replace(records, X=X)
 
 
 def savgol_velocities(Q: npt.NDArray[np.float64], t: npt.NDArray[np.float64],

@@ -3,6 +3,7 @@ the cutting of records read whole at missing values and time gaps."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
@@ -17,8 +18,8 @@ from hamid.safe_text import counted
 if TYPE_CHECKING:
     from hamid.model.models import Model
 
-__all__ = ["GAP_STEPS", "SHORTEST_PIECE", "Recording", "Records", "check_inputs", "locate",
-           "medians_by", "ranges", "runs", "split_gaps"]
+__all__ = ["CHANNEL_KINDS", "GAP_STEPS", "SHORTEST_PIECE", "Channels", "Recording", "Records",
+           "check_inputs", "locate", "medians_by", "ranges", "runs", "split_gaps"]
 
 
 @dataclass(frozen=True)
@@ -64,6 +65,126 @@ class Records:
     def bounds(self) -> list[tuple[int, int]]:
         """(start, stop) row range of each trajectory."""
         return [(start, stop) for _, start, stop in runs(self.group)]
+
+
+CHANNEL_KINDS = ("position", "velocity", "acceleration")
+
+
+@dataclass(frozen=True)
+class Channels:
+    """Which channels of each coordinate a recording holds (`CHANNEL_KINDS`); the positions
+    and velocities it lacks are reconstructed for the linear start, and only the recorded
+    ones are fitted by the trajectory refinement."""
+
+    coordinates: tuple[str, ...]
+    recorded: tuple[frozenset[str], ...]   # per coordinate
+
+    @classmethod
+    def complete(cls, coordinates: tuple[str, ...]) -> Channels:
+        """Positions and velocities of every coordinate recorded."""
+        return cls(coordinates, tuple(frozenset(CHANNEL_KINDS[:2]) for _ in coordinates))
+
+    @property
+    def fitted(self) -> npt.NDArray[np.bool_]:
+        """Of each variable (coordinates, then velocities): whether it was recorded."""
+        return np.array([[kind in kinds for kinds in self.recorded]
+                         for kind in CHANNEL_KINDS[:2]]).ravel()
+
+    @property
+    def derived(self) -> npt.NDArray[np.bool_]:
+        """Of each coordinate: whether its velocity is derived from its recorded positions."""
+        return np.array([kinds >= {"position"} and "velocity" not in kinds
+                         for kinds in self.recorded], dtype=bool)
+
+    @property
+    def reconstructed(self) -> bool:
+        """Whether a position or a velocity was not recorded."""
+        return not self.fitted.all()
+
+    @classmethod
+    def of(cls, model: Model, mapping: Mapping[str, str]) -> Channels:
+        """The channels of each coordinate of `model` that `mapping` (model name ->
+        column) has a column for."""
+        return cls(model.coordinates, tuple(
+            frozenset(kind for kind, name in zip(CHANNEL_KINDS, names, strict=True)
+                      if name in mapping)
+            for names in zip(model.coordinates, model.velocities, model.acceleration_names,
+                             strict=True)))
+
+    @property
+    def text(self) -> str:
+        """The channels recorded, as the report lists them: ``x: position, velocity``."""
+        return "; ".join(f"{name}: {', '.join(kinds['recorded'])}"
+                         for name, kinds in self.report().items())
+
+    def same_as(self, first: Channels | None, source: str, first_source: str) -> Channels:
+        """These channels, those of the first file read (None: this is it); a file of
+        others is an error."""
+        if first is not None and first != self:
+            raise DataError(f"{source}: records other channels than {first_source} "
+                            f"({self.text}, against {first.text})")
+        return self
+
+    def notes(self, source: str) -> list[str]:
+        """What the report says of the channels reconstructed and of those not fitted, one
+        note for the coordinates that record alike."""
+        alike: dict[tuple[str, ...], list[str]] = {}
+        for name, kinds in self.report().items():
+            alike.setdefault(tuple(kinds["recorded"]), []).append(name)
+        notes = []
+        for recorded, names in alike.items():
+            who = "any coordinate" if len(names) == len(self.coordinates) else ", ".join(names)
+            rebuilt = [k for k in CHANNEL_KINDS[:2] if k not in recorded]
+            fitted = " and ".join(f"{k}s" for k in recorded if k != "acceleration")
+            if "position" in recorded and rebuilt:
+                notes.append(f"{source}: no velocity column for {who}: the velocities are "
+                             "derived from the positions (as --velocity savgol), and the "
+                             "trajectory refinement fits the positions alone")
+            elif rebuilt:
+                notes.append(f"{source}: no {' or '.join(rebuilt)} column for {who}: "
+                             f"{' and '.join(f'{k}s' for k in rebuilt)} integrated from the "
+                             f"{'velocities' if fitted else 'accelerations'} for the linear "
+                             "start (each trajectory's mean and linear trend removed); "
+                             + (f"the trajectory refinement fits the recorded {fitted}"
+                                if fitted else "the trajectory refinement does not fit "
+                                "accelerations yet"))
+            if "acceleration" in recorded and fitted:
+                notes.append(f"{source}: the accelerations of {who} are not fitted yet: the "
+                             "trajectory refinement fits positions and velocities only")
+        return notes
+
+    def check_same_times(self, X: npt.NDArray[np.float64], source: str) -> None:
+        """The channels of one coordinate sampled at different times (missing values in
+        X, the variables then the accelerations read, that seldom coincide: fewer than half
+        the rows with one hold them all) are an error."""
+        N = len(self.coordinates)
+        accelerations = iter(range(2 * N, X.shape[1]))
+        for k, kinds in enumerate(self.recorded):
+            columns = [k] * ("position" in kinds) + [N + k] * ("velocity" in kinds) + (
+                [next(accelerations)] if "acceleration" in kinds else [])
+            present = ~np.isnan(X[:, columns])
+            if len(columns) > 1 and present.all(axis=1).sum() < present.any(axis=1).sum() / 2:
+                raise DataError(
+                    f"{source}: the channels of coordinate {self.coordinates[k]!r} "
+                    f"({', '.join(sorted(kinds))}) are sampled at different times (fewer "
+                    "than half the rows with one hold them all); resample them onto common "
+                    "times")
+
+    def split_accelerations(self, records: Records
+                            ) -> tuple[Records, npt.NDArray[np.float64]]:
+        """The records of the model's variables, and the accelerations read after them
+        (one column per coordinate, in model order, NaN where not recorded)."""
+        n_variables = 2 * len(self.coordinates)
+        accelerations = np.full((len(records.group), len(self.coordinates)), np.nan)
+        recorded = [k for k, kinds in enumerate(self.recorded) if "acceleration" in kinds]
+        accelerations[:, recorded] = records.X[:, n_variables:]
+        return dataclasses.replace(records, X=records.X[:, :n_variables]), accelerations
+
+    def report(self) -> dict[str, dict[str, list[str]]]:
+        """Coordinate -> the channels recorded and those reconstructed (`data.channels`)."""
+        return {name: {"recorded": [k for k in CHANNEL_KINDS if k in kinds],
+                       "reconstructed": [k for k in CHANNEL_KINDS[:2] if k not in kinds]}
+                for name, kinds in zip(self.coordinates, self.recorded, strict=True)}
 
 
 def runs(group: npt.NDArray[np.int64]) -> list[tuple[int, int, int]]:
