@@ -85,21 +85,52 @@ def derive_velocities(records: Records, which: npt.NDArray[np.bool_], window: in
     return dataclasses.replace(records, X=X), (window, gain)
 
 
+# A rate's zero crossing is counted where its sign, taken only where it is beyond this
+# share of its root mean square, changes (noise about zero makes none).
+CROSSING_SHARE = 0.1
+
+
 def integrated(rates: npt.NDArray[np.float64], t: npt.NDArray[np.float64],
                bounds: Sequence[tuple[int, int]]) -> npt.NDArray[np.float64]:
     """Each column of `rates` integrated over time in each trajectory (cumulative
-    trapezoids on the recorded times, so across missing samples too), less the straight
-    line fitted to it there by least squares: the integration's unknown start and the drift
-    of a constant bias of the rate both go (a stated high-pass). The motion's own mean and
-    trend over a trajectory go with them: small for oscillations about a well's bottom."""
+    trapezoids on the recorded times, so across missing samples too), less its drift: the
+    line through its means over each cycle of the rate (from a zero crossing to the next
+    but one, every crossing), joined by straight pieces; a straight line fitted to it where
+    the rate makes fewer than two cycles. The integration's unknown start, the drift of a
+    bias of the rate and the wander its noise integrates into go, slower than a cycle;
+    the motion itself, oscillating about the well's bottom, has a cycle mean near zero
+    and stays."""
     values = np.empty_like(rates)
     for a, b in bounds:
         tau = t[a:b] - t[a]
         pieces = np.diff(tau)[:, None] * (rates[a + 1:b] + rates[a:b - 1]) / 2
         integral = np.concatenate([np.zeros((1, rates.shape[1])), np.cumsum(pieces, axis=0)])
-        line = np.polynomial.polynomial.polyfit(tau, integral, 1)
-        values[a:b] = integral - line[0] - np.outer(tau, line[1])
+        for k in range(rates.shape[1]):
+            values[a:b, k] = integral[:, k] - _drift(integral[:, k], rates[a:b, k], tau)
     return values
+
+
+def _drift(integral: npt.NDArray[np.float64], rate: npt.NDArray[np.float64],
+           tau: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """The slow part of an integral (`integrated`): its cycle means, joined."""
+    beyond = np.abs(rate) > CROSSING_SHARE * np.sqrt(np.mean(rate**2))
+    signs = np.sign(rate[beyond])
+    crossings = np.flatnonzero(beyond)[1:][np.diff(signs) != 0]
+    if len(crossings) < 3:
+        return np.polynomial.polynomial.Polynomial.fit(tau, integral, 1)(tau)
+    weights = np.gradient(tau)
+    centres, means = [], []
+    for first, last in zip(crossings[:-2], crossings[2:], strict=True):
+        w = weights[first:last]
+        centres.append(float(np.sum(w * tau[first:last]) / np.sum(w)))
+        means.append(float(np.sum(w * integral[first:last]) / np.sum(w)))
+    centres_, means_ = np.array(centres), np.array(means)
+    drift = np.interp(tau, centres_, means_)
+    for edge, pair in ((tau < centres_[0], slice(0, 2)), (tau > centres_[-1], slice(-2, None))):
+        slope = np.diff(means_[pair])[0] / max(np.diff(centres_[pair])[0], np.finfo(float).tiny)
+        reference = centres_[pair][0 if pair.start == 0 else 1]
+        drift[edge] = means_[pair][0 if pair.start == 0 else 1] + slope * (tau[edge] - reference)
+    return drift
 
 
 def reconstruct(records: Records, channels: Channels) -> Records:

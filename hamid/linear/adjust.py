@@ -156,7 +156,7 @@ def check_adjustable(model: Model, reconstructed: bool, damping: Any) -> None:
         raise UsageError("--bias-correct needs a polynomial energy; for this model hamid "
                          "does not correct the noise bias (it may be small at low noise)")
     if reconstructed:
-        raise UsageError("--bias-correct needs measured positions and velocities: derived "
+        raise UsageError("--bias-correct needs measured velocities and positions: derived "
                          "or integrated ones mix the noise of neighbouring samples")
     if damping:
         raise UsageError("--bias-correct does not yet handle --damping (the dissipated work "
