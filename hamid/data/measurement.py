@@ -137,9 +137,9 @@ def reconstruct(records: Records, channels: Channels) -> Records:
     """The records as read (the model's variables, then the accelerations recorded) with
     each velocity recorded by neither it nor a position integrated from the coordinate's
     accelerations, each position not recorded integrated from its velocity (`integrated`),
-    and the accelerations let go. The velocities of recorded positions are derived apart
+    and the accelerations in `Records.A`. The velocities of recorded positions are derived apart
     (`derive_velocities`)."""
-    records, accelerations = channels.split_accelerations(records)
+    records = channels.split_accelerations(records)
     if not channels.reconstructed or channels.derived.all():
         return records
     if records.t is None:
@@ -149,8 +149,9 @@ def reconstruct(records: Records, channels: Channels) -> Records:
     from_accelerations = [k for k, kinds in enumerate(channels.recorded)
                           if not kinds & {"position", "velocity"}]
     if from_accelerations:
+        assert records.A is not None
         X[:, [N + k for k in from_accelerations]] = integrated(
-            accelerations[:, from_accelerations], records.t, bounds)
+            records.A[:, from_accelerations], records.t, bounds)
     from_velocities = [k for k, kinds in enumerate(channels.recorded) if "position" not in kinds]
     if from_velocities:
         X[:, from_velocities] = integrated(X[:, [N + k for k in from_velocities]], records.t,

@@ -32,6 +32,9 @@ class Records:
     labels : the trajectory labels shown to the user, one per index.
     U : shape (n_samples, m), the recorded inputs of a driven model (`Model.forcing`), in
         the order of its inputs; None for a free one.
+    A : shape (n_samples, N), the recorded accelerations of the coordinates (0 where a
+        coordinate has none, `Channels.fitted`), fitted by the trajectory refinement; None
+        when none is recorded.
     """
 
     X: npt.NDArray[np.float64]
@@ -39,6 +42,7 @@ class Records:
     group: npt.NDArray[np.int64]
     labels: tuple[str | int, ...]
     U: npt.NDArray[np.float64] | None = None
+    A: npt.NDArray[np.float64] | None = None
 
     @property
     def n_trajectories(self) -> int:
@@ -48,7 +52,8 @@ class Records:
         """Rows start:stop, without labels (a piece of a chunked pass)."""
         return Records(self.X[start:stop], None if self.t is None else self.t[start:stop],
                        self.group[start:stop], (),
-                       None if self.U is None else self.U[start:stop])
+                       None if self.U is None else self.U[start:stop],
+                       None if self.A is None else self.A[start:stop])
 
     @cached_property
     def spread(self) -> npt.NDArray[np.float64]:
@@ -68,6 +73,8 @@ class Records:
 
 
 CHANNEL_KINDS = ("position", "velocity", "acceleration")
+_PLURALS = {"position": "positions", "velocity": "velocities",
+            "acceleration": "accelerations"}
 
 
 @dataclass(frozen=True)
@@ -85,10 +92,17 @@ class Channels:
         return cls(coordinates, tuple(frozenset(CHANNEL_KINDS[:2]) for _ in coordinates))
 
     @property
+    def accelerated(self) -> bool:
+        """Whether an acceleration was recorded."""
+        return any("acceleration" in kinds for kinds in self.recorded)
+
+    @property
     def fitted(self) -> npt.NDArray[np.bool_]:
-        """Of each variable (coordinates, then velocities): whether it was recorded."""
-        return np.array([[kind in kinds for kinds in self.recorded]
-                         for kind in CHANNEL_KINDS[:2]]).ravel()
+        """Of each channel the refinement compares (positions, velocities, and the
+        accelerations when one was recorded): whether it was recorded."""
+        kinds = CHANNEL_KINDS if self.accelerated else CHANNEL_KINDS[:2]
+        return np.array([[kind in recorded for recorded in self.recorded]
+                         for kind in kinds]).ravel()
 
     @property
     def derived(self) -> npt.NDArray[np.bool_]:
@@ -99,7 +113,7 @@ class Channels:
     @property
     def reconstructed(self) -> bool:
         """Whether a position or a velocity was not recorded."""
-        return not self.fitted.all()
+        return not self.fitted[:2 * len(self.coordinates)].all()
 
     @classmethod
     def of(cls, model: Model, mapping: Mapping[str, str]) -> Channels:
@@ -135,22 +149,17 @@ class Channels:
         for recorded, names in alike.items():
             who = "any coordinate" if len(names) == len(self.coordinates) else ", ".join(names)
             rebuilt = [k for k in CHANNEL_KINDS[:2] if k not in recorded]
-            fitted = " and ".join(f"{k}s" for k in recorded if k != "acceleration")
+            fitted = [k for k in recorded if k != "acceleration"]
             if "position" in recorded and rebuilt:
                 notes.append(f"{source}: no velocity column for {who}: the velocities are "
                              "derived from the positions (as --velocity savgol), and the "
                              "trajectory refinement fits the positions alone")
             elif rebuilt:
                 notes.append(f"{source}: no {' or '.join(rebuilt)} column for {who}: "
-                             f"{' and '.join(f'{k}s' for k in rebuilt)} integrated from the "
+                             f"{' and '.join(_PLURALS[k] for k in rebuilt)} integrated from the "
                              f"{'velocities' if fitted else 'accelerations'} for the linear "
-                             "start (each trajectory's mean and linear trend removed); "
-                             + (f"the trajectory refinement fits the recorded {fitted}"
-                                if fitted else "the trajectory refinement does not fit "
-                                "accelerations yet"))
-            if "acceleration" in recorded and fitted:
-                notes.append(f"{source}: the accelerations of {who} are not fitted yet: the "
-                             "trajectory refinement fits positions and velocities only")
+                             "start (less their cycle means); the trajectory refinement fits "
+                             f"the recorded {' and '.join(_PLURALS[k] for k in recorded)}")
         return notes
 
     def check_same_times(self, X: npt.NDArray[np.float64], source: str) -> None:
@@ -170,15 +179,16 @@ class Channels:
                     "than half the rows with one hold them all); resample them onto common "
                     "times")
 
-    def split_accelerations(self, records: Records
-                            ) -> tuple[Records, npt.NDArray[np.float64]]:
-        """The records of the model's variables, and the accelerations read after them
-        (one column per coordinate, in model order, NaN where not recorded)."""
+    def split_accelerations(self, records: Records) -> Records:
+        """The records of the model's variables, the accelerations read after them in
+        `Records.A` (one column per coordinate, in model order, 0 where not recorded)."""
         n_variables = 2 * len(self.coordinates)
-        accelerations = np.full((len(records.group), len(self.coordinates)), np.nan)
+        if not self.accelerated:
+            return records
+        accelerations = np.zeros((len(records.group), len(self.coordinates)))
         recorded = [k for k, kinds in enumerate(self.recorded) if "acceleration" in kinds]
         accelerations[:, recorded] = records.X[:, n_variables:]
-        return dataclasses.replace(records, X=records.X[:, :n_variables]), accelerations
+        return dataclasses.replace(records, X=records.X[:, :n_variables], A=accelerations)
 
     def report(self) -> dict[str, dict[str, list[str]]]:
         """Coordinate -> the channels recorded and those reconstructed (`data.channels`)."""

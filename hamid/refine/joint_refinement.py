@@ -92,11 +92,17 @@ class _Noise:
            fitted: npt.NDArray[np.bool_]) -> _Noise:
         from hamid.refine.trajectory import NOISE_FLOOR
 
-        differences = measurement.estimate_noise(records.X, records.bounds())
-        given = np.zeros(len(differences), bool) if sigma is None else sigma > 0
-        base = np.where(given, 0.0 if sigma is None else sigma, differences)
+        X = records.X if records.A is None else np.hstack([records.X, records.A])
+        differences = measurement.estimate_noise(X, records.bounds())
+        given = np.zeros(len(differences), bool)
+        if sigma is not None:   # the user's levels of the variables (none of accelerations)
+            given[:len(sigma)] = sigma > 0
+        base = np.where(given, np.resize(0.0 if sigma is None else sigma, len(given)),
+                        differences)
+        spread = X.std(axis=0) if records.A is not None else records.spread
         # channels not recorded (derived or integrated): nothing of their own
-        return cls(base, base, given, fitted.copy(), NOISE_FLOOR * records.spread)
+        return cls(base, base, given, fitted.copy(),
+                   NOISE_FLOOR * np.maximum(spread, np.finfo(float).tiny))
 
     @property
     def weights(self) -> npt.NDArray[np.float64]:
@@ -206,7 +212,8 @@ def _refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissi
         return Outcome.refused(f"the integrated model does not fit the recording: {exc}")
     info: dict[str, Any] = {
         "segments": fit.segments, "segment_seconds": fit.problem.length,
-        **_fitted(fit, noise), "noise": noise.report(model.variables),
+        **_fitted(fit, noise), "noise": noise.report(model.variables + (
+            () if records.A is None else model.acceleration_names)),
         "covariance": "misfit-scaled" if within else "sandwich",
         **({"smoothing": smoothing} if smoothing else {})}
     beyond = (f"the integrated model misses the recording by {noise.misfit(fit):.3g} times the "
