@@ -216,6 +216,10 @@ def test_the_report_lists_the_channels_and_passes_its_schema(tmp_path, clean):
     assert report["data"]["channels"]["x"] == {"recorded": ["velocity"],
                                                "reconstructed": ["position"]}
     jsonschema.Draft202012Validator(json.loads(SCHEMA.read_text())).validate(report)
+    done = subprocess.run([*HAMID, "fit", str(path), "--model", "duffing", "--damping",
+                           "viscous", "--format", "table"], capture_output=True, text=True,
+                          check=False, timeout=600)
+    assert "recorded x: velocity (position reconstructed)" in " ".join(done.stdout.split())
 
 
 @pytest.mark.parametrize(("columns", "words"), [
