@@ -236,3 +236,39 @@ def test_bad_channels_are_one_line_errors(tmp_path, columns, words):
                            str(out)], capture_output=True, text=True, check=False, timeout=600)
     one_line_error(done, 1, *words)
     assert not out.exists()
+
+
+def test_a_two_mass_system_from_one_channel(tmp_path):
+    """Two masses on springs (conftest.TWO_MASS, the second mass unknown), at 1% noise:
+    velocities alone and accelerations alone (in g, from the equations at the simulated
+    states) each within 4 standard errors, the median over seeds of their worst error
+    within 4x the full recording's."""
+    from conftest import TWO_MASS
+
+    clean = hamid.simulate(TWO_MASS)
+    truth = TWO_MASS["parameters"]
+    path = tmp_path / "two_mass.toml"
+    path.write_text('[model]\ncoordinates = ["x1", "x2"]\nvelocities = ["v1", "v2"]\n'
+                    f'energy = "{TWO_MASS["model"]["energy"]}"\n')
+    x1, x2 = clean["x1"].to_numpy(), clean["x2"].to_numpy()
+    pull = truth["k2"] * (x2 - x1) + truth["k3"] * (x2 - x1) ** 3
+    accelerations = {"a1_g": -truth["k1"] * x1 + pull, "a2_g": -pull / truth["m"]}
+
+    def worst(result) -> float:
+        for p in result.parameters:
+            assert abs(p.estimate - truth[p.name]) < 4 * p.stderr, (p.name, p.estimate)
+        return max(abs(p.estimate - truth[p.name]) / truth[p.name] for p in result.parameters)
+
+    ratios: dict[str, list[float]] = {"velocity": [], "acceleration": []}
+    for seed in range(3):
+        full = with_noise(clean, NOISE, seed)
+        rng = np.random.default_rng(500 + seed)
+        recorded = clean[["trajectory", "t"]].assign(**{
+            name: (a + NOISE * a.std() * rng.standard_normal(len(a))) / G
+            for name, a in accelerations.items()})
+        both = worst(hamid.fit(full, model=str(path)))
+        ratios["velocity"].append(
+            worst(hamid.fit(full.drop(columns=["x1", "x2"]), model=str(path))) / both)
+        ratios["acceleration"].append(worst(hamid.fit(recorded, model=str(path))) / both)
+    for channel, values in ratios.items():
+        assert np.median(values) <= 4, (channel, values)
