@@ -67,6 +67,12 @@ class Records:
         return np.array([max(-self.X[:, k].min(), self.X[:, k].max())
                          for k in range(self.X.shape[1])])
 
+    @property
+    def compared(self) -> npt.NDArray[np.float64]:
+        """X, then the recorded accelerations when there are any: the channels the
+        trajectory refinement compares with the integrated motion."""
+        return self.X if self.A is None else np.hstack([self.X, self.A])
+
     def bounds(self) -> list[tuple[int, int]]:
         """(start, stop) row range of each trajectory."""
         return [(start, stop) for _, start, stop in runs(self.group)]

@@ -92,14 +92,13 @@ class _Noise:
            fitted: npt.NDArray[np.bool_]) -> _Noise:
         from hamid.refine.trajectory import NOISE_FLOOR
 
-        X = records.X if records.A is None else np.hstack([records.X, records.A])
+        X = records.compared
         differences = measurement.estimate_noise(X, records.bounds())
-        given = np.zeros(len(differences), bool)
-        if sigma is not None:   # the user's levels of the variables (none of accelerations)
-            given[:len(sigma)] = sigma > 0
-        base = np.where(given, np.resize(0.0 if sigma is None else sigma, len(given)),
-                        differences)
-        spread = X.std(axis=0) if records.A is not None else records.spread
+        user = np.zeros(len(differences))   # the user's levels (none of accelerations)
+        user[:0 if sigma is None else len(sigma)] = 0.0 if sigma is None else sigma
+        given = user > 0
+        base = np.where(given, user, differences)
+        spread = records.spread if records.A is None else X.std(axis=0)
         # channels not recorded (derived or integrated): nothing of their own
         return cls(base, base, given, fitted.copy(),
                    NOISE_FLOOR * np.maximum(spread, np.finfo(float).tiny))
@@ -149,11 +148,13 @@ def refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissip
            jobs: int | None = None) -> Outcome:
     """The refined fit, or None when it is not kept, and what the report says of it.
 
-    `sigma` is the noise the user gave (0 where not given), `rows` the linear fit's rows
-    when it was made in memory (its refits without each block need them; without them
-    the held-out check compares with the linear fit of the whole record). The refined
-    fit's levels are the mean energies at its parameters; their standard errors need a
-    pass over the energy residuals there (`level_errors`) and are NaN here. The
+    `sigma` is the noise the user gave (0 where not given), `fitted` whether each channel
+    the refinement compares was recorded (`Channels.fitted`: the others get no weight),
+    `rows` the linear fit's rows when it was made in memory (its refits without each block
+    need them; without them the held-out check compares with the linear fit of the whole
+    record). The refined fit's levels are the mean energies at its parameters; their
+    standard errors need a pass over the energy residuals there (`level_errors`) and are
+    NaN here. The
     integrations run in `jobs` processes (default one per core) when the record is long
     enough to gain by it (`hamid.refine.integration`); the processes then start at once and last
     the whole refinement.

@@ -129,7 +129,7 @@ class _Problem:
             weight: npt.NDArray[np.float64]) -> _Problem:
         """The records cut into segments of about `length` seconds."""
         assert records.t is not None
-        t, X = records.t, records.X if records.A is None else np.hstack([records.X, records.A])
+        t, X = records.t, records.compared
         pieces = _segments(records, t, length)
         if not pieces:
             raise _SegmentFitFailed(f"no trajectory holds {MIN_SEGMENT_SAMPLES} samples")
