@@ -169,20 +169,22 @@ class Channels:
         return notes
 
     def check_same_times(self, X: npt.NDArray[np.float64], source: str) -> None:
-        """The channels of one coordinate sampled at different times (missing values in
-        X, the variables then the accelerations read, that seldom coincide: fewer than half
-        the rows with one hold them all) are an error."""
+        """The channels of one coordinate sampled at different times are an error: missing
+        values in X (the variables, then the accelerations read) such that fewer than half
+        the rows of each channel hold them all. A channel with dropouts of its own, the
+        others complete, is just missing there."""
         N = len(self.coordinates)
         accelerations = iter(range(2 * N, X.shape[1]))
         for k, kinds in enumerate(self.recorded):
             columns = [k] * ("position" in kinds) + [N + k] * ("velocity" in kinds) + (
                 [next(accelerations)] if "acceleration" in kinds else [])
             present = ~np.isnan(X[:, columns])
-            if len(columns) > 1 and present.all(axis=1).sum() < present.any(axis=1).sum() / 2:
+            shared = present.all(axis=1).sum() / np.maximum(present.sum(axis=0), 1)
+            if len(columns) > 1 and shared.max() < 0.5:
                 raise DataError(
                     f"{source}: the channels of coordinate {self.coordinates[k]!r} "
                     f"({', '.join(sorted(kinds))}) are sampled at different times (fewer "
-                    "than half the rows with one hold them all); resample them onto common "
+                    "than half the rows of each hold them all); resample them onto common "
                     "times")
 
     def split_accelerations(self, records: Records) -> Records:
