@@ -177,7 +177,7 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
             outcome = joint_refinement.refine(
                 linear=linear, model=m, records=records, damping=damping_forces,
                 unknowns=unknowns, plan=fit_plan, sigma=given,
-                derived_velocities=source.derived_velocities, rows=rows, progress=progress,
+                fitted=source.channels.fitted, rows=rows, progress=progress,
                 jobs=opts.jobs)
             del records
         else:

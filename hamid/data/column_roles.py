@@ -19,11 +19,14 @@ from typing import TYPE_CHECKING, Any
 
 from hamid.data import readers
 from hamid.errors import DataError, UsageError
+from hamid.model.names import acceleration_name
 
 if TYPE_CHECKING:
+    from hamid.model.models import Model
     from hamid.options import FitOptions
 
-__all__ = ["COLUMN_UNITS", "TIME_UNITS", "column_scale", "default_time_column",
+__all__ = ["ACCELERATION_UNITS", "COLUMN_UNITS", "STANDARD_GRAVITY", "TIME_UNITS",
+           "channel_columns", "column_scale", "default_time_column",
            "default_trajectory_column", "find_coordinates", "find_velocity",
            "looks_like_time", "read_units", "resolve_columns", "split_unit", "time_scale",
            "unit_text", "velocity_names"]
@@ -41,15 +44,22 @@ TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 # SI (metres, radians, and per second) per unit of a coordinate or velocity column.
 _LENGTHS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "nm": 1e-9,
             "rad": 1.0, "mrad": 1e-3, "deg": math.pi / 180}
-COLUMN_UNITS = {**_LENGTHS, **{f"{unit}_s": factor for unit, factor in _LENGTHS.items()}}
+STANDARD_GRAVITY = 9.80665   # m/s^2 per g
+# SI per unit of an acceleration column (``a_g``, ``a [m/s^2]``, ``alpha_rad_s2``).
+ACCELERATION_UNITS = {"g": STANDARD_GRAVITY,
+                      **{f"{unit}_s2": factor for unit, factor in _LENGTHS.items()}}
+COLUMN_UNITS = {**_LENGTHS, **{f"{unit}_s": factor for unit, factor in _LENGTHS.items()},
+                **ACCELERATION_UNITS}
 _BRACKETED = re.compile(r"^(.*?)\s*[\[(]\s*([^\])]*?)\s*[\])]$")
 
 
 def unit_text(text: str) -> str:
     """A unit as written, in the form of the unit tables (lower case, ``u`` for micro, ``_``
     for ``/``)."""
-    return text.strip().lower().replace("µ", "u").replace("μ", "u").replace("/", "_") \
-        .replace(" ", "")
+    text = text.strip().lower().replace("µ", "u").replace("μ", "u").replace("/", "_")
+    for square in ("^2", "**2", "²"):
+        text = text.replace(square, "2")
+    return text.replace(" ", "")
 
 
 def split_unit(name: str, units: Collection[str]) -> tuple[str, str | None]:
@@ -212,13 +222,50 @@ def find_coordinates(columns: Sequence[str], *, exclude: Collection[str]) -> lis
     return pairs
 
 
-def _velocity_names_of(coordinate: str, velocity: str, column: str) -> list[str]:
+def _velocity_names_of(coordinate: str, velocity: str, column: str | None) -> list[str]:
     """The names a velocity's column may have: its own, then `velocity_names` of its
     coordinate's name and of that coordinate's column (with and without its unit)."""
     looked_for = [velocity]
-    for base in (coordinate, column, split_unit(column, COLUMN_UNITS)[0]):
+    for base in (coordinate, *([] if column is None else
+                               [column, split_unit(column, COLUMN_UNITS)[0]])):
         looked_for += velocity_names(base)
     return list(dict.fromkeys(looked_for))
+
+
+def _acceleration_names_of(coordinate: str, velocity: str, acceleration: str,
+                           column: str | None) -> list[str]:
+    """The names an acceleration's column may have: its own, then the names that follow
+    each name its velocity may have (`acceleration_name`: vx -> ax, x_dot -> x_ddot), then
+    ``acc_`` before the coordinate's name."""
+    rates = _velocity_names_of(coordinate, velocity, column)
+    bases = [coordinate, *([] if column is None else [split_unit(column, COLUMN_UNITS)[0]])]
+    names = [acceleration, *map(acceleration_name, rates), *(f"acc_{b}" for b in bases)]
+    return [name for name in dict.fromkeys(names) if name not in (coordinate, velocity)]
+
+
+def _check_acceleration_unit(name: str, column: str | None, looked_for: Sequence[str],
+                             columns: Sequence[str], source: str) -> None:
+    """An acceleration's column in a unit not of `ACCELERATION_UNITS` (``a [ft/s2]``,
+    ``a_ft_s2``, ``a_mm``) is an error, not a column read as SI or passed over."""
+    if column is not None:
+        unit = split_unit(column, COLUMN_UNITS)[1]
+        if unit is None or unit in ACCELERATION_UNITS:
+            return
+        candidates = [(column, unit)]
+    else:
+        candidates = []
+        for other in columns:
+            bracketed = _BRACKETED.match(other)
+            if bracketed and bracketed.group(1) in looked_for:
+                candidates.append((other, unit_text(bracketed.group(2))))
+            elif unit_text(other).endswith("s2"):
+                candidates += [(other, unit_text(other)[len(n) + 1:]) for n in looked_for
+                               if other.startswith(n + "_")]
+    if candidates:
+        other, unit = candidates[0]
+        raise DataError(f"{source}: column {other!r}: unit {unit!r} is not an acceleration's "
+                        f"that hamid converts ({', '.join(ACCELERATION_UNITS)}); give "
+                        f"--scale {other}=FACTOR to SI and rename it {name}")
 
 
 def resolve_columns(
@@ -229,17 +276,20 @@ def resolve_columns(
     mapping: Mapping[str, str] | None = None,
     source: str,
     inputs: Sequence[str] = (),
-    velocities_optional: bool = False,
+    accelerations: Sequence[str] = (),
+    partial: bool = False,
 ) -> dict[str, str]:
-    """Find the file column of each coordinate, velocity and input of a model.
+    """Find the file column of each coordinate, velocity, acceleration and input of a model.
 
-    With `velocities_optional`, a file without a column for any velocity (none found, none
-    given by `mapping`) gives the coordinates' and inputs' columns only: its velocities are
-    to be derived from the positions. A file with some of them still needs them all.
+    With `partial`, a coordinate may have any non-empty subset of position, velocity and
+    acceleration columns (`accelerations`, the model's names of them, are looked for only
+    then): the channels not recorded are reconstructed from those that are. Without it,
+    every position and velocity needs its column.
 
     Each name is looked for in `mapping`, then as the same name (or the same name before a
     unit suffix); a velocity not found so is looked for by `velocity_names`, applied to its
-    coordinate's name and to its coordinate's file column.
+    coordinate's name and to its coordinate's file column, and an acceleration by the names
+    that follow those (`acceleration_name`) and ``acc_`` before the coordinate's name.
 
     Parameters
     ----------
@@ -253,34 +303,41 @@ def resolve_columns(
         File name used in messages.
     inputs : sequence of str
         The model's recorded inputs (`Model.forcing`), found like coordinates.
+    accelerations : sequence of str
+        The model's names of the accelerations (`Model.acceleration_names`), with `partial`.
 
     Returns
     -------
     columns : dict
-        Model name -> file column, coordinates first, inputs last.
+        Model name -> file column of the names found: coordinates, velocities,
+        accelerations, inputs.
 
     Raises
     ------
     UsageError
         A key of `mapping` is not a name of the model.
     DataError
-        A name has no column, a mapped column is missing, or two names share a column.
+        A name has no column (with `partial`: a coordinate has none at all), a mapped column
+        is missing, two names share a column, or an acceleration's unit is unknown.
 
     Examples
     --------
     >>> resolve_columns(["t", "pos", "vel"], ["x"], ["v"], mapping={"x": "pos", "v": "vel"},
     ...                 source="run.csv")
     {'x': 'pos', 'v': 'vel'}
+    >>> resolve_columns(["t", "a_g"], ["x"], ["v"], accelerations=["a"], partial=True,
+    ...                 source="run.csv")
+    {'a': 'a_g'}
     """
     mapping = dict(mapping or {})
-    names = [*coordinates, *velocities, *inputs]
+    accelerations = tuple(accelerations) if partial else ()
+    names = [*coordinates, *velocities, *accelerations, *inputs]
     for key in mapping:
         if key not in names:
-            raise UsageError(
-                f"--columns: {key!r} is not a coordinate"
-                f"{', velocity or input' if inputs else ' or velocity'} of the model "
-                f"({', '.join(names)})"
-            )
+            kinds = ["coordinate", "velocity", *(["acceleration"] * bool(accelerations)),
+                     *(["input"] * bool(inputs))]
+            raise UsageError(f"--columns: {key!r} is not a {', '.join(kinds[:-1])} or "
+                             f"{kinds[-1]} of the model ({', '.join(names)})")
     present = set(columns)
     index = _index(columns)
     for key, column in mapping.items():
@@ -295,33 +352,43 @@ def resolve_columns(
         (name, "input", " of the model's [forcing]") for name in inputs]
     for name, kind, owner_text in named:
         column = mapping.get(name, index.get(name, name))
-        if column not in present:
+        if column in present:
+            resolved[name] = column
+        elif not (partial and kind == "coordinate"):
             hint = f"; map it with --columns {name}=COL" if kind == "input" else ""
             raise DataError(
                 f"{source}: no column for {kind} {name!r}{owner_text} "
                 f"(columns: {readers.list_columns(columns)}){hint}"
             )
-        resolved[name] = column
-    if velocities_optional and velocities and not any(
-            velocity in mapping or any(name in index for name in _velocity_names_of(
-                coordinate, velocity, resolved[coordinate]))
-            for coordinate, velocity in zip(coordinates, velocities, strict=True)):
-        velocities = ()
-    # No velocities: they will be derived from the positions.
-    for coordinate, velocity in zip(coordinates if velocities else (), velocities, strict=True):
-        if velocity in mapping:
-            resolved[velocity] = mapping[velocity]
-            continue
-        looked_for = _velocity_names_of(coordinate, velocity, resolved[coordinate])
-        found = next((index[candidate] for candidate in looked_for if candidate in index),
-                     None)
-        if found is None:
+    for k, (coordinate, velocity) in enumerate(zip(coordinates, velocities, strict=True)):
+        position = resolved.get(coordinate)
+        looked_for = _velocity_names_of(coordinate, velocity, position)
+        found = mapping.get(velocity, next(
+            (index[candidate] for candidate in looked_for if candidate in index), None))
+        if found is not None:
+            resolved[velocity] = found
+        elif not partial:
             raise DataError(
                 f"{source}: no column for velocity {velocity!r} of coordinate {coordinate!r} "
                 f"(looked for {', '.join(looked_for)}); map it with --columns "
                 f"{velocity}=COL, or derive velocities with --velocity savgol"
             )
-        resolved[velocity] = found
+        if not accelerations:
+            continue
+        acceleration = accelerations[k]
+        rates = _acceleration_names_of(coordinate, velocity, acceleration, position)
+        found = mapping.get(acceleration, next(
+            (index[candidate] for candidate in rates if candidate in index), None))
+        _check_acceleration_unit(acceleration, found, rates, columns, source)
+        if found is not None:
+            resolved[acceleration] = found
+        elif position is None and velocity not in resolved:
+            raise DataError(
+                f"{source}: no column for coordinate {coordinate!r}: no position, velocity or "
+                f"acceleration (looked for {coordinate}, {', '.join(looked_for)}, "
+                f"{', '.join(rates)}; columns: {readers.list_columns(columns)}); map one with "
+                f"--columns {coordinate}=COL"
+            )
     owner: dict[str, str] = {}
     for model_name, column in resolved.items():
         if column in owner:
@@ -331,6 +398,25 @@ def resolve_columns(
             )
         owner[column] = model_name
     return resolved
+
+
+def channel_columns(names: Sequence[str], model: Model, mapping: Mapping[str, str] | None, *,
+                    source: str, set_aside: bool) -> dict[str, str]:
+    """Model name -> column of each channel a table records (`resolve_columns`, `partial`),
+    the measured velocities `set_aside` (--velocity savgol)."""
+    found = resolve_columns(names, model.coordinates, model.velocities, mapping=mapping,
+                            source=source, inputs=model.inputs,
+                            accelerations=model.acceleration_names, partial=True)
+    if not set_aside:
+        return found
+    found = {name: column for name, column in found.items() if name not in model.velocities}
+    for coordinate, acceleration in zip(model.coordinates, model.acceleration_names,
+                                        strict=True):
+        if coordinate not in found and acceleration not in found:
+            raise DataError(f"{source}: --velocity savgol derives the velocities from the "
+                            f"positions, and coordinate {coordinate!r} has no position "
+                            "column; leave the option out to fit its velocities")
+    return found
 
 
 def default_time_column(columns: Sequence[str]) -> str | None:

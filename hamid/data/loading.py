@@ -19,7 +19,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from hamid.data import column_roles, input_size, measurement, readers
-from hamid.data.records import GAP_STEPS, Records, check_inputs, locate, runs, split_gaps
+from hamid.data.records import GAP_STEPS, Channels, Records, check_inputs, locate, runs, split_gaps
 from hamid.errors import DataError, UsageError
 from hamid.linear import design
 from hamid.model.dissipation import shorthand_names
@@ -77,9 +77,8 @@ class Source(Protocol):
     def whole(self) -> Records:
         """All the records in memory (for the trajectory refinement)."""
     @property
-    def derived_velocities(self) -> bool:
-        """Whether the velocities were derived from the positions (--velocity savgol, or
-        a recording without velocity columns), not measured."""
+    def channels(self) -> Channels:
+        """What was recorded of each coordinate (the rest reconstructed, not fitted)."""
     def whole_bytes(self) -> int | None:
         """The memory `whole` takes anew, None when the records are in memory already."""
 
@@ -95,6 +94,7 @@ class Loaded:
     data_info: dict[str, Any]
     notes: tuple[str, ...]
     velocity_gain: float | None  # noise gain of derived velocities, None when measured
+    channels: Channels   # what was recorded of each coordinate, and what reconstructed
     row_sources: tuple[tuple[str, int], ...]  # (source, first row) of each input table
     # each trajectory's period and time step (`design.trajectory_scales`), None without a
     # time column: found once, for the velocity check, the derivation and the plan
@@ -134,9 +134,6 @@ class Loaded:
         """None: the records are in memory."""
         return None
 
-    @property
-    def derived_velocities(self) -> bool:
-        return self.velocity_gain is not None
 
 
 def load(data: Any, model: str | os.PathLike[str] | Model | None,
@@ -159,19 +156,16 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
         _check_same_model(tables)
     m, notes = _settle_model(model, metadata, [str(c) for c in tables[0][1]], sources[0],
                              options)
-    derived = options.velocity == "savgol"
     parts, labels, mapping, units = [], [], {}, {}
+    channels: Channels | None = None
     while tables:   # each table's columns let go once its records are read
         source, frame, table_metadata = tables.pop(0)
         names = [str(c) for c in frame]
-        mapping = column_roles.resolve_columns(
-            names, m.coordinates, () if derived else m.velocities, mapping=options.columns,
-            source=source, inputs=m.inputs, velocities_optional=not parts)
-        if not derived and m.velocities[0] not in mapping:   # the first file has none
-            derived = True
-            notes.append(f"{source}: no velocity column for any coordinate: the velocities "
-                         "are derived from the positions (as --velocity savgol), and the "
-                         "trajectory refinement fits the positions alone")
+        mapping = column_roles.channel_columns(names, m, options.columns, source=source,
+                                               set_aside=options.velocity == "savgol")
+        channels = Channels.of(m, mapping).same_as(channels, source, sources[0])
+        if not parts and options.velocity != "savgol":   # said of the first file
+            notes.extend(channels.notes(source))
         time, trajectory = _special_columns(names, mapping, options, source, notes)
         units = column_roles.read_units(names, mapping, time, options, table_metadata,
                                         source)
@@ -206,32 +200,38 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
     row_sources = tuple((name, int(f)) for name, f in zip(sources, firsts, strict=True))
     if records.U is not None:
         check_inputs(records.U, m.inputs, mapping, sources)
+    channels.check_same_times(records.X, sources[0])
     records, file_rows = split_gaps(records, options.gaps, row_sources, notes)
     labels = list(records.labels)
+    records = measurement.reconstruct(records, channels)
     # from the coordinates, which a derivation of the velocities leaves as they are
     scales = (None if records.t is None
               else design.trajectory_scales(records, len(m.coordinates)))
     period = None if scales is None else design.median_period(scales)
-    if not derived and records.t is not None:
+    if not channels.reconstructed and records.t is not None:
         findings = measurement.velocity_check(records, m.coordinates, m.velocities, mapping,
                                               period)
-        derived = options.velocity == "auto" and any(f.disagrees for f in findings)
-        notes.extend(f.text + ((SET_ASIDE if derived else measurement.DERIVE_ADVICE)
+        aside = options.velocity == "auto" and any(f.disagrees for f in findings)
+        notes.extend(f.text + ((SET_ASIDE if aside else measurement.DERIVE_ADVICE)
                                if f.disagrees else "") for f in findings)
+        if aside:
+            channels = channels.set_aside({f.velocity for f in findings if f.disagrees},
+                                          m.velocities)
     derivation = None
-    if derived:
-        records, derivation = measurement.derive_velocities(records, len(m.coordinates),
+    if channels.derived.any():
+        records, derivation = measurement.derive_velocities(records, channels.derived,
                                                              options.window, options.order,
-                                                 period)
+                                                             period)
         notes.append(f"velocities derived from the positions (Savitzky-Golay, window "
                      f"{derivation[0]} samples, order {options.order}); their noise is "
                      "correlated with the positions'")
-    data_info = _data_info(sources, len(records.group), len(labels),
-                           mapping, options, units)
-    if derived:   # the file had none, or they were set aside
+    data_info = _data_info(sources, len(records.group), len(labels), mapping, options, units)
+    if channels.derived.all():   # asked for, no velocity columns, or columns set aside
         data_info["velocity_source"] = "savgol"
     if derivation:
         data_info.update(velocity_window=derivation[0], velocity_order=options.order)
+    if options.velocity != "savgol" and channels != Channels.complete(m.coordinates):
+        data_info["channels"] = channels.report()
     if (options.damping or m.dissipation or m.forcing) and records.t is None:
         what = "damping" if options.damping or m.dissipation else "a [forcing]"
         raise UsageError(f"{what} needs a time column (its work is an integral over time); "
@@ -239,6 +239,7 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
     data_info.update({"inputs": {name: mapping[name] for name in m.inputs}} if m.inputs else {})
     return Loaded(model=m, records=records, truth=_truth(metadata, m), data_info=data_info,
                   notes=tuple(notes), velocity_gain=derivation[1] if derivation else None,
+                  channels=channels,
                   row_sources=row_sources, trajectory_scales=scales, file_rows=file_rows)
 
 
@@ -252,6 +253,9 @@ class Reader:
                  scales: Mapping[str, float] | None = None, missing_ok: bool = False,
                  chunked: bool = False) -> None:
         self.model, self.mapping, self.source = model, mapping, source
+        # X as read: the model's variables (zeros where not recorded), the accelerations after
+        self.read_variables = (*model.variables,
+                               *(a for a in model.acceleration_names if a in mapping))
         # Missing cells read as NaN (for `records.split_gaps`), else they are errors.
         self.missing_ok = missing_ok
         # Read in chunks: time gaps are refused (`_refuse_gaps`), with each trajectory's
@@ -316,7 +320,7 @@ class Reader:
             n = len(chunk[self.columns[0]])
             X = np.column_stack([self._numbers(chunk, self.mapping[v], row)
                                  if v in self.mapping else np.zeros(n)
-                                 for v in self.model.variables])
+                                 for v in self.read_variables])
             U = (np.column_stack([self._numbers(chunk, self.mapping[u], row)
                                   for u in self.model.inputs]) if self.model.inputs else None)
             t = self._numbers(chunk, self.time, row) if self.time else None
@@ -539,9 +543,9 @@ class Chunked:
                           self.reader.mapping, self.options, self.units)
 
     @property
-    def derived_velocities(self) -> bool:
-        """False: velocities are derived only from records read whole."""
-        return False
+    def channels(self) -> Channels:
+        """Every position and velocity: a file read in chunks needs them all."""
+        return Channels.complete(self.model.coordinates)
 
     def whole(self) -> Records:
         """All the records of the file, for the trajectory refinement."""
@@ -753,8 +757,9 @@ def noise_levels(loaded: Source,
             sigma[k] = float(value)
     else:
         raise UsageError(f"--noise must be none, auto or COL=SIGMA,..., found {noise!r}")
-    if loaded.velocity_gain is not None:
-        sigma[N:] = sigma[:N] * loaded.velocity_gain
+    if loaded.velocity_gain is not None:   # the velocities derived from recorded positions
+        sigma[N:] = np.where(loaded.channels.derived, sigma[:N] * loaded.velocity_gain,
+                             sigma[N:])
     if not np.any(sigma > 0):
         raise UsageError("--noise: every column has zero noise; leave --noise out instead")
     return sigma, {name: float(s) for name, s in zip(model.variables, sigma, strict=True)}

@@ -9,12 +9,13 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from hamid.data.records import Records, ranges, runs
+from hamid.data.records import Channels, Records, ranges, runs
 from hamid.errors import DataError, UsageError
 
 __all__ = ["DIFFERENCE_ORDER", "NYQUIST_BAND", "NYQUIST_SHARE", "VelocityFinding",
-           "VelocitySums", "derive_velocities", "estimate_noise", "nyquist_warning",
-           "nyquist_warnings", "savgol_velocities", "velocity_check"]
+           "VelocitySums", "derive_velocities", "estimate_noise", "integrated",
+           "nyquist_warning", "nyquist_warnings", "reconstruct", "savgol_velocities",
+           "velocity_check"]
 
 # Differences of this order remove a smooth signal (its k-th difference is ~ (w dt)^k) and
 # keep white noise, scaled by sqrt(C(2k, k)).
@@ -65,23 +66,98 @@ def estimate_noise(X: npt.NDArray[np.float64],
     return _MAD_TO_SIGMA * mad / math.sqrt(math.comb(2 * k, k))
 
 
-def derive_velocities(records: Records, n_coordinates: int, window: int | None, order: int,
-                      period: float | None) -> tuple[Records, tuple[int, float]]:
-    """Records whose velocities come from Savitzky-Golay differentiation of the positions
-    (`period`, the dominant one, sets the default window), and the window and the noise
-    gain (`savgol_velocities`)."""
+def derive_velocities(records: Records, which: npt.NDArray[np.bool_], window: int | None,
+                      order: int, period: float | None
+                      ) -> tuple[Records, tuple[int, float]]:
+    """Records whose velocities of the coordinates `which` come from Savitzky-Golay
+    differentiation of their positions (`period`, the dominant one, sets the default
+    window), and the window and the noise gain (`savgol_velocities`)."""
     if records.t is None:
         raise UsageError("--velocity savgol needs a time column; name it with --time COL "
                          "(and its unit with --time-unit)")
-    N = n_coordinates
+    N = len(which)
     if window is None:
         dt = float(np.median(np.diff(records.t)))
         window = default_savgol_window(None if period is None else period / dt, order)
-    V, gain = savgol_velocities(records.X[:, :N], records.t, records.bounds(), window=window,
-                                order=order)
+    V, gain = savgol_velocities(records.X[:, :N][:, which], records.t, records.bounds(),
+                                window=window, order=order)
     X = records.X.copy()
-    X[:, N:] = V
+    X[:, N + np.flatnonzero(which)] = V
     return dataclasses.replace(records, X=X), (window, gain)
+
+
+# A rate's zero crossing is counted where its sign, taken only where it is beyond this
+# share of its root mean square, changes (noise about zero makes none).
+CROSSING_SHARE = 0.1
+
+
+def integrated(rates: npt.NDArray[np.float64], t: npt.NDArray[np.float64],
+               bounds: Sequence[tuple[int, int]]) -> npt.NDArray[np.float64]:
+    """Each column of `rates` integrated over time in each trajectory (cumulative
+    trapezoids on the recorded times, so across missing samples too), less its drift: the
+    line through its means over each cycle of the rate (from a zero crossing to the next
+    but one, every crossing), joined by straight pieces; a straight line fitted to it where
+    the rate makes fewer than two cycles. The integration's unknown start, the drift of a
+    bias of the rate and the wander its noise integrates into go, slower than a cycle;
+    the motion itself, oscillating about the well's bottom, has a cycle mean near zero
+    and stays."""
+    values = np.empty_like(rates)
+    for a, b in bounds:
+        tau = t[a:b] - t[a]
+        pieces = np.diff(tau)[:, None] * (rates[a + 1:b] + rates[a:b - 1]) / 2
+        integral = np.concatenate([np.zeros((1, rates.shape[1])), np.cumsum(pieces, axis=0)])
+        for k in range(rates.shape[1]):
+            values[a:b, k] = integral[:, k] - _drift(integral[:, k], rates[a:b, k], tau)
+    return values
+
+
+def _drift(integral: npt.NDArray[np.float64], rate: npt.NDArray[np.float64],
+           tau: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """The slow part of an integral (`integrated`): its cycle means, joined."""
+    beyond = np.abs(rate) > CROSSING_SHARE * np.sqrt(np.mean(rate**2))
+    signs = np.sign(rate[beyond])
+    crossings = np.flatnonzero(beyond)[1:][np.diff(signs) != 0]
+    if len(crossings) < 3:
+        return np.polynomial.polynomial.Polynomial.fit(tau, integral, 1)(tau)
+    weights = np.gradient(tau)
+    centres, means = [], []
+    for first, last in zip(crossings[:-2], crossings[2:], strict=True):
+        w = weights[first:last]
+        centres.append(float(np.sum(w * tau[first:last]) / np.sum(w)))
+        means.append(float(np.sum(w * integral[first:last]) / np.sum(w)))
+    centres_, means_ = np.array(centres), np.array(means)
+    drift = np.interp(tau, centres_, means_)
+    for edge, pair in ((tau < centres_[0], slice(0, 2)), (tau > centres_[-1], slice(-2, None))):
+        slope = np.diff(means_[pair])[0] / max(np.diff(centres_[pair])[0], np.finfo(float).tiny)
+        reference = centres_[pair][0 if pair.start == 0 else 1]
+        drift[edge] = means_[pair][0 if pair.start == 0 else 1] + slope * (tau[edge] - reference)
+    return drift
+
+
+def reconstruct(records: Records, channels: Channels) -> Records:
+    """The records as read (the model's variables, then the accelerations recorded) with
+    each velocity recorded by neither it nor a position integrated from the coordinate's
+    accelerations, each position not recorded integrated from its velocity (`integrated`),
+    and the accelerations in `Records.A`. The velocities of recorded positions are derived apart
+    (`derive_velocities`)."""
+    records = channels.split_accelerations(records)
+    if not channels.reconstructed or channels.derived.all():
+        return records
+    if records.t is None:
+        raise UsageError("channels not recorded are integrated over time: name the time "
+                         "column with --time COL")
+    N, bounds, X = len(channels.coordinates), records.bounds(), records.X.copy()
+    from_accelerations = [k for k, kinds in enumerate(channels.recorded)
+                          if not kinds & {"position", "velocity"}]
+    if from_accelerations:
+        assert records.A is not None
+        X[:, [N + k for k in from_accelerations]] = integrated(
+            records.A[:, from_accelerations], records.t, bounds)
+    from_velocities = [k for k, kinds in enumerate(channels.recorded) if "position" not in kinds]
+    if from_velocities:
+        X[:, from_velocities] = integrated(X[:, [N + k for k in from_velocities]], records.t,
+                                           bounds)
+    return dataclasses.replace(records, X=X)
 
 
 def savgol_velocities(Q: npt.NDArray[np.float64], t: npt.NDArray[np.float64],
@@ -227,7 +303,7 @@ class VelocityFinding:
     filtered or derived before recording), which a fit does better to set aside, rather
     than mixed units, which the user must correct."""
 
-    velocity: str
+    velocity: str   # the model's name of it
     text: str
     disagrees: bool
 
@@ -381,7 +457,7 @@ class VelocitySums:
                 continue
             name_q, name_v = mapping.get(q, q), mapping.get(v, v)
             if not 1 / VELOCITY_RATIO <= ratio <= VELOCITY_RATIO:
-                findings.append(VelocityFinding(name_v, (
+                findings.append(VelocityFinding(v, (
                     f"the positions {name_q!r} change {ratio:.3g} times as fast as the "
                     f"velocities {name_v!r} say: are the units mixed (mm with m/s) or "
                     "the time unit wrong? Give --time-unit, or --scale COL=FACTOR"), False))
@@ -410,7 +486,7 @@ class VelocitySums:
                     f"like a damping ratio of {'+' if lag < 0 else '-'}"
                     f"{math.pi * abs(lag) / period:.2g}")
             if said:
-                findings.append(VelocityFinding(name_v, (
+                findings.append(VelocityFinding(v, (
                     f"the velocities {name_v!r} {' and '.join(said)} (a channel filtered, "
                     "scaled or derived before recording?); it biases the estimates"), True))
         return findings

@@ -3,7 +3,8 @@ the cutting of records read whole at missing values and time gaps."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import dataclasses
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from typing import TYPE_CHECKING, Any
@@ -17,8 +18,8 @@ from hamid.safe_text import counted
 if TYPE_CHECKING:
     from hamid.model.models import Model
 
-__all__ = ["GAP_STEPS", "SHORTEST_PIECE", "Recording", "Records", "check_inputs", "locate",
-           "medians_by", "ranges", "runs", "split_gaps"]
+__all__ = ["CHANNEL_KINDS", "GAP_STEPS", "SHORTEST_PIECE", "Channels", "Recording", "Records",
+           "check_inputs", "locate", "medians_by", "ranges", "runs", "split_gaps"]
 
 
 @dataclass(frozen=True)
@@ -31,6 +32,9 @@ class Records:
     labels : the trajectory labels shown to the user, one per index.
     U : shape (n_samples, m), the recorded inputs of a driven model (`Model.forcing`), in
         the order of its inputs; None for a free one.
+    A : shape (n_samples, N), the recorded accelerations of the coordinates (0 where a
+        coordinate has none, `Channels.fitted`), fitted by the trajectory refinement; None
+        when none is recorded.
     """
 
     X: npt.NDArray[np.float64]
@@ -38,6 +42,7 @@ class Records:
     group: npt.NDArray[np.int64]
     labels: tuple[str | int, ...]
     U: npt.NDArray[np.float64] | None = None
+    A: npt.NDArray[np.float64] | None = None
 
     @property
     def n_trajectories(self) -> int:
@@ -47,7 +52,8 @@ class Records:
         """Rows start:stop, without labels (a piece of a chunked pass)."""
         return Records(self.X[start:stop], None if self.t is None else self.t[start:stop],
                        self.group[start:stop], (),
-                       None if self.U is None else self.U[start:stop])
+                       None if self.U is None else self.U[start:stop],
+                       None if self.A is None else self.A[start:stop])
 
     @cached_property
     def spread(self) -> npt.NDArray[np.float64]:
@@ -61,9 +67,153 @@ class Records:
         return np.array([max(-self.X[:, k].min(), self.X[:, k].max())
                          for k in range(self.X.shape[1])])
 
+    @property
+    def compared(self) -> npt.NDArray[np.float64]:
+        """X, then the recorded accelerations when there are any: the channels the
+        trajectory refinement compares with the integrated motion."""
+        return self.X if self.A is None else np.hstack([self.X, self.A])
+
     def bounds(self) -> list[tuple[int, int]]:
         """(start, stop) row range of each trajectory."""
         return [(start, stop) for _, start, stop in runs(self.group)]
+
+
+CHANNEL_KINDS = ("position", "velocity", "acceleration")
+_PLURALS = {"position": "positions", "velocity": "velocities",
+            "acceleration": "accelerations"}
+
+
+@dataclass(frozen=True)
+class Channels:
+    """Which channels of each coordinate a recording holds (`CHANNEL_KINDS`); the positions
+    and velocities it lacks are reconstructed for the linear start, and only the recorded
+    ones are fitted by the trajectory refinement."""
+
+    coordinates: tuple[str, ...]
+    recorded: tuple[frozenset[str], ...]   # per coordinate
+    aside: frozenset[str] = frozenset()   # coordinates whose velocity column was set aside
+
+    @classmethod
+    def complete(cls, coordinates: tuple[str, ...]) -> Channels:
+        """Positions and velocities of every coordinate recorded."""
+        return cls(coordinates, tuple(frozenset(CHANNEL_KINDS[:2]) for _ in coordinates))
+
+    @property
+    def accelerated(self) -> bool:
+        """Whether an acceleration was recorded."""
+        return any("acceleration" in kinds for kinds in self.recorded)
+
+    @property
+    def fitted(self) -> npt.NDArray[np.bool_]:
+        """Of each channel the refinement compares (positions, velocities, and the
+        accelerations when one was recorded): whether it was recorded."""
+        kinds = CHANNEL_KINDS if self.accelerated else CHANNEL_KINDS[:2]
+        return np.array([[kind in recorded for recorded in self.recorded]
+                         for kind in kinds]).ravel()
+
+    @property
+    def derived(self) -> npt.NDArray[np.bool_]:
+        """Of each coordinate: whether its velocity is derived from its recorded positions."""
+        return np.array([kinds >= {"position"} and "velocity" not in kinds
+                         for kinds in self.recorded], dtype=bool)
+
+    @property
+    def reconstructed(self) -> bool:
+        """Whether a position or a velocity was not recorded."""
+        return not self.fitted[:2 * len(self.coordinates)].all()
+
+    @classmethod
+    def of(cls, model: Model, mapping: Mapping[str, str]) -> Channels:
+        """The channels of each coordinate of `model` that `mapping` (model name ->
+        column) has a column for."""
+        return cls(model.coordinates, tuple(
+            frozenset(kind for kind, name in zip(CHANNEL_KINDS, names, strict=True)
+                      if name in mapping)
+            for names in zip(model.coordinates, model.velocities, model.acceleration_names,
+                             strict=True)))
+
+    @property
+    def text(self) -> str:
+        """The channels recorded, as the report lists them: ``x: position, velocity``."""
+        return "; ".join(f"{name}: {', '.join(kinds['recorded'])}"
+                         for name, kinds in self.report().items())
+
+    def same_as(self, first: Channels | None, source: str, first_source: str) -> Channels:
+        """These channels, those of the first file read (None: this is it); a file of
+        others is an error."""
+        if first is not None and first != self:
+            raise DataError(f"{source}: records other channels than {first_source} "
+                            f"({self.text}, against {first.text})")
+        return self
+
+    def notes(self, source: str) -> list[str]:
+        """What the report says of the channels reconstructed and of those not fitted, one
+        note for the coordinates that record alike."""
+        alike: dict[tuple[str, ...], list[str]] = {}
+        for name, kinds in self.report().items():
+            alike.setdefault(tuple(kinds["recorded"]), []).append(name)
+        notes = []
+        for recorded, names in alike.items():
+            who = "any coordinate" if len(names) == len(self.coordinates) else ", ".join(names)
+            rebuilt = [k for k in CHANNEL_KINDS[:2] if k not in recorded]
+            fitted = [k for k in recorded if k != "acceleration"]
+            if "position" in recorded and rebuilt:
+                notes.append(f"{source}: no velocity column for {who}: the velocities are "
+                             "derived from the positions (as --velocity savgol), and the "
+                             "trajectory refinement fits the positions alone")
+            elif rebuilt:
+                notes.append(f"{source}: no {' or '.join(rebuilt)} column for {who}: "
+                             f"{' and '.join(_PLURALS[k] for k in rebuilt)} integrated from the "
+                             f"{'velocities' if fitted else 'accelerations'} for the linear "
+                             "start (less their cycle means); the trajectory refinement fits "
+                             f"the recorded {' and '.join(_PLURALS[k] for k in recorded)}")
+        return notes
+
+    def set_aside(self, velocities: Collection[str], names: Sequence[str]) -> Channels:
+        """These channels with the velocities named (of the model's `names`, one per
+        coordinate) no longer recorded: to be derived from the positions."""
+        return dataclasses.replace(self, recorded=tuple(
+            kinds - {"velocity"} if name in velocities else kinds
+            for kinds, name in zip(self.recorded, names, strict=True)), aside=frozenset(
+            q for q, name in zip(self.coordinates, names, strict=True) if name in velocities))
+
+    def check_same_times(self, X: npt.NDArray[np.float64], source: str) -> None:
+        """The channels of one coordinate sampled at different times are an error: missing
+        values in X (the variables, then the accelerations read) such that fewer than half
+        the rows of each channel hold them all. A channel with dropouts of its own, the
+        others complete, is just missing there."""
+        N = len(self.coordinates)
+        accelerations = iter(range(2 * N, X.shape[1]))
+        for k, kinds in enumerate(self.recorded):
+            columns = [k] * ("position" in kinds) + [N + k] * ("velocity" in kinds) + (
+                [next(accelerations)] if "acceleration" in kinds else [])
+            present = ~np.isnan(X[:, columns])
+            shared = present.all(axis=1).sum() / np.maximum(present.sum(axis=0), 1)
+            if len(columns) > 1 and shared.max() < 0.5:
+                raise DataError(
+                    f"{source}: the channels of coordinate {self.coordinates[k]!r} "
+                    f"({', '.join(sorted(kinds))}) are sampled at different times (fewer "
+                    "than half the rows of each hold them all); resample them onto common "
+                    "times")
+
+    def split_accelerations(self, records: Records) -> Records:
+        """The records of the model's variables, the accelerations read after them in
+        `Records.A` (one column per coordinate, in model order, 0 where not recorded)."""
+        n_variables = 2 * len(self.coordinates)
+        if not self.accelerated:
+            return records
+        accelerations = np.zeros((len(records.group), len(self.coordinates)))
+        recorded = [k for k, kinds in enumerate(self.recorded) if "acceleration" in kinds]
+        accelerations[:, recorded] = records.X[:, n_variables:]
+        return dataclasses.replace(records, X=records.X[:, :n_variables], A=accelerations)
+
+    def report(self) -> dict[str, dict[str, list[str]]]:
+        """Coordinate -> the channels recorded and those reconstructed (`data.channels`),
+        and the velocity column set aside for disagreeing with the positions."""
+        return {name: {"recorded": [k for k in CHANNEL_KINDS if k in kinds],
+                       "reconstructed": [k for k in CHANNEL_KINDS[:2] if k not in kinds],
+                       **({"set_aside": ["velocity"]} if name in self.aside else {})}
+                for name, kinds in zip(self.coordinates, self.recorded, strict=True)}
 
 
 def runs(group: npt.NDArray[np.int64]) -> list[tuple[int, int, int]]:

@@ -150,14 +150,14 @@ class Moments:
     shares: Callable[[npt.NDArray[np.float64]], npt.NDArray[np.float64]]
 
 
-def check_adjustable(model: Model, derived_velocities: bool, damping: Any) -> None:
+def check_adjustable(model: Model, reconstructed: bool, damping: Any) -> None:
     """The adjustment needs polynomial terms that are functions of one sample each."""
     if not model.is_polynomial:
         raise UsageError("--bias-correct needs a polynomial energy; for this model hamid "
                          "does not correct the noise bias (it may be small at low noise)")
-    if derived_velocities:
-        raise UsageError("--bias-correct needs measured velocities: derived velocities mix "
-                         "the noise of neighbouring samples")
+    if reconstructed:
+        raise UsageError("--bias-correct needs measured velocities and positions: derived "
+                         "or integrated ones mix the noise of neighbouring samples")
     if damping:
         raise UsageError("--bias-correct does not yet handle --damping (the dissipated work "
                          "mixes the noise of many samples)")

@@ -437,7 +437,7 @@ def fit_rows(loaded: Loaded, unknowns: Unknowns, damping: Dissipation, plan: Fit
     if options.bias_correct:
         from hamid.linear import adjust
 
-        adjust.check_adjustable(m, loaded.derived_velocities, damping)
+        adjust.check_adjustable(m, loaded.channels.reconstructed, damping)
         moments = [adjust.adjusted_moments(block=b, model=m, records=records, sigma=sigma,
                                            windows=spans, parameters=names,
                                            fixed=dict(unknowns.fixed)) for b in blocks]
@@ -739,7 +739,7 @@ def noise_check(loaded: Loaded, rows: Rows, fit: LinearFit | None, unknowns: Unk
     ratio = {name: float(s / d) if d > 0 else 0.0
              for name, s, d in zip(m.variables, sigma, spread, strict=True)}
     if (fit is None or options.bias_correct or not m.is_polynomial
-            or loaded.derived_velocities or damping
+            or loaded.channels.reconstructed or damping
             or not _noise_in_residuals(rows.energy, fit, m, records, unknowns, sigma)):
         return NoiseCheck(ratio)
     names, fixed = unknowns.free_names, dict(unknowns.fixed)

@@ -24,6 +24,7 @@ from hamid.errors import ModelError, UsageError
 from hamid.model import expressions
 from hamid.model.dissipation import Dissipation, shorthand_names
 from hamid.model.forcing import Forcing, parse_forcing
+from hamid.model.names import acceleration_name
 from hamid.model.toml_values import check_keys, number, table
 
 __all__ = ["BUILTINS", "Lagrangian", "Model", "builtin_model", "damping_table", "forcing_table",
@@ -130,6 +131,9 @@ class Model:
     description: str = ""
     dissipation: Dissipation | None = None   # the model file's [damping] function
     forcing: Forcing | None = None   # the model file's [forcing]: recorded inputs, their work
+    # the names of the coordinates' accelerations (`[model] accelerations`); () for the
+    # defaults, which follow the velocities' names (`acceleration_name`)
+    accelerations: tuple[str, ...] = ()
 
     @property
     def energy_parameters(self) -> tuple[str, ...]:
@@ -145,6 +149,12 @@ class Model:
     @property
     def variables(self) -> tuple[str, ...]:
         return self.coordinates + self.velocities
+
+    @property
+    def acceleration_names(self) -> tuple[str, ...]:
+        """The name of each coordinate's acceleration: the model file's, else the one that
+        follows its velocity's (`acceleration_name`)."""
+        return self.accelerations or tuple(map(acceleration_name, self.velocities))
 
     def dissipative(self, kinds: Sequence[str] = ()) -> Dissipation:
         """The dissipation a fit takes: the model's own function plus the shorthand terms
@@ -235,6 +245,7 @@ class Model:
         own = self.dissipation
         return {"name": self.name, "energy": self.energy, "coordinates": list(self.coordinates),
                 "velocities": list(self.velocities),
+                **({"accelerations": list(self.accelerations)} if self.accelerations else {}),
                 "parameters": list(self.energy_parameters),
                 "dissipation": None if own is None else
                 {"function": own.function, "parameters": list(own.parameters)},
@@ -374,7 +385,8 @@ def poly_model_over(coordinates: Sequence[str], velocities: Sequence[str],
     return _poly_model(f"poly:{len(coordinates)}:{degree}", coordinates, velocities)
 
 
-_MODEL_KEYS = ("builtin", "name", "coordinates", "velocities", "energy", "parameters")
+_MODEL_KEYS = ("builtin", "name", "coordinates", "velocities", "accelerations", "energy",
+               "parameters")
 
 
 def model_from_spec(spec: Mapping[str, Any], *, where: str = "[model]") -> Model:
@@ -396,14 +408,31 @@ def model_from_spec(spec: Mapping[str, Any], *, where: str = "[model]") -> Model
     name = spec.get("name", "custom")
     if not isinstance(name, str):
         raise ModelError(f"{where}: 'name' must be a string")
-    return model_from_expression(name, spec["energy"], spec["coordinates"],
-                                 spec["velocities"], spec.get("parameters"), where=where)
+    model = model_from_expression(name, spec["energy"], spec["coordinates"],
+                                  spec["velocities"], spec.get("parameters"), where=where)
+    return _with_accelerations(model, spec.get("accelerations"), where)
+
+
+def _with_accelerations(model: Model, names: Sequence[str] | None, where: str) -> Model:
+    """The model with the accelerations' names of its description, one per coordinate,
+    none a name of the model already."""
+    if not names:
+        return model
+    if len(names) != len(model.coordinates):
+        raise ModelError(f"{where}: {len(model.coordinates)} coordinates but {len(names)} "
+                         "accelerations; give one acceleration per coordinate")
+    taken = {*model.variables, *model.parameters}
+    for name in names:
+        if not name.isidentifier() or name in taken:
+            raise ModelError(f"{where}: acceleration name {name!r} is not a new name")
+        taken.add(name)
+    return dataclasses.replace(model, accelerations=tuple(names))
 
 
 def _check_lists(spec: Mapping[str, Any], where: str) -> None:
     """Helper: the names of a model's description are lists of text (a string "theta"
     would be read as the names t, h, e, t, a)."""
-    for key in ("coordinates", "velocities", "parameters"):
+    for key in ("coordinates", "velocities", "accelerations", "parameters"):
         value = spec.get(key)
         if value is not None and not (isinstance(value, list)
                                       and all(isinstance(v, str) for v in value)):
@@ -448,6 +477,7 @@ def model_from_info(info: Mapping[str, Any], *, where: str) -> Model:
     model = model_from_expression(str(info.get("name") or "custom"), info["energy"],
                                   info["coordinates"], info["velocities"],
                                   info.get("parameters"), where=where)
+    model = _with_accelerations(model, info.get("accelerations"), where)
     if info.get("forcing"):
         model = forcing_table(model, info["forcing"], where=where)
     own = info.get("dissipation")

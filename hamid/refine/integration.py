@@ -143,8 +143,8 @@ class Batch:
 
     dynamics: Dynamics
     tau: Sequence[Array]        # each segment's times from its start
-    measured: Sequence[Array]   # each segment's samples (m, 2N)
-    weight: Array               # 1 / noise of each variable
+    measured: Sequence[Array]   # each segment's samples (m, 2N), accelerations after (m, 3N)
+    weight: Array               # 1 / noise of each variable (and acceleration)
     starts: Array
     weights: Array
     steps: Array
@@ -242,10 +242,15 @@ def blocks(batch: Batch) -> Blocks:
         raise IntegrationFailed(f"the integration failed ({exc})") from exc
     if not np.all(np.isfinite(values)):
         raise IntegrationFailed("the integrated motion is not finite")
-    values = values.reshape(len(grid), n_states, B, copies)
+    if len(batch.weight) > n_states:   # recorded accelerations: the equations' at the states
+        rates = np.stack([motion(float(time), y) for time, y in zip(grid, values, strict=True)])
+        values = np.concatenate([values.reshape(len(grid), n_states, B, copies),
+                                 rates.reshape(len(grid), n_states, B, copies)[:, n_states // 2:]],
+                                axis=1)
+    values = values.reshape(len(grid), len(batch.weight), B, copies)
     n_draws = 0 if batch.inputs is None else batch.inputs.n_draws
     weight, steps, c = batch.weight, batch.steps, copies - 1 - n_draws
-    cost, H, g = np.empty((B, n_states)), np.empty((B, c, c)), np.empty((B, c))
+    cost, H, g = np.empty((B, len(weight))), np.empty((B, c, c)), np.empty((B, c))
     g_draws = np.empty((B, c, n_draws))
     offsets = np.cumsum([0, *map(len, batch.tau)])
     for lo, hi in _alike(where, offsets):
@@ -269,7 +274,7 @@ def blocks(batch: Batch) -> Blocks:
     offset = offsets[-1]
     if batch.ends is None:
         return Blocks(cost, H, g, g_draws=g_draws)
-    at_ends = values[where[offset:], :, np.arange(B)]               # (B, 2N, copies)
+    at_ends = values[where[offset:], :n_states, np.arange(B)]       # (B, 2N, copies)
     end = at_ends[..., 0]
     return Blocks(cost, H, g, end, (at_ends[..., 1:1 + c] - end[..., None]) / batch.steps,
                   g_draws=g_draws, end_draws=at_ends[..., 1 + c:] - end[..., None])

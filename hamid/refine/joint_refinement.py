@@ -77,7 +77,8 @@ class _Noise:
 
     `base` is the user's level where given, else the estimate from differences;
     `levels` are the ones in use, raised above `base` where the fit's residuals showed it
-    too small. Variables not `used` (derived velocities) get no weight.
+    too small. Variables not `used` (channels not recorded: derived or integrated) get no
+    weight.
     """
 
     base: npt.NDArray[np.float64]
@@ -88,16 +89,19 @@ class _Noise:
 
     @classmethod
     def of(cls, records: Records, sigma: npt.NDArray[np.float64] | None,
-           n_coordinates: int, derived_velocities: bool) -> _Noise:
+           fitted: npt.NDArray[np.bool_]) -> _Noise:
         from hamid.refine.trajectory import NOISE_FLOOR
 
-        differences = measurement.estimate_noise(records.X, records.bounds())
-        given = np.zeros(len(differences), bool) if sigma is None else sigma > 0
-        base = np.where(given, 0.0 if sigma is None else sigma, differences)
-        used = np.ones(len(base), bool)
-        if derived_velocities:
-            used[n_coordinates:] = False  # derived from the positions: nothing of their own
-        return cls(base, base, given, used, NOISE_FLOOR * records.spread)
+        X = records.compared
+        differences = measurement.estimate_noise(X, records.bounds())
+        user = np.zeros(len(differences))   # the user's levels (none of accelerations)
+        user[:0 if sigma is None else len(sigma)] = 0.0 if sigma is None else sigma
+        given = user > 0
+        base = np.where(given, user, differences)
+        spread = records.spread if records.A is None else X.std(axis=0)
+        # channels not recorded (derived or integrated): nothing of their own
+        return cls(base, base, given, fitted.copy(),
+                   NOISE_FLOOR * np.maximum(spread, np.finfo(float).tiny))
 
     @property
     def weights(self) -> npt.NDArray[np.float64]:
@@ -139,16 +143,18 @@ class _Noise:
 
 def refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissipation,
            unknowns: Unknowns, plan: FitPlan, sigma: npt.NDArray[np.float64] | None,
-           derived_velocities: bool, rows: Rows | None,
+           fitted: npt.NDArray[np.bool_], rows: Rows | None,
            progress: Callable[[str], None] | None,
            jobs: int | None = None) -> Outcome:
     """The refined fit, or None when it is not kept, and what the report says of it.
 
-    `sigma` is the noise the user gave (0 where not given), `rows` the linear fit's rows
-    when it was made in memory (its refits without each block need them; without them
-    the held-out check compares with the linear fit of the whole record). The refined
-    fit's levels are the mean energies at its parameters; their standard errors need a
-    pass over the energy residuals there (`level_errors`) and are NaN here. The
+    `sigma` is the noise the user gave (0 where not given), `fitted` whether each channel
+    the refinement compares was recorded (`Channels.fitted`: the others get no weight),
+    `rows` the linear fit's rows when it was made in memory (its refits without each block
+    need them; without them the held-out check compares with the linear fit of the whole
+    record). The refined fit's levels are the mean energies at its parameters; their
+    standard errors need a pass over the energy residuals there (`level_errors`) and are
+    NaN here. The
     integrations run in `jobs` processes (default one per core) when the record is long
     enough to gain by it (`hamid.refine.integration`); the processes then start at once and last
     the whole refinement.
@@ -169,18 +175,18 @@ def refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissip
     with integration.parallel(Workers(jobs or available_cores()), expected):
         return _refine(linear=linear, model=model, records=records, damping=damping,
                        unknowns=unknowns, plan=plan, sigma=sigma,
-                       derived_velocities=derived_velocities, rows=rows, progress=progress)
+                       fitted=fitted, rows=rows, progress=progress)
 
 
 def _refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissipation,
             unknowns: Unknowns, plan: FitPlan, sigma: npt.NDArray[np.float64] | None,
-            derived_velocities: bool, rows: Rows | None,
+            fitted: npt.NDArray[np.bool_], rows: Rows | None,
             progress: Callable[[str], None] | None) -> Outcome:
     """`refine` past its checks, its integrations' workers chosen."""
     from hamid.refine import trajectory  # the integrator and sympy's derivatives: when refined
 
     damping, smoothing = _smoothed(damping, records)
-    noise = _Noise.of(records, sigma, len(model.coordinates), derived_velocities)
+    noise = _Noise.of(records, sigma, fitted)
     period = design.median_period(plan.scales)
     if period is None:   # windows given with --weak-window, no period found
         period = 2 * plan.window
@@ -207,7 +213,8 @@ def _refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissi
         return Outcome.refused(f"the integrated model does not fit the recording: {exc}")
     info: dict[str, Any] = {
         "segments": fit.segments, "segment_seconds": fit.problem.length,
-        **_fitted(fit, noise), "noise": noise.report(model.variables),
+        **_fitted(fit, noise), "noise": noise.report(model.variables + (
+            () if records.A is None else model.acceleration_names)),
         "covariance": "misfit-scaled" if within else "sandwich",
         **({"smoothing": smoothing} if smoothing else {})}
     beyond = (f"the integrated model misses the recording by {noise.misfit(fit):.3g} times the "

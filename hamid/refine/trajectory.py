@@ -129,7 +129,7 @@ class _Problem:
             weight: npt.NDArray[np.float64]) -> _Problem:
         """The records cut into segments of about `length` seconds."""
         assert records.t is not None
-        t, X = records.t, records.X
+        t, X = records.t, records.compared
         pieces = _segments(records, t, length)
         if not pieces:
             raise _SegmentFitFailed(f"no trajectory holds {MIN_SEGMENT_SAMPLES} samples")
@@ -513,7 +513,7 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
     `iterations` are the steps the fit gone on with took to reach that point."""
     free_list = list(free)
     if X0 is None:
-        X0 = np.array([x[0] for x in problem.measured])
+        X0 = np.array([x[0, :problem.x_step.size] for x in problem.measured])
     damping_factor, best, converged, off = 0.0, None, False, np.inf
     last_step = None   # the last undamped step, in standard errors
     length = problem.span
@@ -697,7 +697,7 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
                                              None if inputs.draws is None
                                              else inputs.draws[lo:hi])))
     c = copies - 1 - n_draws
-    cost, H, g = np.zeros((S, n_states)), np.zeros((S, c, c)), np.zeros((S, c))
+    cost, H, g = np.zeros((S, len(problem.weight))), np.zeros((S, c, c)), np.zeros((S, c))
     end, E = np.zeros((S, n_states)), np.zeros((S, n_states, c))
     responses = _Responses(np.zeros((S, c, n_draws)), np.zeros((S, n_states, n_draws)))
     try:

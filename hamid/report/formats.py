@@ -342,7 +342,14 @@ def _data_line(data: Mapping[str, Any]) -> str:
     )
     if data["sources"]:
         text += f" from {_sources(data['sources'])}"
-    if data["velocity_source"] == "savgol":
+    channels = data.get("channels")
+    if channels:   # what each coordinate recorded, and what was reconstructed from it
+        text += "; recorded " + ", ".join(
+            f"{name}: {' + '.join(kinds['recorded'])}"
+            + (f" ({' + '.join(kinds['reconstructed'])} reconstructed"
+               + ("; its velocity column set aside" if kinds.get("set_aside") else "") + ")"
+               if kinds["reconstructed"] else "") for name, kinds in channels.items())
+    elif data["velocity_source"] == "savgol":
         text += "; velocities derived from positions (Savitzky-Golay)"
     else:
         text += f"; velocities {data['velocity_source']}"

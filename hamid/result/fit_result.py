@@ -75,6 +75,9 @@ class DataInfo(TypedDict):
     velocity_source: Literal["measured", "savgol"]
     velocity_window: NotRequired[int]   # with savgol: the filter's window, in samples
     velocity_order: NotRequired[int]    # and its polynomial order
+    # per coordinate, the channels recorded and reconstructed (when not just positions and
+    # velocities recorded)
+    channels: NotRequired[dict[str, dict[str, list[str]]]]
     reading: NotRequired[dict[str, Any]]  # the reading options given (docs/output.md)
 
 

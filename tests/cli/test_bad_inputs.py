@@ -196,9 +196,10 @@ DATA_ERRORS = {
                                       ["data.parquet", "column 'x'", "row 8", "'n/a'"]),
     "header only, TSV": ("data.tsv", _write_csv("t\tx\tv\n"), [], 1,
                          ["data.tsv", "no data rows"]),
-    "missing velocity column": ("data.csv", _write_csv("t,u1,u2,v1\n0,1,0,0\n0.1,0.9,0,0\n"),
-                                ["--model", "peng-quadratic"], 1,
-                                ["data.csv", "velocity 'v2'", "coordinate 'u2'"]),
+    # a coordinate may lack its velocity (derived) but not every channel (issue 36)
+    "coordinate without a channel": ("data.csv", _write_csv("t,u1,v1\n0,1,0\n0.1,0.9,0\n"),
+                                     ["--model", "peng-quadratic"], 1,
+                                     ["data.csv", "coordinate 'u2'", "no position, velocity"]),
     "--trajectory column missing": ("data.csv", _write_csv(DUFFING_ROWS),
                                     ["--trajectory", "run"], 1,
                                     ["data.csv", "'run'", "--trajectory"]),

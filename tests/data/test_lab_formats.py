@@ -277,9 +277,13 @@ def test_assumed_model_note_names_the_toml_beside_the_data():
                for w in result.warnings)
 
 
-def test_a_missing_velocity_error_mentions_savgol(si):
+def test_a_missing_velocity_error_mentions_savgol(si, tmp_path):
+    """Read whole, u2's velocity would be derived (tests/data/test_channels.py); a file read
+    in chunks needs every velocity."""
+    path = tmp_path / "si.csv"
+    si.drop(columns=["v2"]).to_csv(path, index=False)
     with pytest.raises(DataError, match="derive velocities with --velocity savgol"):
-        hamid.fit(si.drop(columns=["v2"]), "peng-quadratic")
+        hamid.fit(path, "peng-quadratic", chunk_rows=1000)
 
 
 def test_savgol_without_time_mentions_time(si):

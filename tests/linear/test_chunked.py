@@ -904,7 +904,8 @@ def test_column_names_from_data_are_escaped_in_the_report_and_messages(tmp_path)
     assert done.returncode == 0, done.stderr
     _no_raw_controls(done.stdout)
     assert f"x=pos{SHOWN}" in done.stdout.decode()
-    # the same column, not mapped: the message lists the columns
+    # the same column, not mapped and no other channel of x: the message lists the columns
+    data.write_text("\n".join([f"trajectory,t,pos{EVIL},speed", *lines[1:]]) + "\n")
     done = run(["fit", data, "--model", "duffing"])
     one_line(done, 1, f"pos{SHOWN}")
     _no_raw_controls(done.stderr)

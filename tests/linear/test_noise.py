@@ -10,7 +10,7 @@ from conftest import DUFFING, PENG, with_noise
 
 import hamid
 from hamid.data.measurement import estimate_noise
-from hamid.errors import DataError, UsageError
+from hamid.errors import UsageError
 
 VARIABLES = ["u1", "u2", "v1", "v2"]
 
@@ -241,7 +241,14 @@ def test_a_recording_of_positions_alone_is_fitted_without_an_option(clean_record
     assert "derived from the positions" in done.stderr
 
 
-def test_a_recording_with_some_velocities_still_needs_them_all(clean_records):
+def test_a_coordinate_without_its_velocity_has_that_one_derived(clean_records):
+    """Each coordinate keeps what it records (issue 36): u2's velocity is derived from its
+    positions, u1's measured one stays and is fitted."""
     frame = clean_records["peng-quadratic"].drop(columns="v2")
-    with pytest.raises(DataError, match="no column for velocity 'v2'"):
-        hamid.fit(frame, "peng-quadratic")
+    result = hamid.fit(frame, "peng-quadratic")
+    assert result.data["channels"]["u2"] == {"recorded": ["position"],
+                                             "reconstructed": ["velocity"]}
+    assert result.data["channels"]["u1"]["reconstructed"] == []
+    assert any("no velocity column for u2" in w for w in result.warnings)
+    noise = result.method["refinement"]["noise"]
+    assert noise["v2"]["sigma"] is None and noise["v1"]["sigma"] is not None
