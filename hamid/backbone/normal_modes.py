@@ -53,8 +53,8 @@ from hamid.model.dissipation import Dissipation
 from hamid.model.dynamics import Dynamics, Motion
 from hamid.model.models import Model
 
-__all__ = ["RESONANCE_ANGLE", "InternalResonanceError", "ModeFitted", "PeriodicOrbit",
-           "normal_mode_branch"]
+__all__ = ["RESONANCE_ANGLE", "InternalResonanceError", "LinearMode", "ModeFitted",
+           "PeriodicOrbit", "SmallAmplitude", "normal_mode_branch", "small_amplitude"]
 
 Array = npt.NDArray[np.float64]
 
@@ -228,8 +228,9 @@ class _Branch:
                                          math.pi + np.arccosh(np.maximum(-s / 2, 1)))))
 
 
-def _linear_modes(model: Model, theta: Array) -> _Linear:
-    """The minimum of V nearest the origin, and the linear modes about it."""
+def _linear_modes(model: Model, theta: Array, near: Array | None = None) -> _Linear:
+    """The minimum of V nearest `near` (default the origin), and the linear modes about
+    it."""
     N = len(model.coordinates)
     lagrangian = model.lagrangian
 
@@ -241,17 +242,19 @@ def _linear_modes(model: Model, theta: Array) -> _Linear:
         d_dv, d_dq = lagrangian.second_derivatives(X, theta)
         return d_dv[0, :, N:], -d_dq[0, :, :N]
 
-    q = np.zeros(N)
+    q = np.zeros(N) if near is None else np.array(near, dtype=float)
     if not np.all(np.isfinite(gradient(q))):
-        raise ModelError(f"model {model.name!r}: the potential is not finite at the origin")
-    for _ in range(50):   # Newton on dV = 0 from the origin, the exact Hessian
+        raise ModelError(f"model {model.name!r}: the potential is not finite at "
+                         f"{_where(model, q)}")
+    for _ in range(50):   # Newton on dV = 0 from `near`, the exact Hessian
         slope = gradient(q)
         M, K = hessians(q)
         if np.all(np.abs(slope) <= 1e-14 * (1 + np.abs(K).max() * (1 + np.abs(q).max()))):
             break
         q = q - np.linalg.lstsq(K, slope, rcond=None)[0]
     else:
-        raise ModelError(f"model {model.name!r}: no equilibrium found near the origin")
+        raise ModelError(f"model {model.name!r}: no equilibrium found near "
+                         f"{_where(model, np.zeros(N) if near is None else near)}")
     M, K = hessians(q)
     try:
         w2, shapes = scipy.linalg.eigh(K, M)
@@ -262,6 +265,49 @@ def _linear_modes(model: Model, theta: Array) -> _Linear:
         raise ModelError(f"model {model.name!r}: the equilibrium {_where(model, q)} is not a "
                          f"minimum of the potential (a stiffness eigenvalue {w2[0]:.6g})")
     return _Linear(q, np.sqrt(w2), shapes)
+
+
+@dataclass(frozen=True)
+class LinearMode:
+    """One mode of the model linearized about its equilibrium."""
+
+    frequency: float              # rad/s (per unit of the recording's time)
+    damping_ratio: float | None   # phi' C phi / (2 w); None where R is not smooth at rest
+    shape: Array                  # (N,) M-normalised
+
+
+@dataclass(frozen=True)
+class SmallAmplitude:
+    """The equilibrium q* and the linear modes about it, by increasing frequency."""
+
+    equilibrium: Array
+    modes: tuple[LinearMode, ...]
+
+
+def small_amplitude(model: Model, estimates: Mapping[str, float],
+                    dissipation: Dissipation | None = None, *,
+                    near: npt.ArrayLike | None = None) -> SmallAmplitude:
+    """The limit of every normal mode's backbone at small amplitude: the linear modes of
+    the fitted model about the minimum of its potential nearest `near` (default the
+    origin), each with its modal damping ratio phi' C phi / (2 w), C = d2R/dv2 at rest
+    at the equilibrium (c / (2 sqrt(k m)) for one coordinate). Without a dissipation, or
+    where a term of R with a nonzero coefficient has a kink (friction's abs: no
+    linearization at rest), the damping ratios are None. Raises ModelError when the
+    model has no minimum there or its energy is not natural."""
+    theta = np.array([float(estimates[p]) for p in model.parameters])
+    linear = _linear_modes(model, theta, None if near is None else np.asarray(near, float))
+    N = len(model.coordinates)
+    damping = None
+    if dissipation is not None and len(dissipation):
+        coefficients = np.array([float(estimates[n]) for n in dissipation.names])
+        if not any(kinks and c != 0 for kinks, c in zip(dissipation.kinks, coefficients,
+                                                        strict=True)):
+            at_rest = np.concatenate([linear.equilibrium, np.zeros(N)])[None]
+            damping = dissipation.force_slopes(at_rest, coefficients)[0, :, N:]
+    modes = tuple(LinearMode(float(w), None if damping is None else
+                             float(shape @ damping @ shape / (2 * w)), shape)
+                  for w, shape in zip(linear.frequencies, linear.shapes.T, strict=True))
+    return SmallAmplitude(linear.equilibrium, modes)
 
 
 def _where(model: Model, q: Array) -> str:
