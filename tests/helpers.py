@@ -142,3 +142,41 @@ def double_pendulum_rhs(g: float):
                 (-3 * g * np.sin(p) - g * np.sin(p - 2 * q) - 2 * s * (wq**2 + wp**2 * c)) / den,
                 2 * s * (2 * wp**2 + 2 * g * np.cos(p) + wq**2 * c) / den]
     return rhs
+
+
+def two_dof_first_mode(amplitudes, k1: float, k2: float, k3: float,
+                       c1: float = 0.0, c2: float = 0.0) -> list[tuple[float, float]]:
+    """The first nonlinear normal mode of x1'' = -k1 x1 + k2 (x2 - x1) - k3 x1^3,
+    x2'' = -k2 (x2 - x1) (unit masses), by a shooting of its own: at each amplitude A of
+    x1, its frequency (rad/s) and, for viscous dampers c1, c2 on the two coordinates, its
+    equivalent damping ratio ΔE / (4π E), ΔE integrated alongside the conservative orbit.
+    The orbit starts at rest from (A, b) and, the potential being even, reaches (-A, -b)
+    at half its period T. A truth independent of hamid's."""
+    import math
+
+    import numpy as np
+    from scipy.integrate import solve_ivp
+    from scipy.optimize import root
+
+    def rhs(t, y):
+        x1, x2, v1, v2, _ = y
+        return [v1, v2, -k1 * x1 + k2 * (x2 - x1) - k3 * x1 ** 3, -k2 * (x2 - x1),
+                c1 * v1 ** 2 + c2 * v2 ** 2]
+
+    def half(b, T, A):
+        return solve_ivp(rhs, (0, T / 2), [A, b, 0, 0, 0], method="DOP853", rtol=1e-12,
+                         atol=1e-13).y[:, -1]
+
+    # the linear mode as the first guess: x2 = x1 k2 / (k2 - w^2), from K phi = w^2 phi
+    trace, det = k1 + 2 * k2, k1 * k2
+    w2 = (trace - math.sqrt(trace ** 2 - 4 * det)) / 2
+    guess = np.array([k2 / (k2 - w2), 2 * math.pi / math.sqrt(w2)])
+    found = []
+    for A in amplitudes:
+        guess = root(lambda u, A=A: [half(*u, A)[0] + A, half(*u, A)[1] + u[0]],
+                     guess * [A if not found else 1, 1], tol=1e-13).x
+        b, T = guess
+        energy = k1 * A ** 2 / 2 + k2 * (b - A) ** 2 / 2 + k3 * A ** 4 / 4
+        lost = 2 * half(b, T, A)[4]   # the second half retraces the first
+        found.append((2 * math.pi / T, lost / (4 * math.pi * energy)))
+    return found

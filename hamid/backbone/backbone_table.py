@@ -12,7 +12,9 @@ spaced from 2% of the largest recorded amplitude to it. The largest recorded amp
 that of the recorded points when data are given, else that of the orbit at the report's
 highest energy level (a damped trajectory's level is its energy at its start), else, when
 no level lies in the well, that of the orbit at 90% of the way from the well's bottom to
-its rim, else 1 (model units).
+its rim, else 1 (model units). A normal mode whose default levels meet an internal
+resonance is drawn up to the last level before it, and its entry says so (`stopped`);
+levels asked for are computed as asked, or refused at the resonance.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import numpy.typing as npt
 from hamid import safe_text
 from hamid.backbone.bands import Band, Uncertainty, bands, bands_along
 from hamid.backbone.from_data import decay_points
-from hamid.backbone.normal_modes import ModeFitted
+from hamid.backbone.normal_modes import InternalResonanceError, ModeFitted, small_amplitude
 from hamid.backbone.one_degree import Cycle, Fitted, Well
 from hamid.data import column_roles
 from hamid.data.records import Records
@@ -46,7 +48,6 @@ SCHEMA = "hamid.backbone/1"
 FORMATS = ("table", "json", "csv")
 SMALLEST = 0.02    # the default amplitudes start at this share of the largest recorded
 _RIM_SHARE = 0.9   # without a level in the well: the orbit this far up to the rim
-_SMALL_ENERGY = 1e-6   # of the largest level: the orbit that finds a mode's equilibrium
 _SI = {**{unit: "m" for unit in ("m", "cm", "mm", "um", "nm")},
        **{unit: "rad" for unit in ("rad", "mrad", "deg")}}
 
@@ -74,6 +75,7 @@ class Source:
     levels: tuple[float, ...]          # the fitted energy levels h
     units: dict[str, str | None]       # coordinate -> SI unit of the recording, if known
     time_unit: str | None
+    equilibrium: tuple[float, ...] | None = None   # the report's, at small amplitude
 
     @classmethod
     def of_report(cls, report: Mapping[str, Any]) -> Source:
@@ -89,10 +91,13 @@ class Source:
             uncertainty = Uncertainty(tuple(covariance["names"]), matrix.reshape(
                 len(covariance["names"]), len(covariance["names"])), _multiplier(report))
         data = report["data"]
+        small = (report.get("dissipation") or {}).get("small_amplitude")
         return cls(Fitted(model, estimates, dissipation if len(dissipation) else None),
                    uncertainty, float(report["method"]["level"]),
                    tuple(float(h["h"]) for h in report["energy_levels"]),
-                   {q: _unit(data, q) for q in model.coordinates}, data.get("time_unit"))
+                   {q: _unit(data, q) for q in model.coordinates}, data.get("time_unit"),
+                   equilibrium=None if not small else tuple(
+                       float(small["equilibrium"][q]) for q in model.coordinates))
 
 
 def _multiplier(report: Mapping[str, Any]) -> float:
@@ -155,6 +160,8 @@ def backbone_report(source: Source, request: Request, *, records: Records | None
         q = records.X[:, 0]
         fitted = replace(fitted, near=float(np.median(q)),
                          scale=float(max(np.ptp(q) / 2, np.finfo(float).tiny)))
+    elif source.equilibrium is not None:
+        fitted = replace(fitted, near=source.equilibrium[0])
     well = fitted.well()
     data = [] if records is None else decay_points(records, 0, well.bottom)
     if request.energies is not None:
@@ -227,18 +234,23 @@ def _normal_modes_report(source: Source, request: Request, *, records: Records |
                          f"{model.name!r} ({', '.join(model.coordinates)})")
     lead = (None if request.coordinate is None
             else model.coordinates.index(request.coordinate))
+    near = (source.equilibrium if records is None else
+            tuple(np.median(records.X[:, :len(model.coordinates)], axis=0).tolist()))
     mode = ModeFitted(model, source.fitted.estimates, source.fitted.dissipation,
-                      request.mode, lead)
-    first = mode.orbits(energies=[_SMALL_ENERGY * max(abs(h) for h in source.levels)
-                                  if source.levels else _SMALL_ENERGY])[0][1]
-    lead = int(np.argmax(first.amplitudes)) if lead is None else lead
+                      request.mode, lead, near)
+    limit = small_amplitude(model, source.fitted.estimates, near=near)
+    if not 1 <= request.mode <= len(limit.modes):
+        raise UsageError(f"--mode {request.mode}: model {model.name!r} has modes 1 to "
+                         f"{len(limit.modes)}")
+    shape = limit.modes[request.mode - 1].shape
+    lead = int(np.argmax(np.abs(shape))) if lead is None else lead
     coordinate = model.coordinates[lead]
-    equilibrium = (first.states[:len(model.coordinates)].max(axis=1)
-                   + first.states[:len(model.coordinates)].min(axis=1)) / 2
+    equilibrium = limit.equilibrium
     data = ([] if records is None
             else decay_points(records, lead, float(equilibrium[lead])))
     amplitudes, energies = request.amplitudes, request.energies
-    if amplitudes is None and energies is None:
+    default = amplitudes is None and energies is None
+    if default:
         recorded = [a for d in data for a in d.amplitude.tolist()]
         if recorded:
             amplitudes = tuple(np.linspace(SMALLEST * max(recorded), max(recorded),
@@ -250,18 +262,27 @@ def _normal_modes_report(source: Source, request: Request, *, records: Records |
                                  "give --amplitudes or --energies")
             energies = tuple(np.linspace(SMALLEST * top, top, request.points).tolist())
     mode = replace(mode, lead=lead)
-    found = mode.orbits(amplitudes=amplitudes, energies=energies)
-    at = [float(orbit.amplitudes[lead]) for _, orbit in found]   # bands at fixed amplitude
+    stopped = None
+    try:
+        found = mode.orbits(amplitudes=amplitudes, energies=energies)
+    except InternalResonanceError as error:
+        if not default or len(error.orbits) < 2:
+            raise
+        # the default levels end at the last before the resonance, and the report says why
+        stopped = str(error)
+        found = [(mode.cycle(orbit), orbit) for orbit in error.orbits]
+    orbits = [orbit for _, orbit in found]   # the bands at their amplitudes of the lead
     found_bands = ([None] * len(found) if source.uncertainty is None else bands_along(
         mode, [cycle for cycle, _ in found], source.uncertainty,
-        lambda nudged: [cycle for cycle, _ in nudged.orbits(amplitudes=at)]))
+        lambda nudged: nudged.corrected(orbits)))
     points = [_point(cycle, dict(zip(model.coordinates, orbit.amplitudes.tolist(),
                                      strict=True)), band)
               for (cycle, orbit), band in zip(found, found_bands, strict=True)]
     return _document(source, model.name, {
         "equilibrium": dict(zip(model.coordinates, equilibrium.tolist(), strict=True)),
         "rim": None,
-        "modes": [{"mode": request.mode, "coordinate": coordinate, "points": points}],
+        "modes": [{"mode": request.mode, "coordinate": coordinate, "points": points,
+                   "stopped": stopped}],
         "data": _data(data, coordinate, names)})
 
 
@@ -333,6 +354,9 @@ def render(document: Mapping[str, Any], fmt: str) -> str:
                   f"{'zeta high':>12}")
         out.write(safe_text.printable(f"mode {mode['mode']}") + "\n"
                   + safe_text.printable(header) + "\n")
+        if mode.get("stopped"):
+            out.write(safe_text.printable(f"the default levels end short of {mode['stopped']}")
+                      + "\n")
         for p in mode["points"]:
             cells = [p["energy"], p["amplitude"][q], *(p[key] for key in COLUMNS)]
             out.write(" ".join(f"{_number(c):>{22 if i == 1 else 12}}"

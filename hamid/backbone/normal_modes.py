@@ -53,14 +53,16 @@ from hamid.model.dissipation import Dissipation
 from hamid.model.dynamics import Dynamics, Motion
 from hamid.model.models import Model
 
-__all__ = ["RESONANCE_ANGLE", "InternalResonanceError", "ModeFitted", "PeriodicOrbit",
-           "normal_mode_branch"]
+__all__ = ["RESONANCE_ANGLE", "InternalResonanceError", "LinearMode", "ModeFitted",
+           "PeriodicOrbit", "SmallAmplitude", "normal_mode_branch", "small_amplitude"]
 
 Array = npt.NDArray[np.float64]
 
 RESONANCE_ANGLE = 0.05   # rad: a nontrivial Floquet multiplier this close to +1 is a resonance
 _RTOL, _ATOL = 1e-12, 1e-14
 _VARIATIONAL_ATOL = 1e-9   # the derivatives only steer Newton and give the multipliers
+_ROUNDING = 10 * np.finfo(float).eps   # of a coordinate, relative to its equilibrium
+_NEWTON_ROUNDING = 100   # Newton's corrections need not be finer than this many roundings
 _NEWTON_TOL = 1e-11     # the correction, relative to the orbit's scale and period
 _CORRECTOR_TOL = 1e-8   # the continuation's points, which only seed the targets' solves
 _NEWTON_ITERATIONS = 12
@@ -82,7 +84,10 @@ class PeriodicOrbit:
 
 
 class InternalResonanceError(ModelError):
-    """A normal mode's branch meets an internal resonance: named where, not followed."""
+    """A normal mode's branch meets an internal resonance: named where, not followed;
+    `orbits`, those of the levels asked for that lie below it."""
+
+    orbits: tuple[PeriodicOrbit, ...] = ()   # those asked for below it, by increasing level
 
 
 @dataclass(frozen=True)
@@ -119,14 +124,22 @@ class _Branch:
         self.motion: Motion = Dynamics(model).at(
             np.concatenate([[1.0], theta]), inputs=None if model.forcing is None else at_rest)
         self.n = len(model.coordinates)
-        self.steps = scale * 1e-6 * np.concatenate(
-            [np.ones(self.n), np.full(self.n, self.linear.frequencies[-1])])
+        self.origin = np.concatenate([linear.equilibrium, np.zeros(self.n)])
+        self.floor = _ROUNDING * float(np.abs(linear.equilibrium).max())
+        # the variational equations' difference steps: on the orbit's scale, and no
+        # smaller than the rounding of coordinates far from zero allows (else the
+        # differences are noise, and the integrator shortens its steps to follow it)
+        self.steps = 1e-6 * np.concatenate(
+            [scale + np.abs(linear.equilibrium),
+             np.full(self.n, scale * self.linear.frequencies[-1])])
 
     # -- the equations ---------------------------------------------------------------
 
     def _rhs(self, t: float, y: Array) -> Array:
+        """The motion and its variational equations, the state taken from the
+        equilibrium (`shoot`)."""
         N = self.n
-        x, flow = y[:2 * N], y[2 * N:].reshape(2 * N, 2 * N)
+        x, flow = y[:2 * N] + self.origin, y[2 * N:].reshape(2 * N, 2 * N)
         h = self.steps
         columns = np.concatenate([x[:, None], x[:, None] + np.diag(h), x[:, None] - np.diag(h)],
                                  axis=1)
@@ -139,12 +152,20 @@ class _Branch:
         return out
 
     def shoot(self, z: Array) -> _Shot:
-        """Integrate from rest at q0 = z[:N] over half the period z[N]."""
+        """Integrate from rest at q0 = z[:N] over half the period z[N]. The integrator
+        holds the coordinates' distance from the equilibrium, whose relative tolerance
+        keeps the digits of a small orbit about an equilibrium far from zero (a pendulum
+        hanging at pi)."""
         N = self.n
-        y0 = np.concatenate([z[:N], np.zeros(N), np.eye(2 * N).ravel()])
+        y0 = np.concatenate([z[:N] - self.linear.equilibrium, np.zeros(N),
+                             np.eye(2 * N).ravel()])
         size = max(np.abs(z[:N] - self.linear.equilibrium).max(), 1e-9 * self.scale)
-        atol = np.concatenate([np.full(N, _ATOL * size),
-                               np.full(N, _ATOL * size * self.linear.frequencies[-1]),
+        # no finer than the rounding of the accelerations at coordinates far from zero
+        # allows, which an integrator asked for more follows with ever shorter steps
+        floor = self.floor
+        atol = np.concatenate([np.full(N, max(_ATOL * size, floor)),
+                               np.full(N, max(_ATOL * size, floor)
+                                       * self.linear.frequencies[-1]),
                                np.full(4 * N * N, _VARIATIONAL_ATOL)])
         sol = solve_ivp(self._rhs, (0.0, z[N] / 2), y0, method="DOP853", rtol=_RTOL,
                         atol=atol, dense_output=True)
@@ -153,9 +174,16 @@ class _Branch:
                              f"integrated: {sol.message}")
         end = sol.y[:, -1]
         flow = end[2 * N:].reshape(2 * N, 2 * N)
-        acceleration = self.motion.accelerations(end[:2 * N, None])[:, 0]
+        state = end[:2 * N] + self.origin
+        acceleration = self.motion.accelerations(state[:, None])[:, 0]
         jacobian = np.hstack([flow[N:2 * N, :N], acceleration[:, None] / 2])
-        return _Shot(z, end[:2 * N], jacobian, flow, sol.sol)
+        offset = np.concatenate([self.origin, np.zeros(4 * N * N)])
+
+        def solution(t: Array | float) -> Array:
+            values = sol.sol(t)
+            return values + (offset if values.ndim == 1 else offset[:, None])
+
+        return _Shot(z, state, jacobian, flow, solution)
 
     # -- what places an orbit on the branch ---------------------------------------------
 
@@ -228,8 +256,9 @@ class _Branch:
                                          math.pi + np.arccosh(np.maximum(-s / 2, 1)))))
 
 
-def _linear_modes(model: Model, theta: Array) -> _Linear:
-    """The minimum of V nearest the origin, and the linear modes about it."""
+def _linear_modes(model: Model, theta: Array, near: Array | None = None) -> _Linear:
+    """The minimum of V nearest `near` (default the origin), and the linear modes about
+    it."""
     N = len(model.coordinates)
     lagrangian = model.lagrangian
 
@@ -241,17 +270,19 @@ def _linear_modes(model: Model, theta: Array) -> _Linear:
         d_dv, d_dq = lagrangian.second_derivatives(X, theta)
         return d_dv[0, :, N:], -d_dq[0, :, :N]
 
-    q = np.zeros(N)
+    q = np.zeros(N) if near is None else np.array(near, dtype=float)
     if not np.all(np.isfinite(gradient(q))):
-        raise ModelError(f"model {model.name!r}: the potential is not finite at the origin")
-    for _ in range(50):   # Newton on dV = 0 from the origin, the exact Hessian
+        raise ModelError(f"model {model.name!r}: the potential is not finite at "
+                         f"{_where(model, q)}")
+    for _ in range(50):   # Newton on dV = 0 from `near`, the exact Hessian
         slope = gradient(q)
         M, K = hessians(q)
         if np.all(np.abs(slope) <= 1e-14 * (1 + np.abs(K).max() * (1 + np.abs(q).max()))):
             break
         q = q - np.linalg.lstsq(K, slope, rcond=None)[0]
     else:
-        raise ModelError(f"model {model.name!r}: no equilibrium found near the origin")
+        raise ModelError(f"model {model.name!r}: no equilibrium found near "
+                         f"{_where(model, np.zeros(N) if near is None else near)}")
     M, K = hessians(q)
     try:
         w2, shapes = scipy.linalg.eigh(K, M)
@@ -262,6 +293,49 @@ def _linear_modes(model: Model, theta: Array) -> _Linear:
         raise ModelError(f"model {model.name!r}: the equilibrium {_where(model, q)} is not a "
                          f"minimum of the potential (a stiffness eigenvalue {w2[0]:.6g})")
     return _Linear(q, np.sqrt(w2), shapes)
+
+
+@dataclass(frozen=True)
+class LinearMode:
+    """One mode of the model linearized about its equilibrium."""
+
+    frequency: float              # rad/s (per unit of the recording's time)
+    damping_ratio: float | None   # phi' C phi / (2 w); None where R is not smooth at rest
+    shape: Array                  # (N,) M-normalised
+
+
+@dataclass(frozen=True)
+class SmallAmplitude:
+    """The equilibrium q* and the linear modes about it, by increasing frequency."""
+
+    equilibrium: Array
+    modes: tuple[LinearMode, ...]
+
+
+def small_amplitude(model: Model, estimates: Mapping[str, float],
+                    dissipation: Dissipation | None = None, *,
+                    near: npt.ArrayLike | None = None) -> SmallAmplitude:
+    """The limit of every normal mode's backbone at small amplitude: the linear modes of
+    the fitted model about the minimum of its potential nearest `near` (default the
+    origin), each with its modal damping ratio phi' C phi / (2 w), C = d2R/dv2 at rest
+    at the equilibrium (c / (2 sqrt(k m)) for one coordinate). Without a dissipation, or
+    where a term of R with a nonzero coefficient has a kink (friction's abs: no
+    linearization at rest), the damping ratios are None. Raises ModelError when the
+    model has no minimum there or its energy is not natural."""
+    theta = np.array([float(estimates[p]) for p in model.parameters])
+    linear = _linear_modes(model, theta, None if near is None else np.asarray(near, float))
+    N = len(model.coordinates)
+    damping = None
+    if dissipation is not None and len(dissipation):
+        coefficients = np.array([float(estimates[n]) for n in dissipation.names])
+        if not any(kinks and c != 0 for kinks, c in zip(dissipation.kinks, coefficients,
+                                                        strict=True)):
+            at_rest = np.concatenate([linear.equilibrium, np.zeros(N)])[None]
+            damping = dissipation.force_slopes(at_rest, coefficients)[0, :, N:]
+    modes = tuple(LinearMode(float(w), None if damping is None else
+                             float(shape @ damping @ shape / (2 * w)), shape)
+                  for w, shape in zip(linear.frequencies, linear.shapes.T, strict=True))
+    return SmallAmplitude(linear.equilibrium, modes)
 
 
 def _where(model: Model, q: Array) -> str:
@@ -293,17 +367,23 @@ class _Measure:
 def _newton(branch: _Branch, z: Array, condition: Callable[[_Shot], tuple[float, Array]],
             tolerance: float = _NEWTON_TOL) -> _Shot:
     """Correct z until v(T/2) = 0 and condition(shot) = (residual, gradient) is zero, the
-    last correction under `tolerance` (relative to the orbit's scale and period). At the
-    strict default the orbit is integrated once more from the corrected z; a looser one
-    (the continuation's own points) returns the last orbit integrated."""
+    last correction under `tolerance` (relative to the orbit's scale and period, and no
+    finer in the coordinates than their rounding allows, `_Branch.shoot`). At the strict
+    default the orbit is integrated once more from the corrected z; a looser one (the
+    continuation's own points) returns the last orbit integrated."""
     N, scales = branch.n, np.append(np.full(branch.n, branch.scale), z[branch.n])
+    limits = tolerance * scales
+    resolution = _NEWTON_ROUNDING * branch.floor   # the coordinates', and the period's
+    limits[:N] = np.maximum(limits[:N], resolution)   # share of it at the orbit's size
+    limits[N] = max(limits[N], z[N] * resolution / max(
+        float(np.abs(z[:N] - branch.linear.equilibrium).max()), np.finfo(float).tiny))
     for _ in range(_NEWTON_ITERATIONS):
         shot = branch.shoot(z)
         residual, gradient = condition(shot)
         J = np.vstack([shot.jacobian, gradient])
         step = np.linalg.solve(J * scales, -np.append(shot.end[N:], residual)) * scales
         z = z + step
-        if np.all(np.abs(step) <= tolerance * scales):
+        if np.all(np.abs(step) <= limits):
             return branch.shoot(z) if tolerance <= _NEWTON_TOL else shot
     raise _NoConvergence
 
@@ -316,11 +396,13 @@ def normal_mode_branch(model: Model, estimates: Mapping[str, float], *, mode: in
                        amplitudes: Sequence[float] | None = None,
                        coordinate: int | None = None,
                        energies: Sequence[float] | None = None,
-                       samples: int = 256) -> list[PeriodicOrbit]:
+                       samples: int = 256,
+                       near: npt.ArrayLike | None = None) -> list[PeriodicOrbit]:
     """The periodic orbits of linear mode `mode` (1-based, by increasing frequency) of the
-    conservative model at `estimates`, continued to each of `amplitudes` (of the leading
-    `coordinate`: by default the largest in the linear mode's shape) or `energies` (above
-    the equilibrium's), in the order asked, each sampled at `samples` times over a period.
+    conservative model at `estimates` about the minimum of its potential nearest `near`
+    (default the origin), continued to each of `amplitudes` (of the leading `coordinate`:
+    by default the largest in the linear mode's shape) or `energies` (above the
+    equilibrium's), in the order asked, each sampled at `samples` times over a period.
 
     Raises InternalResonanceError where the branch meets an internal resonance, ModelError
     when the model has no well or the branch cannot be continued, UsageError for bad input.
@@ -340,7 +422,7 @@ def normal_mode_branch(model: Model, estimates: Mapping[str, float], *, mode: in
                          f"{model.name!r}")
     theta = np.array([float(estimates[p]) for p in model.parameters])
 
-    linear = _linear_modes(model, theta)
+    linear = _linear_modes(model, theta, None if near is None else np.asarray(near, float))
     w, shape = linear.frequencies[mode - 1], linear.shapes[:, mode - 1]
     lead = int(np.argmax(np.abs(shape))) if coordinate is None else coordinate
     largest = np.abs(shape).max()
@@ -358,7 +440,11 @@ def normal_mode_branch(model: Model, estimates: Mapping[str, float], *, mode: in
                  start=min(1e-3 * reach.max(), 0.5 * reach.min()) / largest)
     found: dict[int, PeriodicOrbit] = {}
     for index in np.argsort(targets):
-        walk.advance_past(float(targets[index]))
+        try:
+            walk.advance_past(float(targets[index]))
+        except InternalResonanceError as error:
+            error.orbits = tuple(found.values())
+            raise
         found[int(index)] = branch.orbit(walk.solve_at(float(targets[index])), samples)
     return [found[i] for i in range(len(targets))]
 
@@ -366,14 +452,16 @@ def normal_mode_branch(model: Model, estimates: Mapping[str, float], *, mode: in
 @dataclass(frozen=True, eq=False)
 class ModeFitted:
     """A fitted model of several coordinates and one of its normal modes (1-based), led by
-    coordinate number `lead` (None: the mode's largest): the counterpart of
-    `hamid.backbone.one_degree.Fitted` that the bands perturb."""
+    coordinate number `lead` (None: the mode's largest), about the potential's minimum
+    nearest `near` (None: the origin): the counterpart of `hamid.backbone.one_degree.Fitted`
+    that the bands perturb."""
 
     model: Model
     estimates: Mapping[str, float]
     dissipation: Dissipation | None
     mode: int
     lead: int | None = None
+    near: tuple[float, ...] | None = None
 
     def orbits(self, *, amplitudes: Sequence[float] | None = None,
                energies: Sequence[float] | None = None) -> list[tuple[Cycle, PeriodicOrbit]]:
@@ -383,10 +471,39 @@ class ModeFitted:
         periodic integrand sampled over its period)."""
         found = normal_mode_branch(self.model, self.estimates, mode=self.mode,
                                    amplitudes=amplitudes, energies=energies,
-                                   coordinate=self.lead)
-        return [(self._cycle(orbit), orbit) for orbit in found]
+                                   coordinate=self.lead, near=self.near)
+        return [(self.cycle(orbit), orbit) for orbit in found]
 
-    def _cycle(self, orbit: PeriodicOrbit) -> Cycle:
+    def corrected(self, orbits: Sequence[PeriodicOrbit]) -> list[Cycle]:
+        """The cycles of this model's orbits at the leading coordinate's amplitudes of
+        `orbits`, those of a model a little different (the bands' nudges): each found by
+        Newton's method from its counterpart, not by continuing the branch again from its
+        linear mode, a tenth of the cost or less."""
+        model, N = self.model, len(self.model.coordinates)
+        theta = np.array([float(self.estimates[p]) for p in model.parameters])
+        linear = _linear_modes(model, theta,
+                               None if self.near is None else np.asarray(self.near, float))
+        lead = (int(np.argmax(np.abs(linear.shapes[:, self.mode - 1])))
+                if self.lead is None else self.lead)
+        reach = max(float(np.abs(orbit.states[:N, 0] - linear.equilibrium).max())
+                    for orbit in orbits)
+        branch = _Branch(model, theta, linear, reach)
+        measure = _Measure(branch, lead)
+        cycles = []
+        for orbit in orbits:
+            amplitude = float(orbit.amplitudes[lead])
+            try:
+                shot = _newton(branch, np.append(orbit.states[:N, 0], orbit.period),
+                               measure.equal_to(amplitude))
+            except _NoConvergence:
+                raise ModelError(f"mode {self.mode}: Newton's method did not converge on the "
+                                 f"orbit of amplitude {amplitude:.6g} of "
+                                 f"{model.coordinates[lead]} from its neighbour") from None
+            cycles.append(self.cycle(branch.orbit(shot, len(orbit.t))))
+        return cycles
+
+    def cycle(self, orbit: PeriodicOrbit) -> Cycle:
+        """The orbit's cycle: its period, energy and the energy the dissipation takes."""
         lost = None
         if self.dissipation is not None:
             coefficients = np.array([self.estimates[n] for n in self.dissipation.names])

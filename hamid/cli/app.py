@@ -373,8 +373,7 @@ def fit(data: tuple[str, ...], model: str | None, strict: bool, fmt: str | None,
             notes.extend(figures.save(result.to_dict(), result.recording, figure))
 
     _emit(result.to_dict(), fmt, output, also=write_files)
-    for note in notes:
-        click.echo(console.printable(note), err=True)
+    _say(notes)
     if strict and result.warnings:
         click.echo(f"error: --strict: the fit has "
                    f"{counted(len(result.warnings), 'warning', 'warnings')}", err=True)
@@ -421,6 +420,19 @@ def _fit_each(data: tuple[str, ...], model: str | None, fit_options: dict[str, A
         raise click.exceptions.Exit(1 if tally.failed else 3)
 
 
+_ORDER_BY_HELP = ("Several fits: place each along the x axis by KEY, a dotted key of its "
+                  "report holding a number or an ISO 8601 time (data.time_unit, "
+                  "provenance.utc, ...), or mtime, the modification time of the data file "
+                  "it read (default: the order of the files and lines).")
+
+
+def _one_report_has_no_order(order_by: str | None) -> None:
+    """--order-by places several fits: with one report, a usage error."""
+    if order_by is not None:
+        raise UsageError("--order-by places several fits (RESULTS.jsonl, or several "
+                         "RESULT.json); one report has nothing to order")
+
+
 @cli.command()
 @click.argument("result_files", metavar="RESULT.json|RESULTS.jsonl...", nargs=-1,
                 required=True)
@@ -428,28 +440,60 @@ def _fit_each(data: tuple[str, ...], model: str | None, fit_options: dict[str, A
               help="Output format (default: from -o's extension: .json, .csv, .md, .txt, "
                    ".jsonl; table for standard output and special files).")
 @click.option("-o", "--output", default="-", metavar="OUT", help="Write the report here.")
-def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
+@click.option("--plot", "figure", metavar="FIG",
+              help="Also draw the figure hamid plot draws of the same reports: FIG.png, "
+                   ".svg or .pdf.")
+@click.option("--order-by", metavar="KEY", help=f"With --plot: {_ORDER_BY_HELP}")
+def report(result_files: tuple[str, ...], fmt: str | None, output: str, figure: str | None,
+           order_by: str | None) -> None:
     """Render a saved fit result (JSON) as a table, JSON, CSV or markdown; several results
     (or the lines of fit --each) side by side, a column per source, or a row per source
-    when the table would be wider than the terminal (COLUMNS, else 80 off a terminal)."""
+    when the table would be wider than the terminal (COLUMNS, else 80 off a terminal).
+    With --plot, the report and its figure are written together, or neither."""
     from hamid.data import destinations, documents, readers, writing
     from hamid.result.fit_result import FitResult
 
-    _outputs(result_files).claim("-o", output)
+    outputs = _outputs(result_files)
+    outputs.claim("-o", output)
     fmt = fmt or _report_format(output)
-    if len(result_files) > 1 or fmt == "jsonl" or result_files[0].lower().endswith(".jsonl"):
+    several = (len(result_files) > 1 or fmt == "jsonl"
+               or result_files[0].lower().endswith(".jsonl"))
+    if order_by is not None and figure is None:
+        raise UsageError("--order-by places the fits along the x axis of --plot's figure; "
+                         "give --plot FIG")
+    if not several:
+        _one_report_has_no_order(order_by)
+    if figure is not None:
+        _claim_figure(outputs, "--plot", figure, "parameters" if several else None)
+    if several:
         from hamid.report import comparison
 
         to_terminal = destinations.is_terminal(output)
-        text = comparison.render(comparison.load(result_files), fmt,
+        compared = comparison.load(result_files)
+        text = comparison.render(compared, fmt,
                                  color=to_terminal and "NO_COLOR" not in os.environ,
                                  width=console.terminal_width() if fmt == "table" else None)
-        writing.write_text(console.printable_lines(text) if fmt == "csv" and to_terminal else text,
-                           output)
+        notes: list[str] = []
+        with writing.all_or_nothing():   # the figure first: a stream cannot be taken back
+            if figure is not None:
+                from hamid.plot import drift
+
+                notes = drift.save(compared, figure, order_by)
+            writing.write_text(console.printable_lines(text) if fmt == "csv" and to_terminal
+                               else text, output)
+        _say(notes)
         return
     source = readers.STDIN if readers.is_stdio(result_files[0]) else result_files[0]
-    result = FitResult.from_dict(documents.read_json(result_files[0]), source=source)
-    _emit(result.to_dict(), fmt, output)
+    checked = FitResult.from_dict(documents.read_json(result_files[0]), source=source).to_dict()
+    notes = []
+
+    def draw() -> None:
+        from hamid.plot import figures
+
+        notes.extend(figures.save(checked, None, figure))
+
+    _emit(checked, fmt, output, also=None if figure is None else draw)
+    _say(notes)
 
 
 @cli.command()
@@ -461,11 +505,7 @@ def report(result_files: tuple[str, ...], fmt: str | None, output: str) -> None:
 @click.option("--panels", metavar="LIST",
               help="Panels by number or name: 1 energy, 2 residuals, 3 phase, 4 motion, "
                    "5 parameters, 6 correlation (default: all that apply).")
-@click.option("--order-by", metavar="KEY",
-              help="Several fits: place each along the x axis by KEY, a dotted key of its "
-                   "report holding a number or an ISO 8601 time (data.time_unit, "
-                   "provenance.utc, ...), or mtime, the modification time of the data file "
-                   "it read (default: the order of the files and lines).")
+@click.option("--order-by", metavar="KEY", help=_ORDER_BY_HELP)
 @option_groups.reading
 def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | None,
          order_by: str | None, **reading: Any) -> None:
@@ -475,17 +515,23 @@ def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | Non
     Several fits (RESULTS.jsonl of fit --each, or several RESULT.json): each parameter
     against the order of the fits (or --order-by) with its confidence interval."""
     from hamid.data import documents, readers, writing
-    from hamid.plot import figures, fitted
+    from hamid.plot import drift, figures, fitted
+    from hamid.report import comparison
     from hamid.result.fit_result import FitResult
 
     reports = [result_file, *data]
     if result_file.lower().endswith(".jsonl") or (
             data and all(name.lower().endswith(".json") for name in data)):
-        _plot_drift(reports, output, panels, order_by, reading)
+        if panels is not None or option_groups.fit_keywords(reading):
+            raise UsageError("several fits are drawn as one figure of their parameters: "
+                             "--panels and reading options apply to one report and its data")
+        _claim_figure(_outputs(reports), "-o", output, "parameters")
+        compared = comparison.load(reports)
+        with writing.all_or_nothing():
+            notes = drift.save(compared, output, order_by)
+        _say(notes)
         return
-    if order_by is not None:
-        raise UsageError("--order-by places several fits (RESULTS.jsonl, or several "
-                         "RESULT.json); one report has nothing to order")
+    _one_report_has_no_order(order_by)
     _claim_figure(_outputs(reports), "-o", output, panels)
     source = readers.STDIN if readers.is_stdio(result_file) else result_file
     report = FitResult.from_dict(documents.read_json(result_file), source=source).to_dict()
@@ -493,24 +539,12 @@ def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | Non
                  if data else None)
     with writing.all_or_nothing():
         notes = figures.save(report, recording, output, panels)
-    for note in notes:
-        click.echo(console.printable(note), err=True)
+    _say(notes)
 
 
-def _plot_drift(reports: list[str], output: str, panels: str | None, order_by: str | None,
-                reading: dict[str, Any]) -> None:
-    """`hamid plot` of several fits: their parameters in one figure (`hamid.plot.drift`)."""
-    from hamid.data import writing
-    from hamid.plot import drift
-    from hamid.report import comparison
-
-    if panels is not None or option_groups.fit_keywords(reading):
-        raise UsageError("several fits are drawn as one figure of their parameters: "
-                         "--panels and reading options apply to one report and its data")
-    _claim_figure(_outputs(reports), "-o", output, "parameters")
-    compared = comparison.load(reports)
-    with writing.all_or_nothing():
-        notes = drift.save(compared, output, order_by)
+def _say(notes: Sequence[str]) -> None:
+    """A figure's notes (panels left out, and why) on stderr, after its files are
+    written."""
     for note in notes:
         click.echo(console.printable(note), err=True)
 

@@ -83,6 +83,10 @@ def backbone(result_file: str, data: tuple[str, ...], amplitudes: str | None,
     with console.Status("computing the backbone"):
         document = backbone_table.backbone_report(backbone_table.Source.of_report(report),
                                                   request, records=records, names=data)
+    for mode in document["modes"]:
+        if mode.get("stopped"):
+            click.echo(console.printable(f"note: the default levels end short of "
+                                         f"{mode['stopped']}"), err=True)
     if figure:
         backbone_figure.save(document, output)
         return

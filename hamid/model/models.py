@@ -233,6 +233,15 @@ class Model:
         """Whether E = T + V with T quadratic in the velocities (Lagrange's equations apply)."""
         return isinstance(self._natural, Lagrangian)
 
+    @cached_property
+    def per_unit_mass(self) -> bool:
+        """Whether the energy has a kinetic part (quadratic in the velocities) and no
+        parameter's term has one: the energy and its parameters are then per unit mass."""
+        if not self.is_natural:
+            return False
+        kinetic = [f.velocity_degrees(self.velocities) or {} for f in (self.E0, *self.phi)]
+        return 2 in kinetic[0] and not any(2 in degrees for degrees in kinetic[1:])
+
     @property
     def lagrangian(self) -> Lagrangian:
         """The Lagrangian split; raises ModelError for an energy that is not natural."""

@@ -63,8 +63,10 @@ def draw(document: Mapping[str, Any]) -> Figure:
     bottom.set_ylabel("equivalent damping ratio ζ (1)")
     bottom.set_xlabel(f"amplitude of {q} ({unit})" if unit
                       else f"amplitude of {q} (model units)")
+    stopped = any(mode.get("stopped") for mode in document["modes"])
     top.set_title(f"Backbone of model {document['model']}"
-                  + (f", bands at {level}" if document["bands"] else ", no covariance"))
+                  + (f", bands at {level}" if document["bands"] else ", no covariance")
+                  + ("\n(ends short of an internal resonance)" if stopped else ""))
     top.legend(fontsize="small")
     if bottom.lines:
         bottom.legend(fontsize="small")

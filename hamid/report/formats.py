@@ -150,7 +150,16 @@ def _parameters_section(result: Mapping[str, Any]) -> _Section:
         rows = tuple(_parameter_row(p, with_truth) for p in parameters if keep(p["role"]))
         if rows:
             groups.append((label, rows))
-    return _Section("Parameters", tables=(_Table(header, tuple(groups)),))
+    return _Section("Parameters", lines=_per_unit_mass(result),
+                    tables=(_Table(header, tuple(groups)),))
+
+
+def _per_unit_mass(result: Mapping[str, Any]) -> tuple[str, ...]:
+    """Helper: a line saying the parameters are per unit mass, when they are (reports of
+    earlier versions do not say)."""
+    if not (result["method"].get("scale") or {}).get("per_unit_mass"):
+        return ()
+    return ("parameters per unit mass: the energy's kinetic part has no parameter",)
 
 
 def _energy_levels_section(result: Mapping[str, Any]) -> _Section:
@@ -190,20 +199,32 @@ def _residuals_section(result: Mapping[str, Any]) -> _Section:
 
 
 def _dissipation_section(result: Mapping[str, Any]) -> _Section | None:
-    """Helper: energy lost per trajectory and the equivalent damping ratio, if damped."""
+    """Helper: energy lost per trajectory, then each mode's natural frequency (Hz) and
+    damping ratio at small amplitude, from the model linearized about its equilibrium
+    (reports of earlier versions: their damping ratio at the recording's dominant
+    period, said so)."""
     dissipation = result.get("dissipation")
     if not dissipation:
         return None
     rows = tuple((str(d["trajectory"]), _percent(d["energy_lost_fraction"]))
                  for d in dissipation["trajectories"])
     tables = [_Table(("trajectory", "energy lost"), (("", rows),))]
-    ratio = dissipation.get("equivalent_damping_ratio")
-    if ratio is not None:
+    lines: tuple[str, ...] = ()
+    limit = dissipation.get("small_amplitude")
+    if limit:
+        about = ", ".join(f"{q} = {_num(x, '.6g')}" for q, x in limit["equilibrium"].items())
+        lines = (f"at small amplitude: the model linearized about {about} (against "
+                 "amplitude: hamid backbone)",)
+        tables.append(_Table(("mode", "natural frequency (Hz)", "damping ratio ζ"), (("", tuple(
+            (str(m["mode"]), _num(m["frequency_hz"], ".6g"), _num(m["damping_ratio"], ".4g"))
+            for m in limit["modes"])),)))
+    elif dissipation.get("equivalent_damping_ratio") is not None:
         tables.append(_Table(("quantity", "value"), (("", (
-            ("equivalent damping ratio ζ", _num(ratio, ".4g")),
+            ("equivalent damping ratio ζ", _num(dissipation["equivalent_damping_ratio"],
+                                                ".4g")),
             ("at the dominant period", f"{_num(dissipation['period'], '.4g')} s"),
         )),), True))
-    return _Section("Dissipation", tables=tuple(tables))
+    return _Section("Dissipation", lines=lines, tables=tuple(tables))
 
 
 def _conditioning_section(result: Mapping[str, Any]) -> _Section:
@@ -622,7 +643,9 @@ def _render_summary(result: Mapping[str, Any], *, color: bool, width: int | None
     lines.append("=" * width)
     notes = [f"method {method['kind']}: {method['kind_reason']}",
              method.get("covariance_description") or "", *result["warnings"],
-             *_skipped_lines(result)]
+             *_skipped_lines(result), *_per_unit_mass(result),
+             *(line for section in view.sections if section.heading == "Dissipation"
+               for line in section.lines)]
     notes = [printable(note) for note in notes if note]
     lines += ["Notes:", *(textwrap.fill(f"[{i}] {note}", width, subsequent_indent="    ")
                           for i, note in enumerate(notes, 1))]

@@ -153,12 +153,28 @@ class EnergyLost(TypedDict):
     energy_lost_fraction: float | None
 
 
+class LinearModeInfo(TypedDict):
+    """One mode of the model linearized about its equilibrium."""
+
+    mode: int
+    frequency_hz: float
+    damping_ratio: float | None
+
+
+class SmallAmplitudeInfo(TypedDict):
+    """The model at small amplitude: its equilibrium and linear modes."""
+
+    equilibrium: dict[str, float]
+    modes: list[LinearModeInfo]
+
+
 class DissipationInfo(TypedDict):
-    """What a damped fit says of the energy lost."""
+    """What a damped fit says of the energy lost and of its damping at small amplitude."""
 
     trajectories: list[EnergyLost]
     equivalent_damping_ratio: float | None
     period: float | None
+    small_amplitude: NotRequired[SmallAmplitudeInfo | None]
 
 
 class CovarianceInfo(TypedDict):

@@ -13,9 +13,10 @@ from typing import Any
 import numpy as np
 
 from hamid import __version__
+from hamid.backbone.normal_modes import small_amplitude
 from hamid.data import input_size, loading, readers
 from hamid.data.records import Records
-from hamid.errors import DataError
+from hamid.errors import DataError, HamidError
 from hamid.linear import design, uncertainty
 from hamid.linear.design import RowKind
 from hamid.linear.estimate import DISCRETIZATION_NOTE, LinearFit, NoiseCheck, ResidualSums, Rows
@@ -93,7 +94,8 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
         "noise": provenance.noise, "weighting_rounds": fit.weighting_rounds,
         "bias_correction": options.bias_correct, "covariance": options.cov,
         "covariance_description": fit.description, "level": options.level,
-        "fixed": dict(unknowns.fixed), "scale": dict(unknowns.scale),
+        "fixed": dict(unknowns.fixed),
+        "scale": {**unknowns.scale, "per_unit_mass": model.per_unit_mass},
         "block_variance": fit.block_variance,
         "refinement": refinement,
         "discretization": None if fit.discretization is None else dict(
@@ -262,12 +264,19 @@ def _finite_or_none(x: float) -> float | None:
 def dissipation_summary(model: Model, source: loading.Source, damping: Dissipation,
                         estimates: dict[str, float], rows: Rows | None,
                         h: Any) -> dict[str, Any] | None:
-    """Energy lost per trajectory and, for one viscous coordinate, the damping ratio.
+    """Energy lost per trajectory, and the damping at small amplitude.
 
     The energy lost is the fitted dissipated work over the record divided by the energy
     above the lowest potential energy seen on the trajectory (none for a driven fit, whose
     inputs supply energy as it goes). Damping needs the records
     in memory (`options.FitOptions.chunking`), and so `rows` of every sample.
+
+    At small amplitude the model is linear about the minimum of its potential nearest the
+    recording's median position (`hamid.backbone.normal_modes.small_amplitude`, the limit
+    of every backbone): each mode's natural frequency in Hz and modal damping ratio, which
+    for viscous damping holds at every amplitude where the model is linear, not only at the
+    recording's (its period shortened or lengthened by the nonlinearity). For one
+    coordinate it is also the report's `equivalent_damping_ratio`, with its period.
     """
     if not damping:
         return None
@@ -286,18 +295,22 @@ def dissipation_summary(model: Model, source: loading.Source, damping: Dissipati
         trajectories.append({"trajectory": records.labels[j],
                              "energy_lost_fraction": float(work[stop - 1] / available)
                              if available > 0 and model.forcing is None else None})
-    scales = source.scales()   # found on loading
-    period = design.median_period(scales) if scales else None
-    ratio = None
-    viscous = f"c_{model.coordinates[0]}"
-    if len(model.coordinates) == 1 and viscous in damping.names and period and \
-            model.is_natural:
-        moving = at_rest.copy()
-        moving[:, 1] = 1.0
-        mass = float(np.mean(model.total_energy(moving, theta) - potential)) * 2
-        ratio = estimates[viscous] * period / (4 * np.pi * mass)
+    n = len(model.coordinates)
+    try:
+        limit = small_amplitude(model, estimates, damping,
+                                near=np.median(records.X[:, :n], axis=0))
+    except HamidError:   # no minimum near the recording, or an energy that is not natural
+        limit = None
+    ratio = period = None
+    if limit is not None and n == 1 and limit.modes[0].damping_ratio is not None:
+        ratio, period = limit.modes[0].damping_ratio, 2 * np.pi / limit.modes[0].frequency
     return {"trajectories": trajectories, "equivalent_damping_ratio": ratio,
-            "period": period}
+            "period": period, "small_amplitude": None if limit is None else {
+                "equilibrium": dict(zip(model.coordinates, limit.equilibrium.tolist(),
+                                        strict=True)),
+                "modes": [{"mode": k, "frequency_hz": mode.frequency / (2 * np.pi),
+                           "damping_ratio": mode.damping_ratio}
+                          for k, mode in enumerate(limit.modes, 1)]}}
 
 
 # Below this fraction of the energy's changes, the input's work explains nothing of them.

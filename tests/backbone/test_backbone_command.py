@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -191,3 +192,43 @@ def test_a_model_of_two_coordinates_has_the_backbone_of_each_normal_mode(tmp_pat
     assert [p["amplitude"]["x2"] for p in mode["points"]] == pytest.approx([0.1, 0.3])
     # the quartic coupling hardens the mode
     assert mode["points"][1]["frequency_hz"] > mode["points"][0]["frequency_hz"]
+
+
+@pytest.mark.slow
+def test_the_real_double_pendulum_each_mode_with_the_recording(tmp_path):
+    """The sample double pendulum, hanging at (pi, pi): each mode's backbone through the
+    command line with the recording's points overlaid; at small amplitude the frequencies
+    are the report's linear ones. About a minute of CPU (a trigonometric energy)."""
+    pytest.importorskip("matplotlib")
+    from matplotlib.figure import Figure
+
+    from hamid.plot import backbone_figure
+
+    sample = Path(__file__).parents[2] / "sample_data"
+    result = hamid.fit(str(sample / "double_pendulum.csv"),
+                       str(sample / "double_pendulum.toml"), velocity="savgol")
+    report = tmp_path / "r.json"
+    report.write_text(json.dumps(result.to_dict()))
+    linear = result.dissipation["small_amplitude"]["modes"]
+    for mode in (1, 2):
+        args = [str(report), str(sample / "double_pendulum.csv"), "--mode", str(mode),
+                "--coordinate", "theta2", "--amplitudes", "0.01,0.5"]
+        done = subprocess.run([*HAMID, "backbone", *args, "-o", str(tmp_path / "b.json")],
+                              capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        document = json.loads((tmp_path / "b.json").read_text())
+        (curve,) = document["modes"]
+        assert curve["points"][0]["frequency_hz"] == pytest.approx(
+            linear[mode - 1]["frequency_hz"], rel=1e-3)
+        assert curve["points"][1]["frequency_hz"] < curve["points"][0]["frequency_hz"]
+        (recorded,) = document["data"]
+        assert len(recorded["points"]) >= 10
+        figure = backbone_figure.draw(document)
+        assert isinstance(figure, Figure)
+        top = figure.axes[0]
+        markers = [line for line in top.get_lines() if line.get_linestyle() == "None"]
+        assert [len(line.get_xdata()) for line in markers] == [len(recorded["points"])]
+        done = subprocess.run([*HAMID, "backbone", *args, "-o", str(tmp_path / "b.png")],
+                              capture_output=True, text=True)
+        assert done.returncode == 0 and done.stdout == "", done.stderr
+        assert (tmp_path / "b.png").read_bytes()[:4] == b"\x89PNG"

@@ -4,11 +4,12 @@ the linear eigenfrequencies."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.linalg
-from helpers import double_pendulum_rhs
+from helpers import double_pendulum_rhs, two_dof_first_mode
 from scipy.integrate import solve_ivp
 from scipy.optimize import root
 from scipy.special import ellipk
@@ -26,33 +27,6 @@ def _duffing_period(k: float, k3: float, A: float) -> float:
     """The exact period of x'' + k x + k3 x^3 = 0 at amplitude A (Jacobi's cn)."""
     w2 = k + k3 * A ** 2
     return 4 * ellipk(k3 * A ** 2 / (2 * w2)) / math.sqrt(w2)
-
-
-def _two_dof_frequencies(amplitudes: list[float]) -> list[float]:
-    """The first mode's frequency at each amplitude of x1, by a shooting of its own: the
-    equations written by hand, the orbit started at rest from (A, b) and, the potential
-    being even, required to reach (-A, -b) at half its period T."""
-    k1, k2, k3 = TWO_ESTIMATES["k1"], TWO_ESTIMATES["k2"], TWO_ESTIMATES["k3"]
-
-    def rhs(t, y):
-        x1, x2, v1, v2 = y
-        return [v1, v2, -k1 * x1 + k2 * (x2 - x1) - k3 * x1 ** 3, -k2 * (x2 - x1)]
-
-    def residual(u, A):
-        b, T = u
-        end = solve_ivp(rhs, (0, T / 2), [A, b, 0, 0], method="DOP853", rtol=1e-12,
-                        atol=1e-13).y[:, -1]
-        return [end[0] + A, end[1] + b]
-
-    # the linear mode as the first guess: x2 = x1 / (1 - w^2), from K phi = w^2 phi
-    w2 = (3 - math.sqrt(5)) / 2
-    guess = np.array([1 / (1 - w2), 2 * math.pi / math.sqrt(w2)])
-    frequencies = []
-    for A in amplitudes:
-        guess = root(residual, guess * [A if len(frequencies) == 0 else 1, 1], args=(A,),
-                     tol=1e-13).x
-        frequencies.append(2 * math.pi / guess[1])
-    return frequencies
 
 
 def test_duffing_period_against_the_elliptic_integral():
@@ -105,7 +79,7 @@ def test_two_dof_first_mode_against_independent_shooting():
     amplitudes = [0.3, 0.6, 1.0]
     orbits = normal_mode_branch(model, TWO_ESTIMATES, mode=1, amplitudes=amplitudes,
                                 coordinate=0)
-    expected = _two_dof_frequencies(amplitudes)
+    expected = [w for w, _ in two_dof_first_mode(amplitudes, **TWO_ESTIMATES)]
     for A, w, orbit in zip(amplitudes, expected, orbits, strict=True):
         assert 2 * math.pi / orbit.period == pytest.approx(w, rel=1e-6)
         assert orbit.amplitudes[0] == pytest.approx(A, rel=1e-10)
@@ -241,3 +215,73 @@ def test_a_coordinate_that_does_not_move():
     with pytest.raises(UsageError, match="does not move in linear mode 1"):
         normal_mode_branch(model, {"a": 1.0, "b": 4.0}, mode=1, amplitudes=[0.1],
                            coordinate=1)
+
+
+def test_a_double_pendulum_hanging_far_from_zero():
+    """The sample's double pendulum hangs at (pi, pi): its linear modes there against the
+    eigenproblem written out (M = [[1, B], [B, J2]], K = diag(C1, C2)), and its smallest
+    orbits, which the integrator once chased below the rounding of pi for tens of
+    seconds, found at the linear frequency with the modal damping ratio."""
+    from hamid.backbone.normal_modes import ModeFitted, small_amplitude
+    from hamid.model.models import load_model
+
+    model = load_model(Path(__file__).parents[2] / "sample_data" / "double_pendulum.toml")
+    e = {"J2": 0.5568, "B": 0.4913, "C1": 58.96, "C2": 27.90, "k1": 0.042, "k2": 0.0018}
+    w2, shapes = scipy.linalg.eigh(np.diag([e["C1"], e["C2"]]),
+                                   np.array([[1.0, e["B"]], [e["B"], e["J2"]]]))
+    C = np.array([[e["k1"] + e["k2"], -e["k2"]], [-e["k2"], e["k2"]]])
+    limit = small_amplitude(model, e, model.dissipation, near=(3.0, 3.3))
+    assert limit.equilibrium == pytest.approx([math.pi, math.pi], abs=1e-12)
+    for mode, w, shape in zip(limit.modes, np.sqrt(w2), shapes.T, strict=True):
+        assert mode.frequency == pytest.approx(w, rel=1e-12)
+        assert mode.damping_ratio == pytest.approx(shape @ C @ shape / (2 * w), rel=1e-10)
+    fitted = ModeFitted(model, e, model.dissipation, 1, None, (3.0, 3.3))
+    (cycle, orbit), = fitted.orbits(energies=[1e-5])
+    assert cycle.frequency == pytest.approx(np.sqrt(w2[0]) / (2 * math.pi), rel=1e-6)
+    assert cycle.damping_ratio == pytest.approx(limit.modes[0].damping_ratio, rel=1e-5)
+
+
+def test_nudged_orbits_corrected_from_their_neighbours_equal_a_new_continuation():
+    """The bands' nudged models: each orbit corrected by Newton from the estimates' orbit
+    at the same amplitude is the orbit a continuation of the nudged model finds."""
+    from dataclasses import replace
+
+    from hamid.backbone.normal_modes import ModeFitted
+
+    model = model_from_expression(*TWO)
+    dissipation = model.dissipative(["viscous"])
+    estimates = {**TWO_ESTIMATES, "c_x1": 0.02, "c_x2": 0.01}
+    fitted = ModeFitted(model, estimates, dissipation, 1, 0)
+    orbits = [orbit for _, orbit in fitted.orbits(amplitudes=[0.3, 1.0])]
+    nudged = replace(fitted, estimates={**estimates, "k3": 0.5 * (1 + 1e-3)})
+    corrected = nudged.corrected(orbits)
+    continued = [cycle for cycle, _ in nudged.orbits(amplitudes=[0.3, 1.0])]
+    for a, b in zip(corrected, continued, strict=True):
+        assert a.frequency == pytest.approx(b.frequency, rel=1e-10)
+        assert a.damping_ratio == pytest.approx(b.damping_ratio, rel=1e-8)
+        assert a.excess == pytest.approx(b.excess, rel=1e-8)
+
+
+def test_default_levels_end_short_of_an_internal_resonance():
+    """The backbone report's default levels (up to the highest fitted level) meet the 3:1
+    resonance: the curve ends at the last level before it, and says why; levels asked for
+    past it are refused in one line."""
+    from hamid.backbone import backbone_table
+    from hamid.backbone.one_degree import Fitted
+
+    model = model_from_expression(*RESONANT)
+    estimates = {"w2sq": 9.5, "k3": 1.0, "c": 0.1}
+    source = backbone_table.Source(Fitted(model, estimates), None, 0.95, (0.06,),
+                                   {"x1": None, "x2": None}, "s")
+    document = backbone_table.backbone_report(source, backbone_table.Request(points=10))
+    (mode,) = document["modes"]
+    assert mode["stopped"].startswith("mode 1: internal resonance at energy ")
+    reached = float(mode["stopped"].split("energy ")[1].split(" ")[0])
+    defaults = np.linspace(0.02 * 0.06, 0.06, 10)
+    energies = [p["energy"] for p in mode["points"]]
+    assert energies == pytest.approx(defaults[defaults < reached], rel=1e-9)
+    assert len(energies) >= 2 and max(energies) < reached
+    assert "the default levels end short of mode 1: internal resonance" in \
+        backbone_table.render(document, "table")
+    with pytest.raises(InternalResonanceError):
+        backbone_table.backbone_report(source, backbone_table.Request(energies=(0.06,)))

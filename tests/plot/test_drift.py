@@ -5,6 +5,8 @@ order or by a key of the reports (--order-by); its errors in one line."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -113,3 +115,74 @@ def test_order_by_needs_several_fits(runs, tmp_path):
     done = _run("plot", str(runs / "run1.json"), "-o", str(tmp_path / "x.png"),
                 "--order-by", "provenance.utc")
     one_line_error(done, 2, "--order-by", "several fits")
+
+
+def test_report_plot_draws_the_figure_plot_draws(runs, tmp_path):
+    """`hamid report runs.jsonl --plot` writes the report and the figure `hamid plot`
+    draws of the same fits (with --order-by passed on): the same axes, the same points."""
+    done = _run("report", str(runs / "runs.jsonl"), "-o", str(tmp_path / "r.md"),
+                "--plot", str(tmp_path / "drift.png"), "--order-by", "data.n_samples")
+    assert done.exit_code == 0 and done.stdout == "", done.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["drift.png", "r.md"]
+    assert (tmp_path / "drift.png").read_bytes()[:4] == b"\x89PNG"
+    assert "| k |" in (tmp_path / "r.md").read_text()
+    drawn = []
+    original = drift.drift_figure
+    for args in (["report", str(runs / "runs.jsonl"), "-o", str(tmp_path / "r.txt"),
+                  "--plot", str(tmp_path / "a.svg"), "--order-by", "provenance.utc"],
+                 ["plot", str(runs / "runs.jsonl"), "-o", str(tmp_path / "b.svg"),
+                  "--order-by", "provenance.utc"]):
+        def spy(compared, order_by=None, _drawn=drawn):
+            figure, notes = original(compared, order_by)
+            _drawn.append([(ax.get_ylabel(), ax.get_xlabel(),
+                            [list(line.get_xydata().ravel()) for line in ax.get_lines()])
+                           for ax in figure.findobj(Axes)])
+            return figure, notes
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(drift, "drift_figure", spy)
+            done = _run(*args)
+        assert done.exit_code == 0, done.output
+    assert len(drawn) == 2 and drawn[0] == drawn[1]
+    assert drawn[0][-1][1] == "provenance.utc"
+
+
+def test_report_plot_of_one_report_draws_its_panels(runs, tmp_path):
+    done = _run("report", str(runs / "run1.json"), "-o", str(tmp_path / "r.json"),
+                "--plot", str(tmp_path / "f.pdf"))
+    assert done.exit_code == 0 and done.stdout == "", done.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.pdf", "r.json"]
+    assert (tmp_path / "f.pdf").read_bytes()[:4] == b"%PDF"
+
+
+@pytest.mark.parametrize(("args", "code", "words"), [
+    (["--plot", "{out}/x.gif"], 2, ["--plot", "x.gif", ".png"]),
+    (["--order-by", "provenance.utc"], 2, ["--order-by", "--plot"]),
+    (["--plot", "{out}/x.png", "--order-by", "data.nope"], 1, ["data.nope", "no"]),
+])
+def test_report_plot_errors_write_nothing(runs, tmp_path, args, code, words):
+    out = tmp_path / "out"
+    out.mkdir()
+    done = _run("report", str(runs / "runs.jsonl"), "-o", str(out / "r.md"),
+                *(a.format(out=out) for a in args))
+    one_line_error(done, code, *words)
+    assert list(out.iterdir()) == []
+
+
+def test_report_plot_order_by_needs_several_fits(runs, tmp_path):
+    done = _run("report", str(runs / "run1.json"), "--plot", str(tmp_path / "x.png"),
+                "--order-by", "provenance.utc")
+    one_line_error(done, 2, "--order-by", "several fits")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_report_plot_without_matplotlib_one_line_names_the_extra(runs, tmp_path):
+    code = ("import sys\nsys.modules['matplotlib'] = None\n"
+            "from hamid.cli.app import main\nmain()")
+    for report in ("runs.jsonl", "run1.json"):
+        out = subprocess.run([sys.executable, "-c", code, "report", str(runs / report), "-o",
+                              str(tmp_path / "r.md"), "--plot", str(tmp_path / "f.png")],
+                             capture_output=True, text=True)
+        assert out.returncode == 1 and out.stdout == ""
+        assert out.stderr == ("Error: drawing figures needs matplotlib: "
+                              "pip install 'hamid[plot]'\n")
+    assert list(tmp_path.iterdir()) == []

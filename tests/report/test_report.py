@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import html
 import io
 import json
 import re
@@ -454,6 +455,47 @@ def test_render_ends_with_newline(result, fmt):
     assert not text.endswith("\n\n")
 
 
+SMALL_AMPLITUDE = {"equilibrium": {"u1": 0.0, "u2": 0.0},
+                   "modes": [{"mode": 1, "frequency_hz": 0.159155, "damping_ratio": 0.0099},
+                             {"mode": 2, "frequency_hz": 0.238732, "damping_ratio": None}]}
+
+
+@pytest.mark.parametrize("fmt", [*TEXT_FORMATS, "summary"])
+def test_text_damping_at_small_amplitude_by_mode_in_hz(result, fmt):
+    result["dissipation"] = {"trajectories": [{"trajectory": 0, "energy_lost_fraction": 0.2}],
+                             "equivalent_damping_ratio": None, "period": None,
+                             "small_amplitude": SMALL_AMPLITUDE}
+    text = render(result, fmt)
+    assert "natural frequency (Hz)" in text and "damping ratio ζ" in text
+    assert re.search(r"1\W+0\.159155\W+0\.0099", text)
+    assert re.search(r"2\W+0\.238732\W+—", text)
+    assert "at small amplitude: the model linearized about u1 = 0, u2 = 0" in " ".join(
+        text.split())
+    assert "dominant period" not in text
+
+
+@pytest.mark.parametrize("fmt", TEXT_FORMATS)
+def test_text_damping_ratio_of_an_earlier_report_says_its_period(result, fmt):
+    """Reports of earlier versions took the ratio at the recording's dominant period."""
+    result["dissipation"] = {"trajectories": [{"trajectory": 0, "energy_lost_fraction": 0.2}],
+                             "equivalent_damping_ratio": 0.00964, "period": 0.0764}
+    text = render(result, fmt)
+    assert "0.00964" in text and "at the dominant period" in text and "0.0764 s" in text
+    assert "natural frequency" not in text
+
+
+@pytest.mark.parametrize("fmt", [*TEXT_FORMATS, "summary", "html"])
+@pytest.mark.parametrize("per_unit_mass", [True, False, None])
+def test_text_says_per_unit_mass_when_the_kinetic_energy_has_no_parameter(
+        result, fmt, per_unit_mass):
+    if per_unit_mass is not None:   # None: a report of an earlier version
+        result["method"]["scale"] = {"source": "energy", "by": "the energy's parameter-free "
+                                     "part", "per_unit_mass": per_unit_mass}
+    text = " ".join(html.unescape(render(result, fmt)).split())
+    said = "parameters per unit mass: the energy's kinetic part has no parameter" in text
+    assert said is bool(per_unit_mass)
+
+
 def test_render_unknown_format(result):
     with pytest.raises(UsageError, match="unknown report format 'xml'"):
         render(result, "xml")
@@ -480,6 +522,21 @@ def test_validate_accepts_extra_keys(result):
     assert "extra" not in checked
     assert "note" not in checked["parameters"][0]
     assert checked["method"]["note"] == "kept"
+
+
+def test_validate_accepts_the_small_amplitude_keys_and_rejects_their_wrong_types(result):
+    result["method"]["scale"] = {"source": "energy", "by": "E0", "per_unit_mass": True}
+    result["dissipation"] = {"trajectories": [], "equivalent_damping_ratio": None,
+                             "period": None, "small_amplitude": SMALL_AMPLITUDE}
+    assert validate_result(result, source="r.json")["dissipation"]["small_amplitude"] == \
+        SMALL_AMPLITUDE
+    result["dissipation"]["small_amplitude"]["modes"][0]["frequency_hz"] = "12 Hz"
+    with pytest.raises(DataError, match=r"small_amplitude\.modes\[0\]\.frequency_hz' is"):
+        validate_result(result, source="r.json")
+    result["dissipation"]["small_amplitude"] = None
+    result["method"]["scale"]["per_unit_mass"] = "yes"
+    with pytest.raises(DataError, match=r"'method\.scale\.per_unit_mass' is 'yes'"):
+        validate_result(result, source="r.json")
 
 
 def test_validate_rejects_wrong_schema(result):
