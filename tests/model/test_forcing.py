@@ -3,6 +3,8 @@ against hand-written equations (solve_ivp) and the signals' formulas."""
 
 from __future__ import annotations
 
+import subprocess
+
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
@@ -305,16 +307,20 @@ def test_every_input_needs_a_signal_and_every_signal_an_input():
         hamid.simulate(system)
 
 
-def test_hamid_simulate_writes_the_input_beside_the_motion(tmp_path):
-    import subprocess
-
+def _simulate_sine(tmp_path, frequency: float, t_end: float):
+    """`hamid simulate` of the driven system under a sine of `frequency` Hz, to a CSV."""
     config = tmp_path / "driven.toml"
     config.write_text(SYSTEM_TOML.format(
-        signal='kind = "sine"\namplitude = 1.0\nfrequency = 0.5', t_end=5.0))
+        signal=f'kind = "sine"\namplitude = 1.0\nfrequency = {frequency}', t_end=t_end))
     out = tmp_path / "driven.csv"
     done = subprocess.run([*hamid_command(), "simulate", "--config", str(config), "-o",
                            str(out)], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
+    return done, out
+
+
+def test_hamid_simulate_writes_the_input_beside_the_motion(tmp_path):
+    done, out = _simulate_sine(tmp_path, 0.5, 5.0)
     assert "warning" not in done.stderr   # 0.5 Hz, sampled at 100 Hz
     header = next(line for line in out.read_text().splitlines()
                   if line.startswith("trajectory"))
@@ -388,15 +394,7 @@ def test_a_file_signal_near_the_nyquist_frequency_is_a_warning(tmp_path):
 
 
 def test_hamid_simulate_says_the_nyquist_warning_and_writes_the_record(tmp_path):
-    import subprocess
-
-    config = tmp_path / "driven.toml"
-    config.write_text(SYSTEM_TOML.format(
-        signal='kind = "sine"\namplitude = 1.0\nfrequency = 60.0', t_end=1.0))
-    out = tmp_path / "driven.csv"
-    done = subprocess.run([*hamid_command(), "simulate", "--config", str(config), "-o",
-                           str(out)], capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
+    done, out = _simulate_sine(tmp_path, 60.0, 1.0)
     warnings = [line for line in done.stderr.splitlines() if line.startswith("warning:")]
     assert len(warnings) == 1 and "60 Hz" in warnings[0] and "50 Hz" in warnings[0]
     rows = [line for line in out.read_text().splitlines() if not line.startswith("#")]
