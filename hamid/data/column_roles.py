@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from hamid.options import FitOptions
 
 __all__ = ["ACCELERATION_UNITS", "COLUMN_UNITS", "STANDARD_GRAVITY", "TIME_UNITS",
-           "channel_columns", "column_scale", "default_time_column",
+           "channel_columns", "column_scale", "default_time_column", "left_out_pairs",
            "default_trajectory_column", "find_coordinates", "find_velocity",
            "looks_like_time", "read_units", "resolve_columns", "split_unit", "time_scale",
            "unit_text", "velocity_names"]
@@ -482,3 +482,15 @@ def read_units(names: list[str], mapping: Mapping[str, str], time: str | None,
              f"({', '.join(COLUMN_UNITS)}): read as SI; give --scale COL=FACTOR"
              ] if unknown else []
     return {"time": time, "time_unit": time_unit, "scale": scale, "notes": notes}
+
+
+def left_out_pairs(columns: Sequence[str], used: Collection[str], model: str,
+                   source: str) -> list[str]:
+    """A note naming the columns that look like a coordinate and its velocity (`find_coordinates`)
+    but that the model does not read (`used`: the columns read): a model of fewer coordinates
+    than the recording, fitted without a word about the rest."""
+    pairs = [f"{q} with {v}" for q, v in find_coordinates(columns, exclude=used)]
+    if not pairs:
+        return []
+    return [f"{source}: {', '.join(pairs)} look{'s' if len(pairs) == 1 else ''} like a "
+            f"coordinate and its velocity that the model {model!r} does not have: not fitted"]

@@ -167,6 +167,9 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
         if not parts and options.velocity != "savgol":   # said of the first file
             notes.extend(channels.notes(source))
         time, trajectory = _special_columns(names, mapping, options, source, notes)
+        if not parts:   # said of the first file
+            notes.extend(column_roles.left_out_pairs(
+                names, {*mapping.values(), time, trajectory} - {None}, m.name, source))
         units = column_roles.read_units(names, mapping, time, options, table_metadata,
                                         source)
         notes.extend(units["notes"])

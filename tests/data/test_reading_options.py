@@ -98,3 +98,13 @@ def test_fit_each_reads_logger_files(daq, tmp_path):
         assert line["data"]["reading"] == {"delimiter": ";", "decimal": ",", "skip_rows": 2}
         assert {p["name"]: p["estimate"] for p in line["parameters"]} == pytest.approx(
             plain, rel=1e-12)
+
+
+def test_a_coordinate_the_model_lacks_is_said():
+    """Henon-Heiles (x, vx, y, vy) fitted as a Duffing oscillator: y and vy are not read,
+    and the warning says so; fitted with its own model, nothing is said."""
+    lacking = hamid.fit("sample_data/henon_heiles.csv", "duffing", method="energy")
+    [said] = [w for w in lacking.warnings if "does not have" in w]
+    assert "y with vy" in said and "'duffing'" in said
+    whole = hamid.fit("sample_data/henon_heiles.csv", method="energy")
+    assert not any("does not have" in w for w in whole.warnings)
