@@ -348,19 +348,21 @@ def render(document: Mapping[str, Any], fmt: str) -> str:
         + "\n")
     for mode in document["modes"]:
         q = mode["coordinate"]
-        unit = units.get(q) or "model units"
-        header = (f"{'energy':>12} {f'amplitude {q} ({unit})':>22} {'f (Hz)':>12} "
-                  f"{'f low':>12} {'f high':>12} {'zeta':>12} {'zeta low':>12} "
-                  f"{'zeta high':>12}")
-        out.write(safe_text.printable(f"mode {mode['mode']}") + "\n"
-                  + safe_text.printable(header) + "\n")
+        names = ["energy", f"amplitude {q}", "f (Hz)", "f low", "f high", "zeta", "zeta low",
+                 "zeta high"]
+        rows = [[_number(c) for c in (p["energy"], p["amplitude"][q],
+                                      *(p[key] for key in COLUMNS))] for p in mode["points"]]
+        widths = [max(len(cell) for cell in column) for column in zip(names, *rows,
+                                                                      strict=True)]
+        out.write(safe_text.printable(
+            f"mode {mode['mode']} (amplitude of {q} in {units.get(q) or 'model units'})")
+            + "\n")
         if mode.get("stopped"):
             out.write(safe_text.printable(f"the default levels end short of {mode['stopped']}")
                       + "\n")
-        for p in mode["points"]:
-            cells = [p["energy"], p["amplitude"][q], *(p[key] for key in COLUMNS)]
-            out.write(" ".join(f"{_number(c):>{22 if i == 1 else 12}}"
-                               for i, c in enumerate(cells)) + "\n")
+        for cells in [names, *rows]:
+            out.write(safe_text.printable("  ".join(
+                f"{cell:>{width}}" for cell, width in zip(cells, widths, strict=True))) + "\n")
     for d in document["data"]:
         out.write(safe_text.printable(
             f"recorded: trajectory {d['trajectory']}, {len(d['points'])} periods") + "\n")
