@@ -511,7 +511,8 @@ def _draw_motion(fig: Figure | SubFigure, ctx: _Context) -> str:
                                           color=_colour(len(model.coordinates) + u),
                                           linewidth=0.8, label="_" * n + f"{input_name} input")
         motion.set_title(name, fontsize="small", loc="left")
-        labels.label_axis(motion, "y", "q", unit)
+        labels.label_axis(motion, "y", model.coordinates[0] if len(model.coordinates) == 1
+                          else "q", unit)
         misfit.axhline(0.0, color="grey", linewidth=0.8)
         labels.label_axis(misfit, "y", "misfit\n", unit)
         misfit.yaxis.label.set_fontsize("small")

@@ -189,6 +189,13 @@ def test_contours_are_solid_at_negative_levels(clean_records):
     np.testing.assert_allclose(omega**2 / 2 - 9 * np.cos(theta), -9 * np.cos(1.2), rtol=2e-3)
 
 
+def test_motion_panel_names_its_one_coordinate():
+    """One coordinate: its axis says its name (several share the axis as q)."""
+    result = hamid.fit(hamid.simulate({**DUFFING, "simulate": {"t_end": 10.0, "dt": 0.05}}))
+    motion = _data_axes(_page(result, "motion"))[0]
+    assert motion.get_ylabel().split()[0] == "x"
+
+
 def test_motion_panel_fits_the_recording_to_its_noise(fit, table, noise):
     figure = _page(fit, "motion")
     _check_picture(figure)

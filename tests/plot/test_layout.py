@@ -146,7 +146,7 @@ def test_axes_carry_the_units_the_data_were_converted_to(beam):
                for ax in _axes(energy))
     assert _axes(energy)[-1].get_xlabel() == "t [s]"
     motion = _axes(_page(beam, "motion"))
-    assert motion[0].get_ylabel() == "q [10⁻³ m]" and motion[-1].get_xlabel() == "t [s]"
+    assert motion[0].get_ylabel() == "x [10⁻³ m]" and motion[-1].get_xlabel() == "t [s]"
 
 
 def test_fifteen_decays_six_drawn_from_the_smallest_to_the_largest_and_said(beam):
