@@ -194,7 +194,7 @@ def test_the_report_names_the_inputs_their_work_and_the_scale(duffing_model, tmp
     assert report["data"]["inputs"] == {"F": "load"}
     assert report["data"]["forcing"]["work"] == "F*x"
     assert 0.5 < report["data"]["forcing"]["input_work_fraction"] <= 1
-    assert report["method"]["scale"] == {"source": "input", "by": "F*x"}
+    assert report["method"]["scale"] == {"source": "input", "by": "F*x", "per_unit_mass": False}
     assert report["model"]["forcing"] == {"inputs": ["F"], "work": "F*x", "parameters": []}
     table = _run("report", out)
     assert "from the recorded input (work F*x): physical units" in table.stdout
