@@ -59,7 +59,6 @@ ELASTIC_PENDULUM = {
                 {"x": -0.2, "y": -1.3, "vx": 0.5, "vy": 0.0}],
     "simulate": {"t_end": 20.0, "dt": 0.02},
 }
-# Two masses on springs, the second mass unknown: a parameter in the kinetic energy.
 # a Duffing oscillator with a free mass, driven by a recorded force F
 DRIVEN_DUFFING_MODEL = """
 [model]
@@ -74,6 +73,7 @@ inputs = ["F"]
 work = "F*x"
 """
 
+# Two masses on springs, the second mass unknown: a parameter in the kinetic energy.
 TWO_MASS = {
     "model": {"name": "two-mass", "coordinates": ["x1", "x2"], "velocities": ["v1", "v2"],
               "energy": "(v1**2 + m*v2**2)/2 + k1*x1**2/2 + k2*(x2 - x1)**2/2"

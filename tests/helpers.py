@@ -180,3 +180,19 @@ def two_dof_first_mode(amplitudes, k1: float, k2: float, k3: float,
         lost = 2 * half(b, T, A)[4]   # the second half retraces the first
         found.append((2 * math.pi / T, lost / (4 * math.pi * energy)))
     return found
+
+
+def velocity_findings(frame, coordinates: tuple[str, ...], velocities: tuple[str, ...]):
+    """`measurement.velocity_check` of a frame of trajectories (a `trajectory` column, `t`),
+    at the dominant period of its positions."""
+    import numpy as np
+
+    from hamid.data.measurement import velocity_check
+    from hamid.data.records import Records
+    from hamid.linear import design
+
+    groups = frame["trajectory"].to_numpy() - frame["trajectory"].min()
+    records = Records(frame[[*coordinates, *velocities]].to_numpy(), frame["t"].to_numpy(),
+                      groups, tuple(np.unique(groups)))
+    period = design.median_period(design.trajectory_scales(records, len(coordinates)))
+    return velocity_check(records, coordinates, velocities, {}, period)

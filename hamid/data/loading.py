@@ -41,10 +41,6 @@ __all__ = ["Chunked", "Loaded", "Source", "Survey", "load",
 # by zero, 1e-300 an SVD that did not converge).
 _LARGEST_TIME, _SMALLEST_STEP = 1e150, 1e-100
 _IN_MEMORY = ("<DataFrame>", "<dict>", "<array>")   # `input_size.in_memory_name`
-# What `--velocity auto` says of velocity columns that disagree with the positions.
-SET_ASIDE = ("; so they are set aside: the velocities are derived from the positions, and "
-             "the trajectory refinement fits the positions alone (--velocity measured fits "
-             "them as recorded)")
 
 
 class Source(Protocol):
@@ -215,7 +211,7 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
         findings = measurement.velocity_check(records, m.coordinates, m.velocities, mapping,
                                               period)
         aside = options.velocity == "auto" and any(f.disagrees for f in findings)
-        notes.extend(f.text + ((SET_ASIDE if aside else measurement.DERIVE_ADVICE)
+        notes.extend(f.text + ((measurement.SET_ASIDE if aside else measurement.DERIVE_ADVICE)
                                if f.disagrees else "") for f in findings)
         if aside:
             channels = channels.set_aside({f.velocity for f in findings if f.disagrees},

@@ -492,8 +492,13 @@ class VelocitySums:
         return findings
 
 
-# What a fit that keeps a disagreeing velocity column says to do.
+# What a fit says after a disagreeing velocity column: to derive the velocities, where it
+# keeps the column (--velocity measured, a file read in chunks); that it set the column
+# aside, where --velocity auto did.
 DERIVE_ADVICE = "; derive the velocities with --velocity savgol"
+SET_ASIDE = ("; so they are set aside: the velocities are derived from the positions, and "
+             "the trajectory refinement fits the positions alone (--velocity measured fits "
+             "them as recorded)")
 
 
 # A sampled input with more than NYQUIST_SHARE of its power above NYQUIST_BAND times the

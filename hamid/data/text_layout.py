@@ -152,9 +152,9 @@ def preamble_lines(text: bytes, delimiter: str) -> int:
     lines = [line.decode("utf-8", "replace") for line in text.removeprefix(UTF8_BOM).split(
         b"\n", _PREAMBLE_LINES)[:_PREAMBLE_LINES]]
     for first, line in enumerate(lines):
-        rows = [row for row in lines[first + 1:] if row.strip()][:_SNIFF_ROWS]
         if not line.strip():
             continue
+        rows = [row for row in lines[first + 1:] if row.strip()][:_SNIFF_ROWS]
         if not rows:
             break
         for separator in {delimiter, _sniff_delimiter(line, tabs=True)}:

@@ -9,19 +9,13 @@ import re
 import numpy as np
 import pytest
 from conftest import DUFFING, PENDULUM, with_noise
+from helpers import velocity_findings
 
 import hamid
-from hamid.data.measurement import velocity_check
-from hamid.data.records import Records
-from hamid.linear import design
 
 
 def findings(frame):
-    groups = frame["trajectory"].to_numpy() - frame["trajectory"].min()
-    records = Records(frame[["x", "v"]].to_numpy(), frame["t"].to_numpy(), groups,
-                      tuple(np.unique(groups)))
-    period = design.median_period(design.trajectory_scales(records, 1))
-    return velocity_check(records, ("x",), ("v",), {}, period)
+    return velocity_findings(frame, ("x",), ("v",))
 
 
 @pytest.fixture(scope="module")

@@ -13,13 +13,11 @@ import subprocess
 import numpy as np
 import pandas as pd
 import pytest
-from helpers import hamid_command
+from helpers import hamid_command, velocity_findings
 from scipy.integrate import solve_ivp
 
 import hamid
-from hamid.data.measurement import velocity_check
 from hamid.errors import HamidError, ModelError, UsageError
-from hamid.linear import design
 from hamid.model.dissipation import Dissipation
 
 K1, K2, C1, C2 = 1.0, 2.0, 0.05, 0.03
@@ -249,14 +247,8 @@ def lagged(frame: pd.DataFrame, lag: float) -> pd.DataFrame:
 
 
 def check(frame: pd.DataFrame) -> list[str]:
-    from hamid.data.records import Records
-
-    groups = frame["trajectory"].to_numpy() - 1
-    records = Records(frame[["x1", "x2", "v1", "v2"]].to_numpy(), frame["t"].to_numpy(),
-                      groups, ("1", "2"))
-    return [finding.text for finding in velocity_check(
-        records, ("x1", "x2"), ("v1", "v2"), {},
-        design.median_period(design.trajectory_scales(records, 2)))]
+    return [finding.text
+            for finding in velocity_findings(frame, ("x1", "x2"), ("v1", "v2"))]
 
 
 def test_a_lag_of_the_velocities_is_measured_and_said():
