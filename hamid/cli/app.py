@@ -330,6 +330,9 @@ def fit(data: tuple[str, ...], model: str | None, strict: bool, fmt: str | None,
         raise click.UsageError("--seed applies only to --cov bootstrap")
     if residuals is not None and options["chunk_rows"] is not None:
         raise click.UsageError("--residuals needs the data in memory; leave out --chunk-rows")
+    for name in data:
+        if name.lower().endswith(".toml"):
+            raise UsageError(f"{name!r} is a model file, not data: give it as --model {name}")
     global _sources
     _sources = data
     fit_options = option_groups.fit_keywords(options)
@@ -504,7 +507,8 @@ def report(result_files: tuple[str, ...], fmt: str | None, output: str, figure: 
                    ".pdf, a page per panel.")
 @click.option("--panels", metavar="LIST",
               help="Panels by number or name: 1 energy, 2 residuals, 3 phase, 4 motion, "
-                   "5 parameters, 6 correlation (default: all that apply).")
+                   "5 parameters, 6 correlation, 7 backbone (default: all of 1-6 that "
+                   "apply; 7 only when asked for).")
 @click.option("--order-by", metavar="KEY", help=_ORDER_BY_HELP)
 @option_groups.reading
 def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | None,
@@ -537,7 +541,7 @@ def plot(result_file: str, data: tuple[str, ...], output: str, panels: str | Non
     report = FitResult.from_dict(documents.read_json(result_file), source=source).to_dict()
     recording = (fitted.read_recording(report, data, option_groups.fit_keywords(reading))
                  if data else None)
-    with writing.all_or_nothing():
+    with writing.all_or_nothing(), console.Status("drawing"):
         notes = figures.save(report, recording, output, panels)
     _say(notes)
 

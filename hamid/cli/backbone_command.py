@@ -61,7 +61,7 @@ def backbone(result_file: str, data: tuple[str, ...], amplitudes: str | None,
     from hamid import prediction
     from hamid.backbone import backbone_table
     from hamid.data import documents, readers, writing
-    from hamid.plot import backbone_figure
+    from hamid.plot import backbone_figure, figures
     from hamid.result.fit_result import FitResult
 
     if amplitudes is not None and energies is not None:
@@ -73,7 +73,7 @@ def backbone(result_file: str, data: tuple[str, ...], amplitudes: str | None,
     outputs.claim("-o", output)
     figure = os.path.splitext(output)[1].lower() in _FIGURES
     if figure:
-        backbone_figure.check_output(output)
+        figures.check_output(output)
     fmt = fmt or ("json" if figure else console.format_of(
         output, ".json, .csv, .txt, or a figure's .png, .svg, .pdf"))
     source = readers.STDIN if readers.is_stdio(result_file) else result_file
@@ -88,6 +88,6 @@ def backbone(result_file: str, data: tuple[str, ...], amplitudes: str | None,
             click.echo(console.printable(f"note: the default levels end short of "
                                          f"{mode['stopped']}"), err=True)
     if figure:
-        backbone_figure.save(document, output)
+        figures.write_pages([("backbone", backbone_figure.figure(document))], output)
         return
     writing.write_text(backbone_table.render(document, fmt), output)

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from hamid.errors import DataError, UsageError
 from hamid.plot import figures, labels
+from hamid.plot.palette import OKABE_ITO
 from hamid.report.comparison import Compared
 from hamid.result.fit_result import FitResult
 
@@ -92,7 +93,7 @@ def drift_figure(compared: Sequence[Compared],
     axes = fig.subplots(len(names), 1, sharex=True, squeeze=False)[:, 0]
     level = fits[0].outcome.method["level"]
     for ax, name in zip(axes, names, strict=True):
-        for colour, fixed in ((figures.OKABE_ITO[0], False), (figures.OKABE_ITO[3], True)):
+        for colour, fixed in ((OKABE_ITO[0], False), (OKABE_ITO[3], True)):
             rows = [(xk, p) for xk, c in zip(x, fits, strict=True) for p in c.outcome.parameters
                     if p.name == name and p.fixed == fixed]
             if not rows:

@@ -10,11 +10,15 @@
 4. ``motion``: recorded against fitted motion over one refinement segment per trajectory;
 5. ``parameters``: the estimates with their confidence intervals (and the truth, when the
    data carry it);
-6. ``correlation``: the correlation matrix of the estimates.
+6. ``correlation``: the correlation matrix of the estimates;
+7. ``backbone``: the fitted model's backbone, frequency and damping ratio against amplitude
+   with their bands, and the recording's own points (`hamid.plot.backbone_figure`); drawn
+   only when asked for, as its orbits take up to a minute for several coordinates.
 
 Panels 1-4 need the records (`hamid.data.records.Recording`), panel 4 the trajectory
-refinement; 5 and 6 need only the report. Figures are made without pyplot, so no window
-ever opens and no backend is chosen: headless wherever it runs.
+refinement; 5, 6 and 7 need only the report (7 overlays the records of free motion).
+Figures are made without pyplot, so no window ever opens and no backend is chosen: headless
+wherever it runs.
 """
 
 from __future__ import annotations
@@ -31,22 +35,23 @@ import numpy as np
 from hamid.data import column_roles
 from hamid.data.records import Recording
 from hamid.errors import DataError, HamidError, UsageError
-from hamid.plot import fitted, labels
+from hamid.plot import backbone_figure, fitted, labels
+from hamid.plot.palette import OKABE_ITO, colour
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure, SubFigure
 
-__all__ = ["FORMATS", "PANELS", "check_output", "choose", "figure", "output_paths", "pages",
-           "panel_files", "parse_panels", "save", "write_pages"]
+__all__ = ["DEFAULT_PANELS", "FORMATS", "PANELS", "check_output", "choose", "figure",
+           "output_paths", "pages", "panel_files", "parse_panels", "save", "write_pages"]
 
-PANELS = ("energy", "residuals", "phase", "motion", "parameters", "correlation")
+PANELS = ("energy", "residuals", "phase", "motion", "parameters", "correlation", "backbone")
+DEFAULT_PANELS = PANELS[:6]   # all that apply of these when none are asked for
 FORMATS = (".png", ".svg", ".pdf")
 _TITLES = {"energy": "Energy over time", "residuals": "Energy residuals",
            "phase": "Phase portraits", "motion": "Recorded and fitted motion",
-           "parameters": "Parameters", "correlation": "Correlation of the estimates"}
-# Okabe & Ito's colour-blind-safe palette (yellow left out: it vanishes on white).
-OKABE_ITO = ("#0072B2", "#E69F00", "#009E73", "#D55E00", "#CC79A7", "#56B4E9", "#000000")
+           "parameters": "Parameters", "correlation": "Correlation of the estimates",
+           "backbone": "Backbone"}
 _RESIDUAL_MAP = "berlin"     # diverging, dark at zero: visible on white, colour-blind safe
 _CORRELATION_MAP = "RdBu_r"  # ColorBrewer's diverging map, colour-blind safe
 MAX_SHOWN = 6                # trajectories drawn one by one; later ones are left out
@@ -70,8 +75,8 @@ def _matplotlib() -> Any:
 
 
 def parse_panels(panels: str | int | Sequence[str | int] | None) -> tuple[str, ...] | None:
-    """Panel names from numbers (1-6) or names, a comma list or a sequence; None for all
-    that apply."""
+    """Panel names from numbers (1-7) or names, a comma list or a sequence; None for the
+    default ones that apply."""
     if panels is None:
         return None
     items = panels.split(",") if isinstance(panels, str) else \
@@ -79,7 +84,7 @@ def parse_panels(panels: str | int | Sequence[str | int] | None) -> tuple[str, .
     names = []
     for item in items:
         text = str(item).strip().lower()
-        name = PANELS[int(text) - 1] if text in {str(k) for k in range(1, 7)} else text
+        name = PANELS[int(text) - 1] if text in {str(k) for k in range(1, 8)} else text
         if name not in PANELS:
             listed = ", ".join(f"{k} {p}" for k, p in enumerate(PANELS, 1))
             raise UsageError(f"--panels: unknown panel {str(item)!r} (choose from {listed})")
@@ -136,11 +141,11 @@ def choose(report: Mapping[str, Any], recording: Recording | None,
            panels: str | int | Sequence[str | int] | None = None
            ) -> tuple[tuple[str, ...], list[str]]:
     """The panels to draw, and a note on those left out (one per reason): by default all
-    that apply; a panel asked for that cannot be drawn is an error."""
+    of `DEFAULT_PANELS` that apply; a panel asked for that cannot be drawn is an error."""
     asked = parse_panels(panels)
     drawn, left_out = [], {}
     for k, panel in enumerate(PANELS, 1):
-        if asked is not None and panel not in asked:
+        if panel not in (DEFAULT_PANELS if asked is None else asked):
             continue
         obstacle = _obstacle(panel, report, recording)
         if obstacle is None:
@@ -170,6 +175,18 @@ class _Context:
     def energies(self) -> fitted.Energies:
         assert self.recording is not None
         return fitted.energies(self.report, self.recording)
+
+    @cached_property
+    def backbone(self) -> dict[str, Any]:
+        """The ``hamid.backbone/1`` report of the fitted model at its default amplitudes
+        (mode 1), with the recording's points when it moved freely."""
+        from hamid.backbone import backbone_table
+
+        free = self.recording is not None and not self.recording.model.inputs
+        return backbone_table.backbone_report(
+            backbone_table.Source.of_report(self.report), backbone_table.Request(),
+            records=self.recording.records if free else None,  # type: ignore[union-attr]
+            names=[labels.source_name(s) for s in self.report["data"]["sources"]])
 
     @cached_property
     def records(self) -> list[tuple[str, list[int]]]:
@@ -286,10 +303,6 @@ def _thin(n: int) -> slice:
     return slice(None, None, max(1, -(-n // MAX_POINTS)))
 
 
-def _colour(j: int) -> str:
-    return OKABE_ITO[j % len(OKABE_ITO)]
-
-
 @dataclass(frozen=True)
 class _Drawn:
     """What a panel drew: its caption, and the axes whose legend goes in a row above it
@@ -359,7 +372,7 @@ def _draw_residuals(fig: Figure | SubFigure, ctx: _Context) -> str:
         for n, j in enumerate(pieces):
             rows = ctx.rows(j)
             step = _thin(rows.stop - rows.start)
-            series.plot(e.time[rows][step], e.residual[rows][step], color=_colour(k),
+            series.plot(e.time[rows][step], e.residual[rows][step], color=colour(k),
                         linewidth=0.7, alpha=1.0 if listed else 0.6,
                         label=name if listed and n == 0 else "_")
     series.axhline(0.0, color="grey", linewidth=0.8)
@@ -499,16 +512,16 @@ def _draw_motion(fig: Figure | SubFigure, ctx: _Context) -> str:
             for i, coordinate in enumerate(model.coordinates):
                 recorded, integrated = segment.recorded[step, i], segment.model[step, i]
                 motion.plot(t, recorded, linestyle="none", marker="o", markersize=2,
-                            alpha=0.45, color=_colour(i), zorder=2,
+                            alpha=0.45, color=colour(i), zorder=2,
                             label="_" * n + f"{coordinate} recorded")
-                motion.plot(t, integrated, color=_colour(i), linewidth=1.4, zorder=3,
+                motion.plot(t, integrated, color=colour(i), linewidth=1.4, zorder=3,
                             label="_" * n + f"{coordinate} fitted model")
-                misfit.plot(t, recorded - integrated, color=_colour(i), linewidth=0.7)
+                misfit.plot(t, recorded - integrated, color=colour(i), linewidth=0.7)
             if driven:
                 rows = slice(*records.bounds()[j])
                 for u, input_name in enumerate(model.inputs):
                     axes[3 * kk + 2].plot(records.t[rows][step], records.U[rows, u][step],
-                                          color=_colour(len(model.coordinates) + u),
+                                          color=colour(len(model.coordinates) + u),
                                           linewidth=0.8, label="_" * n + f"{input_name} input")
         motion.set_title(name, fontsize="small", loc="left")
         labels.label_axis(motion, "y", model.coordinates[0] if len(model.coordinates) == 1
@@ -602,9 +615,18 @@ def _draw_correlation(fig: Figure | SubFigure, ctx: _Context) -> str:
     return _Drawn("the correlations of the free parameters' estimates, from their covariance")
 
 
+def _draw_backbone(fig: Figure | SubFigure, ctx: _Context) -> _Drawn:
+    top, caption = backbone_figure.draw(fig, ctx.backbone)
+    if ctx.recording is not None and ctx.recording.model.inputs:
+        caption += (" The recording is driven: its periods are the drive's, not the free "
+                    "orbits', and are not shown.")
+    return _Drawn(caption, top, longest=30)
+
+
 _DRAW: dict[str, Callable[[Any, _Context], _Drawn]] = {
     "energy": _draw_energy, "residuals": _draw_residuals, "phase": _draw_phase,
     "motion": _draw_motion, "parameters": _draw_parameters, "correlation": _draw_correlation,
+    "backbone": _draw_backbone,
 }
 
 
@@ -622,6 +644,8 @@ def _height(panel: str, ctx: _Context) -> float:
         return 1.0 + 0.85 * len(ctx.report["parameters"])
     if panel == "correlation":
         return max(4.5, 1.5 + 0.45 * len(ctx.report["covariance"]["names"]))
+    if panel == "backbone":
+        return 6.5
     return 4.0
 
 
@@ -696,10 +720,10 @@ def output_paths(path: str, names: Sequence[str]) -> list[str]:
 
 
 def panel_files(path: str, panels: str | int | Sequence[str | int] | None = None) -> list[str]:
-    """The files `save` may write besides `path` itself for these panels (all six by
-    default): STEM-K-NAME.EXT when more than one may be drawn, none for a PDF. A command
-    checks them all before its work, as it checks `path`."""
-    return [name for name in output_paths(path, parse_panels(panels) or PANELS)
+    """The files `save` may write besides `path` itself for these panels (the six of
+    `DEFAULT_PANELS` by default): STEM-K-NAME.EXT when more than one may be drawn, none for a
+    PDF. A command checks them all before its work, as it checks `path`."""
+    return [name for name in output_paths(path, parse_panels(panels) or DEFAULT_PANELS)
             if name != path]
 
 

@@ -323,9 +323,10 @@ class FitResult:
         ----------
         panels : str, int or sequence, optional
             Panels by number or name: 1 ``energy``, 2 ``residuals``, 3 ``phase``, 4
-            ``motion``, 5 ``parameters``, 6 ``correlation`` (`hamid.plot.figures`); by default
-            all that apply (1-4 need the records, which a result read from a report does
-            not hold; 4 needs the trajectory refinement).
+            ``motion``, 5 ``parameters``, 6 ``correlation``, 7 ``backbone``
+            (`hamid.plot.figures`); by default all of 1-6 that apply (1-4 need the records,
+            which a result read from a report does not hold; 4 needs the trajectory
+            refinement); 7 only when asked for.
         ax : matplotlib Axes, optional
             A subplot to draw one panel in, in place of it.
 

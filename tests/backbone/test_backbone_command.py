@@ -223,7 +223,7 @@ def test_the_real_double_pendulum_each_mode_with_the_recording(tmp_path):
         assert curve["points"][1]["frequency_hz"] < curve["points"][0]["frequency_hz"]
         (recorded,) = document["data"]
         assert len(recorded["points"]) >= 10
-        figure = backbone_figure.draw(document)
+        figure = backbone_figure.figure(document)
         assert isinstance(figure, Figure)
         top = figure.axes[0]
         markers = [line for line in top.get_lines() if line.get_linestyle() == "None"]

@@ -433,6 +433,13 @@ def test_unknown_model_key_in_fit_model_file(runner, tmp_path):
                  str(config), "[model]", "'builtn'", "did you mean 'builtin'")
 
 
+def test_a_model_file_among_the_data_is_told_to_go_after_model(runner, tmp_path):
+    config = tmp_path / "model.toml"
+    config.write_text('[model]\nbuiltin = "duffing"\n')
+    assert_fails(invoke(runner, ["fit", DUFFING_CSV, str(config)]), 2,
+                 str(config), "is a model file", f"--model {config}")
+
+
 def test_misspelt_model_table_in_fit_model_file_suggests_model(runner, tmp_path):
     config = tmp_path / "model.toml"
     config.write_text('[modle]\nbuiltin = "duffing"\n')

@@ -292,6 +292,62 @@ def test_drawing_opens_no_window_and_imports_no_pyplot(tmp_path):
     assert out.stdout.strip() == "False" and (tmp_path / "f.png").stat().st_size > 10_000
 
 
+# --- panel 7, the backbone -----------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def damped() -> FitResult:
+    """A damped hardening Duffing (unit mass, c = 0.05), two free decays."""
+    return hamid.fit(hamid.simulate({**DUFFING, "damping": {"c_x": 0.05},
+                                     "noise": {"x": 2e-3, "v": 2e-3}}), damping="viscous")
+
+
+def _duffing_frequency(k: float, k3: float, amplitude: np.ndarray) -> np.ndarray:
+    """The exact frequency of x'' + k x + k3 x^3 = 0 at amplitude A (complete elliptic
+    integral of the first kind, parameter m = k3 A^2 / (2 (k + k3 A^2)))."""
+    from scipy.special import ellipk
+
+    stiff = k + k3 * amplitude**2
+    return np.sqrt(stiff) / (4 * ellipk(k3 * amplitude**2 / (2 * stiff)))
+
+
+def test_the_backbone_is_drawn_only_when_asked_for(damped):
+    assert "backbone" not in figures.choose(damped.to_dict(), damped.recording)[0]
+    assert figures.choose(damped.to_dict(), damped.recording, 7)[0] == ("backbone",)
+    assert len(damped.plot().subfigs) == 6
+
+
+def test_backbone_panel_draws_the_fitted_backbone_its_bands_and_the_recorded_periods(damped):
+    figure = _page(damped, "backbone")
+    frequency, damping = _data_axes(figure)
+    model, *recorded = frequency.get_lines()
+    amplitude = np.asarray(model.get_xdata())
+    k, k3, c = (damped.estimates[name] for name in ("k", "k3", "c_x"))
+    np.testing.assert_allclose(model.get_ydata(), _duffing_frequency(k, k3, amplitude),
+                               rtol=1e-8)
+    (zeta,) = damping.get_lines()
+    # viscous damping on the small orbits: c / (2 omega), omega of the linearized model
+    assert zeta.get_ydata()[0] == pytest.approx(c / (2 * np.sqrt(k)), rel=0.02)
+    bands = [ax for ax in (frequency, damping)
+             if any(isinstance(p, PolyCollection) for p in ax.collections)]
+    assert bands == [frequency, damping]
+    assert len(recorded) == 2                               # a marker series per decay
+    # the curve reaches the largest recorded period's amplitude (under the first swing, 1)
+    largest = max(max(line.get_xdata()) for line in recorded)
+    assert amplitude.max() == pytest.approx(largest, rel=1e-12) and largest < 1.0
+    for line in recorded:
+        x, y = np.asarray(line.get_xdata()), np.asarray(line.get_ydata())
+        assert len(x) >= 3 and x.max() <= 1.0
+        np.testing.assert_allclose(y, _duffing_frequency(k, k3, x), rtol=0.03)
+    assert frequency.get_ylabel() == "frequency [Hz]"
+    assert damping.get_ylabel() == "damping ratio ζ [1]"
+    assert damping.get_xlabel() == "amplitude of x [model units]"
+    assert figure.get_suptitle().startswith("7. Backbone: data in memory")
+    caption = figure.get_supxlabel().replace("\n", " ")
+    assert "95% bands, by the delta method" in caption and "zero crossings" in caption
+    _png(figure)
+
+
 # --- the command line ---------------------------------------------------------------------
 
 
@@ -329,6 +385,15 @@ def test_plot_of_one_panel_is_the_file_named(report_file, tmp_path):
     result = _run("plot", str(report_file), "-o", str(tmp_path / "p.svg"), "--panels", "5")
     assert result.exit_code == 0
     assert (tmp_path / "p.svg").read_text().startswith("<?xml")
+
+
+def test_plot_draws_the_backbone_panel_from_a_report_alone(tmp_path, damped):
+    report = tmp_path / "r.json"
+    report.write_text(json.dumps(damped.to_dict()))
+    result = _run("plot", str(report), "-o", str(tmp_path / "b.png"), "--panels", "backbone")
+    assert result.exit_code == 0 and result.output == "", result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.png", "r.json"]
+    assert imread(tmp_path / "b.png").shape[1] == 1200     # ten inches at 120 dots an inch
 
 
 @pytest.mark.parametrize(("args", "message"), [

@@ -208,3 +208,7 @@ def test_the_motion_of_a_driven_fit_is_drawn_above_its_input(tmp_path):
     np.testing.assert_array_equal(line.get_ydata(), frame.loc[shown, "F"])
     assert "data in memory" in figure.get_suptitle() and "DataFrame" not in figure.get_suptitle()
     assert layout_faults(figure) == []
+    backbone = _page(fit, "backbone")        # a driven record's periods are the drive's
+    frequency, _ = _axes(backbone)
+    assert len(frequency.get_lines()) == 1
+    assert "The recording is driven" in _caption(backbone)
