@@ -155,8 +155,10 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
          progress: Callable[[str], None] | None) -> FitResult:
     """The fit of `fit`, its options checked and standard input in a file."""
     # the records: whole, or a file to pass over in chunks (the same `loading.Source`)
-    source = (loading.load(data, model, opts) if chunks is None
-              else loading.open_chunks(data, model, opts, chunks, progress))
+    source = None if chunks is None else loading.open_chunks(data, model, opts, chunks,
+                                                             progress)
+    if source is None:
+        source = loading.load(data, model, opts)
     sigma, noise_info = loading.noise_levels(source, opts.noise)
     m = source.model
     damping_forces = m.dissipative(opts.damping)

@@ -564,9 +564,11 @@ class Chunked:
 
 def open_chunks(path: str | os.PathLike[str], model: str | os.PathLike[str] | Model | None,
                 options: FitOptions, chunk_rows: int,
-                progress: Callable[[str], None] | None) -> Chunked:
+                progress: Callable[[str], None] | None) -> Chunked | None:
     """A file to read in chunks of `chunk_rows` rows: its model and columns, settled as
-    `load` settles them."""
+    `load` settles them; None when its channels need it read whole (a coordinate without
+    its position or velocity) and `options` did not ask for chunks, which is then an
+    error."""
     table = readers.TableChunks(path, format=options.format, text=options.text,
                            name=input_size.name_of(path))
     m, notes = _settle_model(model, table.metadata, table.columns, table.name, options)
@@ -574,8 +576,9 @@ def open_chunks(path: str | os.PathLike[str], model: str | os.PathLike[str] | Mo
         raise UsageError(f"{table.name}: the model's dissipation function needs the data in "
                          "memory (its work is integrated along each whole trajectory); "
                          "give the model file with --model")
-    mapping = column_roles.resolve_columns(table.columns, m.coordinates, m.velocities,
-                                     mapping=options.columns, source=table.name)
+    mapping = _chunked_columns(table.columns, m, options, table.name, notes)
+    if mapping is None:
+        return None
     time, trajectory = _special_columns(table.columns, mapping, options, table.name, notes)
     units = column_roles.read_units(table.columns, mapping, time, options, table.metadata,
                                      table.name)
@@ -585,6 +588,28 @@ def open_chunks(path: str | os.PathLike[str], model: str | os.PathLike[str] | Mo
     return Chunked(model=m, read_notes=tuple(notes), truth=_truth(table.metadata, m),
                    table=table, reader=reader, chunk_rows=chunk_rows, progress=progress,
                    units=units, options=options)
+
+
+def _chunked_columns(names: list[str], model: Model, options: FitOptions,
+                     source: str, notes: list[str]) -> dict[str, str] | None:
+    """Model name -> column for reading in chunks, which takes each coordinate's position
+    and velocity; recorded accelerations are left out, said in `notes`. A record without
+    them is read whole, where the missing ones are reconstructed over whole trajectories
+    (None), or refused when `--chunk-rows` asked for chunks."""
+    found = column_roles.channel_columns(names, model, options.columns, source=source,
+                                         set_aside=False)
+    channels = Channels.of(model, found)
+    if not all(kinds >= {"position", "velocity"} for kinds in channels.recorded):
+        if options.chunk_rows is None:
+            return None
+        raise UsageError(f"{source}: --chunk-rows reads each coordinate's position and "
+                         f"velocity, and the file records {channels.text}; leave out "
+                         "--chunk-rows to fit it in memory")
+    if channels.accelerated:
+        notes.append(f"{source}: the accelerations recorded are not read in chunks (leave "
+                     "out --chunk-rows to fit them too)")
+    return {name: column for name, column in found.items()
+            if name not in model.acceleration_names}
 
 
 def _data_info(sources: list[str], n_samples: int, n_trajectories: int,

@@ -271,3 +271,33 @@ def test_many_trajectories_of_two_samples_fit():
     # a harmonic motion: k = 1, k3 = 0, from one energy difference per trajectory
     assert result.estimates["k"] == pytest.approx(1.0, rel=1e-6)
     assert abs(result.estimates["k3"]) < 1e-6
+
+
+@pytest.mark.parametrize(("keep", "recorded"), [(["x"], "x: position"),
+                                                (["a_g"], "x: acceleration"),
+                                                (["v", "a_g"], "x: velocity, acceleration")])
+def test_chunks_of_a_record_without_positions_and_velocities_are_refused(
+        hamid_cli, tmp_path, keep, recorded):
+    """Reading in chunks takes each coordinate's position and velocity; other channels
+    gave 'no column for coordinate x', which did not say the file is read whole."""
+    frame = _duffing_frame()
+    frame["a_g"] = -(frame["x"] + 0.5 * frame["x"] ** 3) / 9.80665
+    frame[["t", *keep]].to_csv(tmp_path / "part.csv", index=False)
+    one_line_error(_run(hamid_cli, "fit", "part.csv", "--model", "duffing", "--chunk-rows",
+                        "200", cwd=tmp_path), 2,
+                   "part.csv", "--chunk-rows reads each coordinate's position and velocity",
+                   f"records {recorded}", "leave out --chunk-rows")
+
+
+def test_chunks_leave_out_recorded_accelerations_and_say_so(hamid_cli, tmp_path):
+    frame = _duffing_frame()
+    frame["a_g"] = -(frame["x"] + 0.5 * frame["x"] ** 3) / 9.80665
+    frame.to_csv(tmp_path / "all.csv", index=False)
+    frame.drop(columns="a_g").to_csv(tmp_path / "xv.csv", index=False)
+    reports = [json.loads(_run(hamid_cli, "fit", name, "--model", "duffing", "--chunk-rows",
+                               "200", "--format", "json", cwd=tmp_path).stdout)
+               for name in ("all.csv", "xv.csv")]
+    assert [p["estimate"] for p in reports[0]["parameters"]] == \
+        [p["estimate"] for p in reports[1]["parameters"]]
+    assert ("all.csv: the accelerations recorded are not read in chunks (leave out "
+            "--chunk-rows to fit them too)") in reports[0]["warnings"]

@@ -277,12 +277,14 @@ def test_assumed_model_note_names_the_toml_beside_the_data():
                for w in result.warnings)
 
 
-def test_a_missing_velocity_error_mentions_savgol(si, tmp_path):
-    """Read whole, u2's velocity would be derived (tests/data/test_channels.py); a file read
-    in chunks needs every velocity."""
+def test_a_missing_velocity_in_chunks_says_to_read_the_file_whole(si, tmp_path):
+    """Read whole, u2's velocity is derived (tests/data/test_channels.py); a file read in
+    chunks needs every velocity (the message said to derive them with --velocity savgol,
+    which chunks refuse)."""
     path = tmp_path / "si.csv"
     si.drop(columns=["v2"]).to_csv(path, index=False)
-    with pytest.raises(DataError, match="derive velocities with --velocity savgol"):
+    with pytest.raises(UsageError, match=r"records u1: position, velocity; u2: position; "
+                                         "leave out --chunk-rows"):
         hamid.fit(path, "peng-quadratic", chunk_rows=1000)
 
 

@@ -348,6 +348,22 @@ def test_a_file_over_the_size_limit_is_read_in_chunks_unless_asked_otherwise(
         hamid.fit(paths["parquet"], chunk_rows=100, in_memory=True)
 
 
+def test_a_large_file_of_positions_alone_is_read_whole(monkeypatch, tmp_path):
+    """Chunks take positions and velocities; a file over the size limit that records
+    positions alone is read whole, its velocities derived, as a small one is."""
+    frame = hamid.simulate({"model": {"builtin": "duffing"}, "parameters": {"k": 1.0,
+                                                                           "k3": 0.5},
+                            "initial": [{"x": 1.0, "v": 0.0}],
+                            "simulate": {"t_end": 30.0, "dt": 0.05}})
+    path = tmp_path / "positions.csv"
+    frame.drop(columns="v").to_csv(path, index=False)
+    small = hamid.fit(path, "duffing")
+    monkeypatch.setattr(options, "STREAM_BYTES", 100)
+    large = hamid.fit(path, "duffing")
+    assert large.samples is not None and large.estimates == small.estimates
+    assert large.estimates["k3"] == pytest.approx(0.5, rel=1e-4)
+
+
 def test_a_joint_fit_in_chunks_holds_no_more_for_a_longer_file(tmp_path, monkeypatch):
     """Peak traced memory of a chunked joint fit: a file with four times the trajectories
     (and window rows) needs no more than the file itself, to within 25%."""
