@@ -214,4 +214,4 @@ def _fit(data: Any, model: str | os.PathLike[str] | Model | None, opts: FitOptio
                                                                        estimates))
     if rows is None:   # no records in memory, for plot()
         return result
-    return dataclasses.replace(result, recording=Recording(m, source.whole()))
+    return dataclasses.replace(result, recording=Recording(m, source.whole(), source.channels))

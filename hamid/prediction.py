@@ -7,14 +7,17 @@ Each trajectory is integrated from its own initial state by the equations of
 
 - fitted (the default): the state at the trajectory's first sample that, integrated with
   the parameters held, fits the recorded samples of its first segment best (`fit_start`),
-  in the squares the refinement minimises (each variable weighted by its noise level,
-  derived velocities not at all). The segment is one dominant period of the trajectory, at
+  in the squares the refinement minimises (each recorded channel weighted by its noise
+  level, an acceleration compared with the equations of motion at the integrated state;
+  channels not recorded not at all). The segment is one dominant period of the trajectory, at
   least `START_SAMPLES` samples: short, so that the model's error over the record (what
   the prediction measures) hardly leaks into the start, yet every phase of one swing and
   a score of samples pin the state and average its noise;
 - at rest (`from_rest`): the zero state, for records that start at rest.
 
-Per channel (each recorded coordinate and velocity) the prediction reports the RMS error
+Per recorded channel (each coordinate's position, velocity and acceleration that the data
+hold; those reconstructed or derived from them are predicted but not scored, as the
+refinement does not fit them) the prediction reports the RMS error
 and the normalized RMS error NRMSE = RMS(predicted - recorded) / RMS(recorded - mean of
 recorded), both over the same samples (all of a trajectory's, or all of the recording's
 for the whole), the samples of the start segment included: 0 is a perfect prediction, 1
@@ -78,7 +81,10 @@ def read(report: Mapping[str, Any], data: Any,
     recorded = report["data"]
     unit = recorded.get("time_unit")
     savgol = recorded["velocity_source"] == "savgol"
-    resolved = {"columns": recorded["columns"], "time": recorded.get("time"),
+    # columns found under the model's own names are looked for so again, so that a
+    # recording of other channels (accelerations where the fit had positions) is read
+    renamed = {name: column for name, column in recorded["columns"].items() if name != column}
+    resolved = {"columns": renamed or None, "time": recorded.get("time"),
                 "time_unit": unit if unit in TIME_UNITS else None,
                 "scale": recorded.get("scale") or None}
     options = FitOptions(**{**recorded.get("reading", {}), **resolved, **(reading or {})},
@@ -86,7 +92,8 @@ def read(report: Mapping[str, Any], data: Any,
                          window=recorded.get("velocity_window") if savgol else None,
                          order=recorded.get("velocity_order", 5) if savgol else 5,
                          damping="none")
-    return Recording(model, loading.load(data, model, options).records)
+    loaded = loading.load(data, model, options)
+    return Recording(model, loaded.records, loaded.channels)
 
 
 def noise_levels(report: Mapping[str, Any], recording: Recording) -> Array:
@@ -146,6 +153,15 @@ class Integration:
     def motion(self) -> Motion:
         return self.dynamics.at(self.weights, inputs=self.inputs)
 
+    def observed(self, Y: Array, tau: Array, accelerations: bool) -> Array:
+        """The channels of the motion `Y` (2N, k, len(tau)) as a recording holds them: the
+        states, then with `accelerations` the accelerations its equations give there."""
+        if not accelerations:
+            return Y
+        rates = np.stack([self.motion(float(s), Y[:, :, i].ravel()).reshape(Y.shape[:2])
+                          for i, s in enumerate(tau)], axis=-1)
+        return np.concatenate([Y, rates[Y.shape[0] // 2:]])
+
     @property
     def step(self) -> Array:
         """The forward-difference step of each variable of the start state."""
@@ -179,26 +195,33 @@ class Integration:
 
 
 def start_weights(report: Mapping[str, Any], recording: Recording) -> Array:
-    """The weight of each variable in `fit_start`'s squares, as the refinement weighs it:
-    one over its noise level (floored at `NOISE_FLOOR` of its spread), 0 for velocities
-    derived from the positions, which carry no information of their own."""
+    """The weight of each compared channel (`Recording.compared`) in `fit_start`'s
+    squares, as the refinement weighs it: one over its noise level (floored at
+    `NOISE_FLOOR` of its spread), 0 for channels not recorded (reconstructed, or velocities
+    derived from the positions), which carry no information of their own."""
     records = recording.records
-    weight = 1.0 / np.maximum(noise_levels(report, recording), NOISE_FLOOR * records.spread)
-    if report["data"]["velocity_source"] == "savgol":
-        weight[len(recording.model.coordinates):] = 0.0
-    return weight
+    _, recorded = recording.compared
+    sigma, spread = noise_levels(report, recording), records.spread
+    if records.A is not None:
+        sigma = np.concatenate([sigma, measurement.estimate_noise(records.A,
+                                                                  records.bounds())])
+        spread = np.concatenate([spread, records.A.std(axis=0)])
+    floor = np.maximum(sigma, NOISE_FLOOR * spread)
+    return np.where(recorded & (floor > 0), 1.0 / np.where(floor > 0, floor, 1.0), 0.0)
 
 
 def fit_start(integration: Integration, tau: Array, recorded: Array, weight: Array, *,
               label: str) -> Array:
-    """The initial state whose motion fits `recorded` (samples at `tau` from 0, shape
-    (len(tau), 2N)) best in the squares weighted by `weight` per variable, the parameters
-    held: Gauss-Newton from the first sample, each step integrating the state and its 2N
-    perturbed copies together, as the refinement does (they share the adaptive steps).
-    `label` names the trajectory in the error when the motion cannot be integrated."""
-    n_states = recorded.shape[1]
+    """The initial state whose motion fits `recorded` (samples at `tau` from 0 of the
+    compared channels, `Records.compared`: shape (len(tau), 2N), or 3N with accelerations)
+    best in the squares weighted by `weight` per channel, the parameters held: Gauss-Newton
+    from the first sample, each step integrating the state and its 2N perturbed copies
+    together, as the refinement does (they share the adaptive steps). `label` names the
+    trajectory in the error when the motion cannot be integrated."""
+    n_states = len(integration.scale)
+    accelerations = recorded.shape[1] > n_states
     step = integration.step
-    x0 = recorded[0].copy()
+    x0 = recorded[0, :n_states].copy()
     for _ in range(_ITERATIONS):
         Y, failed = integration.run(np.vstack([x0, x0 + np.diag(step)]), tau)
         if failed is not None:
@@ -206,8 +229,9 @@ def fit_start(integration: Integration, tau: Array, recorded: Array, weight: Arr
                              f"times the recorded values, or no longer finite) near "
                              f"{failed:.6g} s after its first sample, in the segment its start "
                              "state is fitted to; the model does not hold there")
-        residual = ((recorded.T - Y[:, 0]) * weight[:, None]).ravel()
-        J = (Y[:, 1:] - Y[:, :1]) / step[None, :, None] * weight[:, None, None]
+        C = integration.observed(Y, tau, accelerations)
+        residual = ((recorded.T - C[:, 0]) * weight[:, None]).ravel()
+        J = (C[:, 1:] - C[:, :1]) / step[None, :, None] * weight[:, None, None]
         d_x = np.linalg.lstsq(J.transpose(0, 2, 1).reshape(-1, n_states), residual,
                               rcond=None)[0]
         x0 = x0 + d_x
@@ -221,8 +245,9 @@ class Prediction:
     """The fitted model's motion beside the recorded one.
 
     frame : pandas.DataFrame
-        ``trajectory``, ``t``, then each model variable recorded (``x``) and predicted
-        (``x_predicted``), a row per sample.
+        ``trajectory``, ``t``, then each channel recorded (``x``) and predicted
+        (``x_predicted``): the model variables, and the accelerations when the data hold
+        any; a channel not recorded has only its prediction. A row per sample.
     document : dict
         The report of schema ``hamid.predict/1`` (`to_dict`).
     """
@@ -272,13 +297,15 @@ def predict(report: Mapping[str, Any], data: Any, reading: Mapping[str, Any] | N
                         "(give --time COL)")
     whole = Integration.of(report, recording)
     weight = start_weights(report, recording)
+    names, scored = recording.compared
     scales = design.trajectory_scales(records, len(model.coordinates))
-    predicted = np.empty_like(records.X)
+    compared = records.compared
+    predicted = np.empty_like(compared)
     entries = []
     for j, (start, stop) in enumerate(records.bounds()):
         label = f"trajectory {safe_text.printable(str(records.labels[j]))}"
         t = records.t[start:stop]
-        tau, recorded = t - t[0], records.X[start:stop]
+        tau, recorded = t - t[0], compared[start:stop]
         integration = whole.over(records, start, stop)
         if from_rest:
             x0, fitted_on = np.zeros(recorded.shape[1]), None
@@ -292,22 +319,25 @@ def predict(report: Mapping[str, Any], data: Any, reading: Mapping[str, Any] | N
             raise ModelError(f"{label}: the fitted model's motion escapes (past {ESCAPE:g} "
                              f"times the recorded values, or no longer finite) near "
                              f"t = {t[0] + failed:.6g} s; the model does not hold there")
-        predicted[start:stop] = Y[:, 0].T
+        predicted[start:stop] = integration.observed(Y, tau, records.A is not None)[:, 0].T
         entries.append({"trajectory": _label(records.labels[j]), "samples": stop - start,
                         "t_start": float(t[0]), "t_end": float(t[-1]),
                         "start": dict(zip(model.variables, x0.tolist(), strict=True)),
                         "start_samples": fitted_on,
-                        "channels": _errors(recorded, predicted[start:stop], model.variables)})
+                        "channels": _errors(recorded[:, scored], predicted[start:stop, scored],
+                                            names, scored)})
     frame = pd.DataFrame({"trajectory": np.asarray(records.labels, dtype=object)[records.group],
                           "t": records.t})
-    for i, name in enumerate(model.variables):
-        frame[name] = records.X[:, i]
+    for i, name in enumerate(names):
+        if scored[i]:
+            frame[name] = compared[:, i]
         frame[f"{name}_predicted"] = predicted[:, i]
     document = {
         "schema": SCHEMA, "hamid_version": __version__, "source": source,
         "data": _sources(data), "model": report["model"]["name"],
         "start": "rest" if from_rest else "fitted", "samples": len(records.group),
-        "channels": _errors(records.X, predicted, model.variables),
+        "channels": _errors(compared[:, scored], predicted[:, scored], names, scored),
+        "not_recorded": [name for name, kept in zip(names, scored, strict=True) if not kept],
         "trajectories": entries,
     }
     return Prediction(frame, document)
@@ -322,14 +352,16 @@ def _start_samples(t: Array, period: float | None, label: str) -> int:
     return max(START_SAMPLES, within)
 
 
-def _errors(recorded: Array, predicted: Array,
-            names: Sequence[str]) -> dict[str, dict[str, float | None]]:
+def _errors(recorded: Array, predicted: Array, names: Sequence[str],
+            scored: npt.NDArray[np.bool_]) -> dict[str, dict[str, float | None]]:
     """Helper: RMS error and NRMSE (RMS error over the recorded RMS about its mean) of each
-    column, by name; NRMSE None for a constant recorded column."""
+    recorded column, by the name of the channel (`names` of all, `scored` of the
+    recorded); NRMSE None for a constant recorded column."""
     rms = np.sqrt(np.mean((predicted - recorded) ** 2, axis=0))
     spread = recorded.std(axis=0)
+    kept = [name for name, keep in zip(names, scored, strict=True) if keep]
     return {name: {"rms": float(e), "nrmse": float(e / s) if s > 0 else None}
-            for name, e, s in zip(names, rms, spread, strict=True)}
+            for name, e, s in zip(kept, rms, spread, strict=True)}
 
 
 def _sources(data: Any) -> list[str]:
@@ -388,4 +420,7 @@ def _table(doc: Mapping[str, Any], color: bool) -> str:
            for entry in doc["trajectories"]])
     console.print(Text("NRMSE: RMS error / RMS of the recorded channel about its mean "
                        "(0 perfect, 1 no better than the mean)"))
+    if doc.get("not_recorded"):
+        console.print(Text(safe_text.printable(
+            f"not recorded, so predicted but not scored: {', '.join(doc['not_recorded'])}")))
     return "\n".join(row.rstrip() for row in buffer.getvalue().splitlines()) + "\n"

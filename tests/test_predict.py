@@ -152,6 +152,46 @@ def _run(*args: object) -> subprocess.CompletedProcess:
     return subprocess.run([*HAMID, "predict", *map(str, args)], capture_output=True, text=True)
 
 
+def test_accelerations_alone_are_scored_against_the_equations_of_motion(result, unseen,
+                                                                        tmp_path):
+    """An unseen recording of accelerations alone (in g, 1% noise): the prediction scores
+    the acceleration only, to the noise put in, and its states follow the true motion;
+    positions and velocities, integrated from the accelerations, are not scored."""
+    x, v = unseen["x"], unseen["v"]
+    a = -(x + 0.5 * x**3 + 0.05 * v)             # the system's equation of motion
+    noise = 0.01 * a.std() * np.random.default_rng(1).standard_normal(len(a))
+    data = tmp_path / "accelerometer.csv"
+    unseen[["trajectory", "t"]].assign(a_g=(a + noise) / 9.80665).to_csv(data, index=False)
+    predicted = result.predict(str(data))
+    document = predicted.to_dict()
+    jsonschema.validate(document, json.loads(SCHEMA.read_text()))
+    assert list(document["channels"]) == ["a"] and document["not_recorded"] == ["x", "v"]
+    assert document["channels"]["a"]["rms"] == pytest.approx(np.sqrt(np.mean(noise**2)),
+                                                             rel=0.05)
+    frame = predicted.frame
+    assert list(frame.columns) == ["trajectory", "t", "x_predicted", "v_predicted", "a",
+                                   "a_predicted"]
+    assert np.abs(frame["x_predicted"] - x).max() < 0.01 * x.abs().max()
+    table = _run(_report(tmp_path, result), data)
+    assert "not recorded, so predicted but not scored: x, v" in table.stdout
+
+
+def test_derived_velocities_are_predicted_not_scored(result, unseen):
+    predicted = result.predict(unseen.drop(columns="v"))
+    document = predicted.to_dict()
+    assert list(document["channels"]) == ["x"] and document["not_recorded"] == ["v"]
+    assert document["channels"]["x"]["nrmse"] < 1e-4
+    assert list(predicted.frame.columns) == ["trajectory", "t", "x", "x_predicted",
+                                             "v_predicted"]
+    np.testing.assert_allclose(predicted.frame["v_predicted"], unseen["v"], atol=1e-5)
+
+
+def _report(tmp_path: Path, result: FitResult) -> Path:
+    path = tmp_path / "fit.json"
+    path.write_text(json.dumps(result.to_dict()))
+    return path
+
+
 def test_json_follows_the_schema(files):
     done = _run(files["report"], files["data"], "--format", "json")
     assert done.returncode == 0, done.stderr
@@ -161,7 +201,7 @@ def test_json_follows_the_schema(files):
     assert document["source"] == str(files["report"])
     assert document["data"] == [str(files["data"])]
     assert document["samples"] == 1202
-    assert set(document["channels"]) == {"x", "v"}
+    assert set(document["channels"]) == {"x", "v"} and document["not_recorded"] == []
     assert all(c["nrmse"] < 1e-4 for c in document["channels"].values())
 
 

@@ -361,10 +361,23 @@ def locate(row_sources: tuple[tuple[str, int], ...], row: int) -> tuple[str, int
 
 @dataclass(frozen=True)
 class Recording:
-    """The model and the records a fit read: what the panels over the data need."""
+    """The model and the records a fit read, and which channels they recorded (None:
+    every position and velocity): what a prediction and the panels over the data need."""
 
     model: Model
     records: Records
+    channels: Channels | None = None
+
+    @property
+    def compared(self) -> tuple[list[str], npt.NDArray[np.bool_]]:
+        """The names of the channels set beside the model's motion (`Records.compared`: the
+        variables, then the accelerations when any was recorded), and of each whether it
+        was recorded; the others were reconstructed or derived from those that were."""
+        model = self.model
+        channels = self.channels or Channels.complete(model.coordinates)
+        names = [*model.variables,
+                 *(model.acceleration_names if self.records.A is not None else ())]
+        return names, channels.fitted
 
 
 # An input missing in more than this share of rows was recorded at another rate.

@@ -501,6 +501,7 @@ def _draw_motion(fig: Figure | SubFigure, ctx: _Context) -> str:
                         squeeze=False)[:, 0]
     unit = ctx.coordinate_unit
     seconds = fitted.segment_seconds(ctx.report)
+    recorded_position = ctx.recording.compared[1]  # type: ignore[union-attr]
     for kk, k in enumerate(shown):
         name, pieces = ctx.records[k]
         motion, misfit = axes[len(ratios) * kk], axes[len(ratios) * kk + 1]
@@ -513,7 +514,8 @@ def _draw_motion(fig: Figure | SubFigure, ctx: _Context) -> str:
                 recorded, integrated = segment.recorded[step, i], segment.model[step, i]
                 motion.plot(t, recorded, linestyle="none", marker="o", markersize=2,
                             alpha=0.45, color=colour(i), zorder=2,
-                            label="_" * n + f"{coordinate} recorded")
+                            label="_" * n + f"{coordinate} " + (
+                                "recorded" if recorded_position[i] else "reconstructed"))
                 motion.plot(t, integrated, color=colour(i), linewidth=1.4, zorder=3,
                             label="_" * n + f"{coordinate} fitted model")
                 misfit.plot(t, recorded - integrated, color=colour(i), linewidth=0.7)
@@ -541,9 +543,12 @@ def _draw_motion(fig: Figure | SubFigure, ctx: _Context) -> str:
         for handle, label in zip(*axes[2].get_legend_handles_labels(), strict=True):
             axes[0].plot([], [], color=handle.get_color(), label=label)
     length = f"its first {seconds:.3g} s" if seconds is not None else "the whole record"
+    rebuilt = ("; positions not recorded are shown as reconstructed (integrated from the "
+               "recorded channels, less their cycle means), which the fit did not compare"
+               if not recorded_position[:len(model.coordinates)].all() else "")
     return _Drawn(f"each trajectory over the refinement's longest segment ({length}), the "
                   "fitted model integrated from its best-fitting initial state; misfit: "
-                  "recorded − model"
+                  f"recorded − model{rebuilt}"
                   f"{ctx.shown_note(shown)}", axes[0], 20)
 
 

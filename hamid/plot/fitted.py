@@ -148,7 +148,7 @@ def segment_motion(report: Mapping[str, Any], recording: Recording,
     length = segment_seconds(report)
     if length is not None:
         stop = start + max(int(np.searchsorted(t, t[0] + length, side="right")), 2)
-    tau, recorded = records.t[start:stop] - records.t[start], records.X[start:stop]
+    tau, recorded = records.t[start:stop] - records.t[start], records.compared[start:stop]
     integration = prediction.Integration.of(report, recording).over(records, start, stop)
     x0 = prediction.fit_start(integration, tau, recorded,
                               prediction.start_weights(report, recording),
@@ -157,4 +157,4 @@ def segment_motion(report: Mapping[str, Any], recording: Recording,
     if failed is not None:
         raise FitError(f"trajectory {records.labels[trajectory]}: the fitted model cannot be "
                        f"integrated over its segment (it escapes near {failed:.6g} s)")
-    return Segment(records.t[start:stop], recorded, Y[:, 0].T)
+    return Segment(records.t[start:stop], records.X[start:stop], Y[:, 0].T)

@@ -214,6 +214,21 @@ def test_motion_panel_fits_the_recording_to_its_noise(fit, table, noise):
     assert np.std(misfit[1]) == pytest.approx(noise["y"], rel=0.15)
 
 
+def test_motion_panel_says_positions_it_did_not_record(damped):
+    """From accelerations alone the positions drawn are reconstructed, and said to be."""
+    frame = hamid.simulate({**DUFFING, "damping": {"c_x": 0.05}})
+    accelerations = frame[["trajectory", "t"]].assign(
+        a=-(frame["x"] + 0.5 * frame["x"] ** 3 + 0.05 * frame["v"]))
+    fit = hamid.fit(accelerations, "duffing", damping="viscous")
+    figure = _page(fit, "motion")
+    motion = _data_axes(figure)[0]
+    assert [line.get_label() for line in motion.get_lines()][:2] == ["x reconstructed",
+                                                                     "x fitted model"]
+    assert "positions not recorded are shown as reconstructed" in \
+        figure.get_supxlabel().replace("\n", " ")
+    assert "reconstructed" not in _page(damped, "motion").get_supxlabel()
+
+
 def test_parameters_panel_draws_each_interval_and_the_truth(fit):
     figure = _page(fit, "parameters")
     _check_picture(figure)
