@@ -47,14 +47,19 @@ Array = npt.NDArray[np.float64]
 # Offsets from a point, in units of the well's scale, where V' is looked at.
 _STEPS = np.logspace(-4, 4, 1601)
 _AGREEMENT = 1e-13     # two Gauss-Legendre rules agree this well: the integral is taken
+_ROUNDING_FLOOR = 1e-10   # below this, rules that stop agreeing better meet rounding
 _MOST_NODES = 4096
-_INNER = 24          # nodes of the mean slope between a point and the turning point
+# nodes of the mean slope between a point and the turning point
+_INNER_NODES, _INNER_WEIGHTS = np.polynomial.legendre.leggauss(24)
 
 
 @cache
 def _nodes(n: int) -> tuple[Array, Array]:
-    """Gauss-Legendre nodes and weights on [0, pi/2], and cos of the nodes folded in."""
-    x, w = np.polynomial.legendre.leggauss(n)
+    """Gauss-Legendre nodes and weights on [0, pi/2], and cos of the nodes folded in
+    (scipy's rule: numpy's takes the eigenvalues of an n x n matrix, 10 s at n = 1024)."""
+    from scipy.special import roots_legendre
+
+    x, w = roots_legendre(n)
     phi = (x + 1) * math.pi / 4
     return phi, w * math.pi / 4 * np.cos(phi)
 
@@ -150,11 +155,20 @@ class Well:
                                           self.theta)[:, 0]
 
     def root(self, f, a: float, b: float) -> float:  # type: ignore[no-untyped-def]
-        """The root of the scalar function f between a and b, to rounding."""
+        """The root of the scalar function f between a and b, to rounding; a ModelError
+        when f has the same sign at both: the potential's rounding there exceeds the
+        differences sought."""
         from scipy.optimize import brentq
 
-        return float(brentq(lambda q: float(f(q)[0]), a, b, xtol=1e-15 * self.scale,
-                            rtol=4 * np.finfo(float).eps, maxiter=500))
+        try:
+            return float(brentq(lambda q: float(f(q)[0]), a, b, xtol=1e-15 * self.scale,
+                                rtol=4 * np.finfo(float).eps, maxiter=500))
+        except ValueError:
+            raise ModelError(
+                f"model {self.model.name!r}: its potential energy is lost to rounding near "
+                f"{self._place(a)} at this amplitude (its terms there are much larger than "
+                "their differences over the orbit); record the coordinate from its rest "
+                "position, or ask for larger amplitudes") from None
 
     def _place(self, q: float) -> str:
         return f"{self.model.coordinates[0]} = {q:.6g}"
@@ -218,9 +232,9 @@ class Well:
     def _drop(self, turn: float, phi: Array) -> Array:
         """V(q_turn) − V(q) at q = q* + (q_turn − q*) sin φ, without the cancellation of
         the difference near the turning point: (q_turn − q) times the mean of V' over
-        [q, q_turn] (Gauss–Legendre, `_INNER` nodes), q_turn − q taken as
+        [q, q_turn] (Gauss–Legendre, `_INNER_NODES`), q_turn − q taken as
         (q_turn − q*) 2 sin²((π/2 − φ)/2)."""
-        x, w = np.polynomial.legendre.leggauss(_INNER)
+        x, w = _INNER_NODES, _INNER_WEIGHTS
         span = (turn - self.bottom) * 2 * np.sin((math.pi / 2 - phi) / 2) ** 2
         points = turn - span[:, None] * (x[None, :] + 1) / 2
         mean = (self.slope(points.ravel()).reshape(points.shape) @ w) / 2
@@ -230,10 +244,11 @@ class Well:
               coefficients: npt.ArrayLike = ()) -> Cycle:
         """The period of the orbit and the energy the dissipation (coefficients in the
         order of `Dissipation.names`) takes over it, from Gauss–Legendre rules in φ
-        doubled until two agree to `_AGREEMENT`."""
+        doubled until two agree to `_AGREEMENT`, or agree to `_ROUNDING_FLOOR` and no
+        better than the two before them."""
         c = np.asarray(coefficients, dtype=float)
         damped = dissipation is not None and len(dissipation) > 0
-        previous = None
+        previous, change = None, math.inf
         n = 16
         while True:
             phi, weight = _nodes(n)
@@ -248,10 +263,13 @@ class Well:
                     power = dissipation.power_parts(np.column_stack([q, direction * speed])) @ c
                     lost += width * float(np.sum(weight * power / speed))
             current = (period, lost)
-            agree = previous is not None and all(
-                abs(a - b) <= _AGREEMENT * abs(a) for a, b in zip(current, previous,
-                                                                   strict=True))
-            if agree or n >= _MOST_NODES:
+            # the rules agree, or have stopped agreeing better near rounding (a small orbit
+            # about an equilibrium far from zero): more nodes would only add rounding
+            last, change = change, (math.inf if previous is None else max(
+                abs(a - b) / abs(a) if a else abs(b) for a, b in zip(current, previous,
+                                                                     strict=True)))
+            if (change <= _AGREEMENT or change < _ROUNDING_FLOOR and change > last / 2
+                    or n >= _MOST_NODES):
                 excess = float(self._drop(orbit.high, np.zeros(1))[0])
                 return Cycle(period, lost if damped else None, excess)
             previous, n = current, 2 * n

@@ -12,7 +12,7 @@ from scipy.integrate import quad, solve_ivp
 from scipy.special import ellipk
 
 from hamid.backbone.one_degree import Fitted, Well
-from hamid.errors import DataError
+from hamid.errors import DataError, ModelError
 from hamid.model.models import builtin_model, model_from_expression
 
 DUFFING = builtin_model("duffing")
@@ -128,3 +128,35 @@ def test_a_level_above_the_rim_is_an_error_naming_the_rim():
         well.orbit_at(1.5)
     with pytest.raises(DataError, match="not above the well's bottom at 0"):
         well.orbit(-0.1)
+
+
+def _far_well(shift: int) -> Well:
+    """Duffing's well (k = 1, k3 = 0.5) about x = shift: its terms, expanded in powers of
+    x, are far larger there than the energies of a small orbit."""
+    model = model_from_expression("far", f"v**2/2 + k*(x - {shift})**2/2 "
+                                  f"+ k3*(x - {shift})**4/4", ["x"], ["v"], ["k", "k3"])
+    return Well.of(model, {"k": 1.0, "k3": 0.5}, near=float(shift))
+
+
+def test_rules_stop_doubling_where_rounding_stops_them_agreeing(monkeypatch):
+    """A small orbit far from zero: the rules agree to 1e-11, not to 1e-13, and went on
+    doubling to 4,096 nodes (the Silverbox's backbone took 54 s); they stop once they no
+    longer agree better, the period still the elliptic integral's."""
+    from hamid.backbone import one_degree
+
+    rules: list[int] = []
+    nodes = one_degree._nodes
+    monkeypatch.setattr(one_degree, "_nodes", lambda n: rules.append(n) or nodes(n))
+    well = _far_well(50)
+    period = well.cycle(well.orbit_at(1e-3)).period
+    assert period == pytest.approx(_duffing_period(1.0, 0.5, 1e-3), rel=1e-8)
+    assert max(rules) <= 1024
+
+
+def test_a_potential_lost_to_rounding_is_a_model_error():
+    """About x = 1000 the quartic's terms are 1e11 and the orbit's energy 5e-7: brentq's
+    "f(a) and f(b) must have different signs" escaped."""
+    well = _far_well(1000)
+    with pytest.raises(ModelError, match=r"potential energy is lost to rounding near "
+                                         r"x = 1000.*record the coordinate from its rest"):
+        well.orbit_at(1e-3)
