@@ -185,7 +185,7 @@ def backbone_report(source: Source, request: Request, *, records: Records | None
         "rim": None if well.rim is None else {"energy": well.rim.energy,
                                               coordinate: well.rim.position},
         "modes": [{"mode": 1, "coordinate": coordinate, "points": points}],
-        "data": _data(data, coordinate, names)})
+        **_data(source, data, coordinate, names)})
 
 
 def _point(cycle: Cycle, amplitude: dict[str, float], band: Band | None) -> dict[str, Any]:
@@ -198,14 +198,21 @@ def _point(cycle: Cycle, amplitude: dict[str, float], band: Band | None) -> dict
             "damping_ratio_high": z_band[1]}
 
 
-def _data(data: Sequence[Any], coordinate: str, names: Sequence[str]) -> list[dict[str, Any]]:
-    """The recorded points, trajectory by trajectory."""
-    return [{"source": ", ".join(names) or None, "trajectory": d.trajectory,
-             "coordinate": coordinate,
-             "points": [{"t": t, "amplitude": a, "frequency_hz": f}
-                        for t, a, f in zip(d.t.tolist(), d.amplitude.tolist(),
-                                           d.frequency.tolist(), strict=True)]}
-            for d in data]
+def _data(source: Source, data: Sequence[Any], coordinate: str,
+          names: Sequence[str]) -> dict[str, Any]:
+    """The recorded points, trajectory by trajectory (`data`), and a note on them (`notes`):
+    a driven recording's are left out, its periods being the drive's, not the free
+    orbits' (they still set the default amplitudes)."""
+    if data and source.fitted.model.inputs:
+        return {"data": [], "notes": ["the recording is driven: its periods are the "
+                                      "drive's, not the free orbits', and are left out"]}
+    return {"notes": [], "data": [
+        {"source": ", ".join(names) or None, "trajectory": d.trajectory,
+         "coordinate": coordinate,
+         "points": [{"t": t, "amplitude": a, "frequency_hz": f}
+                    for t, a, f in zip(d.t.tolist(), d.amplitude.tolist(),
+                                       d.frequency.tolist(), strict=True)]}
+        for d in data]}
 
 
 def _document(source: Source, model: str, curve: Mapping[str, Any]) -> dict[str, Any]:
@@ -283,7 +290,7 @@ def _normal_modes_report(source: Source, request: Request, *, records: Records |
         "rim": None,
         "modes": [{"mode": request.mode, "coordinate": coordinate, "points": points,
                    "stopped": stopped}],
-        "data": _data(data, coordinate, names)})
+        **_data(source, data, coordinate, names)})
 
 
 def _equilibrium_energy(source: Source, equilibrium: npt.NDArray[np.float64]) -> float:
@@ -366,5 +373,7 @@ def render(document: Mapping[str, Any], fmt: str) -> str:
     for d in document["data"]:
         out.write(safe_text.printable(
             f"recorded: trajectory {d['trajectory']}, {len(d['points'])} periods") + "\n")
+    for note in document["notes"]:
+        out.write(safe_text.printable(f"note: {note}") + "\n")
     return out.getvalue()
 

@@ -87,6 +87,8 @@ def backbone(result_file: str, data: tuple[str, ...], amplitudes: str | None,
         if mode.get("stopped"):
             click.echo(console.printable(f"note: the default levels end short of "
                                          f"{mode['stopped']}"), err=True)
+    for note in document["notes"]:
+        click.echo(console.printable(f"note: {note}"), err=True)
     if figure:
         figures.write_pages([("backbone", backbone_figure.figure(document))], output)
         return

@@ -51,7 +51,7 @@ def _caption(document: Mapping[str, Any]) -> str:
     stopped = [mode["stopped"] for mode in document["modes"] if mode.get("stopped")]
     if stopped:
         text += f"; the curve ends short of {stopped[0]}"
-    return text + "."
+    return "; ".join([text, *document.get("notes", [])]) + "."
 
 
 def draw(fig: Figure | SubFigure, document: Mapping[str, Any]) -> tuple[Axes, str]:

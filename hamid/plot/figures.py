@@ -16,7 +16,7 @@
    only when asked for, as its orbits take up to a minute for several coordinates.
 
 Panels 1-4 need the records (`hamid.data.records.Recording`), panel 4 the trajectory
-refinement; 5, 6 and 7 need only the report (7 overlays the records of free motion).
+refinement; 5, 6 and 7 need only the report (7 overlays the records of free decays).
 Figures are made without pyplot, so no window ever opens and no backend is chosen: headless
 wherever it runs.
 """
@@ -179,13 +179,12 @@ class _Context:
     @cached_property
     def backbone(self) -> dict[str, Any]:
         """The ``hamid.backbone/1`` report of the fitted model at its default amplitudes
-        (mode 1), with the recording's points when it moved freely."""
+        (mode 1), with the recording's points."""
         from hamid.backbone import backbone_table
 
-        free = self.recording is not None and not self.recording.model.inputs
         return backbone_table.backbone_report(
             backbone_table.Source.of_report(self.report), backbone_table.Request(),
-            records=self.recording.records if free else None,  # type: ignore[union-attr]
+            records=None if self.recording is None else self.recording.records,
             names=[labels.source_name(s) for s in self.report["data"]["sources"]])
 
     @cached_property
@@ -622,9 +621,6 @@ def _draw_correlation(fig: Figure | SubFigure, ctx: _Context) -> str:
 
 def _draw_backbone(fig: Figure | SubFigure, ctx: _Context) -> _Drawn:
     top, caption = backbone_figure.draw(fig, ctx.backbone)
-    if ctx.recording is not None and ctx.recording.model.inputs:
-        caption += (" The recording is driven: its periods are the drive's, not the free "
-                    "orbits', and are not shown.")
     return _Drawn(caption, top, longest=30)
 
 

@@ -114,6 +114,36 @@ def test_the_command_draws_the_figure(files, tmp_path):
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_a_driven_recording_sets_the_range_but_its_periods_are_left_out(tmp_path):
+    """Up-crossings of a driven record time the drive, not the free orbits: 9,205 such
+    "periods" of the Silverbox were shown as its backbone's points."""
+    import tomllib
+
+    from conftest import DRIVEN_DUFFING_MODEL
+
+    model = tmp_path / "driven.toml"
+    model.write_text(DRIVEN_DUFFING_MODEL)
+    system = tomllib.loads(DRIVEN_DUFFING_MODEL)
+    system["forcing"]["signals"] = {"F": {"kind": "sine", "amplitude": 2.0,
+                                          "frequency": 0.2}}
+    frame = hamid.simulate({**system, "parameters": {"m": 1.5, "k": 4.0, "k3": 2.0},
+                            "damping": {"c_x": 0.3}, "initial": [{"x": 0.0, "v": 0.0}],
+                            "simulate": {"t_end": 60.0, "dt": 0.02}})
+    fitted = hamid.fit(frame, str(model), damping="viscous")
+    (tmp_path / "fit.json").write_text(json.dumps(fitted.to_dict()))
+    frame.to_csv(tmp_path / "driven.csv", index=False)
+    done = _run("fit.json", "driven.csv", "--format", "json", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    document = json.loads(done.stdout)
+    assert document["data"] == []
+    assert document["notes"] == ["the recording is driven: its periods are the drive's, "
+                                 "not the free orbits', and are left out"]
+    assert done.stderr == f"note: {document['notes'][0]}\n"
+    largest = (frame["x"].max() - frame["x"].min()) / 2     # the forced swing, about so
+    top = document["modes"][0]["points"][-1]["amplitude"]["x"]
+    assert 0.8 * largest < top <= largest
+
+
 @pytest.mark.parametrize(("args", "code", "words"), [
     (["--amplitudes", "0.1,abc"], 2, ["--amplitudes", "0.1,abc", "numbers"]),
     (["--amplitudes", "0.1", "--energies", "1"], 2, ["--amplitudes", "--energies"]),

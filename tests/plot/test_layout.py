@@ -211,4 +211,4 @@ def test_the_motion_of_a_driven_fit_is_drawn_above_its_input(tmp_path):
     backbone = _page(fit, "backbone")        # a driven record's periods are the drive's
     frequency, _ = _axes(backbone)
     assert len(frequency.get_lines()) == 1
-    assert "The recording is driven" in _caption(backbone)
+    assert "the recording is driven: its periods are the drive's" in _caption(backbone)
