@@ -159,7 +159,8 @@ def _per_unit_mass(result: Mapping[str, Any]) -> tuple[str, ...]:
     earlier versions do not say)."""
     if not (result["method"].get("scale") or {}).get("per_unit_mass"):
         return ()
-    return ("parameters per unit mass: the energy's kinetic part has no parameter",)
+    return ("parameters per unit mass (or moment of inertia): the energy's kinetic part has "
+            "no parameter",)
 
 
 def _energy_levels_section(result: Mapping[str, Any]) -> _Section:

@@ -492,7 +492,8 @@ def test_text_says_per_unit_mass_when_the_kinetic_energy_has_no_parameter(
         result["method"]["scale"] = {"source": "energy", "by": "the energy's parameter-free "
                                      "part", "per_unit_mass": per_unit_mass}
     text = " ".join(html.unescape(render(result, fmt)).split())
-    said = "parameters per unit mass: the energy's kinetic part has no parameter" in text
+    said = ("parameters per unit mass (or moment of inertia): the energy's kinetic part has "
+            "no parameter") in text
     assert said is bool(per_unit_mass)
 
 

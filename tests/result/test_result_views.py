@@ -99,8 +99,9 @@ def test_html_tables_hold_the_reports_parameters_levels_and_warnings(result, rep
     conditioning = next(t for t in parser.tables if t[0][0] == "condition number")
     assert conditioning[0][1] == format(report["conditioning"]["condition_number"], ".4g")
     assert report["method"]["scale"]["per_unit_mass"]   # (vx**2 + vy**2)/2
-    assert parser.items == ["parameters per unit mass: the energy's kinetic part has no "
-                            "parameter", *(f"warning: {w}" for w in report["warnings"])]
+    assert parser.items == ["parameters per unit mass (or moment of inertia): the energy's "
+                            "kinetic part has no parameter",
+                            *(f"warning: {w}" for w in report["warnings"])]
 
 
 def test_html_escapes_text_from_data(report):
