@@ -65,6 +65,9 @@ _ROUNDING = 10 * np.finfo(float).eps   # of a coordinate, relative to its equili
 _NEWTON_ROUNDING = 100   # Newton's corrections need not be finer than this many roundings
 _NEWTON_TOL = 1e-11     # the correction, relative to the orbit's scale and period
 _CORRECTOR_TOL = 1e-8   # the continuation's points, which only seed the targets' solves
+# the bands' nudged orbits: their differences from the estimates' are 1e-4 of the orbit, so
+# corrections this fine leave their central differences accurate to about 1e-4
+_NUDGED_TOL = 1e-8
 _NEWTON_ITERATIONS = 12
 _FIRST_STEP, _LONGEST_STEP, _SHORTEST_STEP = 0.05, 0.25, 1e-7
 _MOST_STEPS = 400
@@ -494,7 +497,7 @@ class ModeFitted:
             amplitude = float(orbit.amplitudes[lead])
             try:
                 shot = _newton(branch, np.append(orbit.states[:N, 0], orbit.period),
-                               measure.equal_to(amplitude))
+                               measure.equal_to(amplitude), _NUDGED_TOL)
             except _NoConvergence:
                 raise ModelError(f"mode {self.mode}: Newton's method did not converge on the "
                                  f"orbit of amplitude {amplitude:.6g} of "
