@@ -346,16 +346,20 @@ class SegmentFit:
                  progress: Callable[[str], None] | None = None) -> npt.NDArray[np.float64]:
         """Each segment's weighted misfit at other parameters (every parameter, row by
         segment: (S, P)), its initial state refitted from the fitted one by a Gauss-Newton
-        step (the misfit that step predicts); the segments as cut, untied."""
+        step (the misfit that step predicts); the segments as cut, untied. Raises
+        RefinementFailed when the motion at those parameters cannot be integrated."""
         def batch_done(done: int) -> None:
             if progress is not None:
                 progress(f"held-out check of the trajectory fit: {done:,} of "
                          f"{self.segments:,} segments")
 
         with np.errstate(all="ignore"):
-            normal, _, _, _ = _normal_equations(problem=self.problem, theta=thetas, X0=self.states,
-                                             free=(), theta_step=None, rtol=self.rtol,
-                                             batch_done=batch_done)
+            try:
+                normal, _, _, _ = _normal_equations(
+                    problem=self.problem, theta=thetas, X0=self.states, free=(),
+                    theta_step=None, rtol=self.rtol, batch_done=batch_done)
+            except _SegmentFitFailed as exc:
+                raise RefinementFailed(f"{exc}, at the held-out parameters") from exc
             misfit = normal.cost.sum(axis=1)
             try:
                 step = np.linalg.solve(normal.H_xx, normal.g_x[..., None])[..., 0]
