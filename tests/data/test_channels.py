@@ -129,6 +129,16 @@ def test_integration_recovers_a_known_motion_across_missing_samples():
     assert np.max(np.abs(values - x)) < 0.01
 
 
+def test_a_rate_of_fewer_than_two_cycles_loses_a_straight_line():
+    """cos t over 1.7 periods (three sign changes, one whole cycle between them): its
+    integral sin t less the least-squares line through it, as for any rate of fewer than
+    two cycles (a single cycle mean would leave the ends without a slope)."""
+    t = np.linspace(0.0, 3.4 * np.pi, 500)
+    values = measurement.integrated(np.cos(t)[:, None], t, [(0, len(t))])[:, 0]
+    line = np.polyval(np.polyfit(t, np.sin(t), 1), t)
+    assert np.max(np.abs(values - (np.sin(t) - line))) < 1e-4
+
+
 # --- fits from what was recorded --------------------------------------------------------
 
 def test_velocities_alone_are_fitted_with_no_option(clean):
