@@ -349,6 +349,11 @@ def _beyond_noise(fit: SegmentFit, noise: _Noise, length: float,
             break
         raised = again
         fit = trajectory.refit(fit, raised.weights, progress)
+    again = noise.raised(fit)
+    if raised.any_raised and not again.any_raised:
+        # its own residuals are the noise's: a start far off had raised the levels on the
+        # way (a first fit stopped far from its minimum), so it is fitted at them again
+        fit, raised = trajectory.refit(fit, again.weights, progress), again
     return fit, raised
 
 
