@@ -56,7 +56,10 @@ __all__ = ["RefinementFailed", "SegmentFit", "Stop", "TooUnstable", "fit", "join
 SEGMENT_PERIODS = 4.0  # dominant periods per segment, halved down to one when it fails
 MIN_SEGMENT_PERIODS = 1.0
 MIN_SEGMENT_SAMPLES = 8
-MAX_ITERATIONS = 20
+# Gauss-Newton steps at most: a fit near its minimum stops in a few; a start far off (the
+# linear fit of a damped two-mass chain's accelerations integrated twice, its mass 16x
+# too small) took Levenberg-Marquardt 30-40, and a limit costs only fits that fail
+MAX_ITERATIONS = 50
 # Segments integrated together as one vectorised system: as many as keep the integrated
 # values of a batch (copies x states x samples of a segment) within BATCH_VALUES.
 MAX_BATCH, BATCH_VALUES = 256, 1 << 22
