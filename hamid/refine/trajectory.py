@@ -534,16 +534,24 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
     with np.errstate(all="ignore"):
         for _ in range(MAX_ITERATIONS):
             theta_step = _theta_step(theta[free_list])
+            lost = False   # a step to where the motion cannot be integrated
             if evaluated is None:
-                evaluated = _Point(theta, X0, *_normal_equations(
-                    problem=problem, theta=theta, X0=X0, free=free, theta_step=theta_step,
-                    rtol=rtol, batch_done=batch_done)[:3])
-            point, evaluated = evaluated, None
-            normal, chain = point.normal, None
-            if problem.groups < len(problem.pieces):
-                normal, chain = _condensed(problem, point)
-            if best is not None and normal.total > best[0].total * (1 + 1e-12):
-                # the step made it worse: return to the best point and damp the step
+                try:
+                    evaluated = _Point(theta, X0, *_normal_equations(
+                        problem=problem, theta=theta, X0=X0, free=free, theta_step=theta_step,
+                        rtol=rtol, batch_done=batch_done)[:3])
+                except _SegmentFitFailed:
+                    if best is None:
+                        raise
+                    lost = True
+            if not lost:
+                point, evaluated = evaluated, None
+                normal, chain = point.normal, None
+                if problem.groups < len(problem.pieces):
+                    normal, chain = _condensed(problem, point)
+            if lost or (best is not None and normal.total > best[0].total * (1 + 1e-12)):
+                # the step made it worse, or went where the motion blows up: return to the
+                # best point and damp the step
                 normal, chain, point = best
                 theta, X0 = point.theta, point.X0
                 damping_factor = max(10 * damping_factor, 1e-3)

@@ -312,15 +312,17 @@ def _damped_chain(tmp_path: Path) -> tuple[pd.DataFrame, dict[str, float], str]:
     return clean, truth, str(path)
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", [0, 1, 24])
 def test_a_far_start_whose_fit_ends_within_the_noise_is_kept(tmp_path, seed):
     """The damped chain's accelerations alone (in g, from its equations at the simulated
     states, 1% noise): the linear start from them is far off (the mass 0.12 for 2), so
     the first fit stops where its misfit is hopeless and the levels are raised. Seed 0:
     Levenberg-Marquardt takes 30-40 iterations from there (more than the 20 once
     allowed). Seed 1: the fit ends within the noise of the differences (1.04 times it)
-    though fitted at raised levels, and so is fitted at those of the differences. Each is
-    kept, its errors the misfit-scaled ones."""
+    though fitted at raised levels, and so is fitted at those of the differences. Seed
+    24: a step goes where the motion cannot be integrated, and is damped like a step
+    that made the misfit worse (the fit failed there once). Each is kept, its errors the
+    misfit-scaled ones."""
     clean, truth, model = _damped_chain(tmp_path)
     x1, x2, v1, v2 = (clean[name].to_numpy() for name in ("x1", "x2", "v1", "v2"))
     pull = (truth["k2"] * (x2 - x1) + truth["k3"] * (x2 - x1) ** 3
@@ -349,7 +351,8 @@ def test_intervals_of_a_damped_two_mass_chain_from_velocities_cover(tmp_path,
     From accelerations alone this chain is not yet a test of coverage (issue 36, left
     open): the accelerations' zero crossings follow the fast mode, so the integration's
     high-pass takes the slow mode's cycle means for drift and the linear start is far off;
-    8 of 100 realizations were not refined, and their linear fits' intervals missed."""
+    4 of 100 realizations were not refined, their linear fits' intervals missing, and
+    the coverage was 90-94%, at the target's edge."""
     clean, truth, model = _damped_chain(tmp_path)
     hits = dict.fromkeys(truth, 0)
     for seed in range(realizations):
