@@ -117,7 +117,7 @@ def _drift(integral: npt.NDArray[np.float64], rate: npt.NDArray[np.float64],
     beyond = np.abs(rate) > CROSSING_SHARE * np.sqrt(np.mean(rate**2))
     signs = np.sign(rate[beyond])
     crossings = np.flatnonzero(beyond)[1:][np.diff(signs) != 0]
-    if len(crossings) < 3:
+    if len(crossings) < 4:   # fewer than two cycles: the ends need two cycle means
         return np.polynomial.polynomial.Polynomial.fit(tau, integral, 1)(tau)
     weights = np.gradient(tau)
     centres, means = [], []

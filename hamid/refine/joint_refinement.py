@@ -230,7 +230,8 @@ def _refine(*, linear: LinearFit, model: Model, records: Records, damping: Dissi
             f"the record holds {counted(fit.segments, 'segment', 'segments')} of one period, too "
             f"few to check it on segments held out of its fit (at least {CHECKED_SEGMENTS})"
             if fit.segments < CHECKED_SEGMENTS else
-            "its fits without a block of segments could not be made to check it")
+            "its check on segments held out of its fit could not be made (its fits without a "
+            "block, or the linear fit's motion over them)")
     elif acceptance is not None and acceptance["t"] > acceptance["t_limit"]:
         reason = ("the integrated model, fitted without each block of segments, predicts "
                   "the held-out segments worse than the linear fit does (misfit "
@@ -348,6 +349,11 @@ def _beyond_noise(fit: SegmentFit, noise: _Noise, length: float,
             break
         raised = again
         fit = trajectory.refit(fit, raised.weights, progress)
+    again = noise.raised(fit)
+    if raised.any_raised and not again.any_raised:
+        # its own residuals are the noise's: a start far off had raised the levels on the
+        # way (a first fit stopped far from its minimum), so it is fitted at them again
+        fit, raised = trajectory.refit(fit, again.weights, progress), again
     return fit, raised
 
 
@@ -406,7 +412,8 @@ def _held_out(fit: SegmentFit, theta_linear: npt.NDArray[np.float64], unknowns: 
               n_trajectories: int, rows: Rows | None,
               progress: Callable[[str], None] | None) -> AcceptanceInfo | None:
     """How the refined and the linear parameters predict segments held out of their fits,
-    or None when the refits cannot be made.
+    or None when the refits cannot be made or the linear ones' motion cannot be integrated
+    (a start far off, as from accelerations alone: nothing to compare with).
 
     The segments (at least CHECKED_SEGMENTS, so that a block left out moves the
     parameters by about a standard error and the second-order refits hold) are cut into
@@ -417,6 +424,8 @@ def _held_out(fit: SegmentFit, theta_linear: npt.NDArray[np.float64], unknowns: 
     t statistic of the two misfits over the segments (positive when the refinement
     predicts worse).
     """
+    from hamid.refine import trajectory
+
     S, K = fit.segments, FOLDS
     folds = np.arange(S) * K // S
     free = list(fit.free)
@@ -433,7 +442,10 @@ def _held_out(fit: SegmentFit, theta_linear: npt.NDArray[np.float64], unknowns: 
                     [fit.problem.pieces[s] for s in np.flatnonzero(held)])
     except (np.linalg.LinAlgError, FitError):
         return None
-    predicted = fit.held_out(linear, progress)
+    try:
+        predicted = fit.held_out(linear, progress)
+    except trajectory.RefinementFailed:
+        return None
     values = fit.problem.n_used
     difference = refined - predicted
     spread = float(np.std(difference, ddof=1))

@@ -56,7 +56,10 @@ __all__ = ["RefinementFailed", "SegmentFit", "Stop", "TooUnstable", "fit", "join
 SEGMENT_PERIODS = 4.0  # dominant periods per segment, halved down to one when it fails
 MIN_SEGMENT_PERIODS = 1.0
 MIN_SEGMENT_SAMPLES = 8
-MAX_ITERATIONS = 20
+# Gauss-Newton steps at most: a fit near its minimum stops in a few; a start far off (the
+# linear fit of a damped two-mass chain's accelerations integrated twice, its mass 16x
+# too small) took Levenberg-Marquardt 30-40, and a limit costs only fits that fail
+MAX_ITERATIONS = 50
 # Segments integrated together as one vectorised system: as many as keep the integrated
 # values of a batch (copies x states x samples of a segment) within BATCH_VALUES.
 MAX_BATCH, BATCH_VALUES = 256, 1 << 22
@@ -346,16 +349,20 @@ class SegmentFit:
                  progress: Callable[[str], None] | None = None) -> npt.NDArray[np.float64]:
         """Each segment's weighted misfit at other parameters (every parameter, row by
         segment: (S, P)), its initial state refitted from the fitted one by a Gauss-Newton
-        step (the misfit that step predicts); the segments as cut, untied."""
+        step (the misfit that step predicts); the segments as cut, untied. Raises
+        RefinementFailed when the motion at those parameters cannot be integrated."""
         def batch_done(done: int) -> None:
             if progress is not None:
                 progress(f"held-out check of the trajectory fit: {done:,} of "
                          f"{self.segments:,} segments")
 
         with np.errstate(all="ignore"):
-            normal, _, _, _ = _normal_equations(problem=self.problem, theta=thetas, X0=self.states,
-                                             free=(), theta_step=None, rtol=self.rtol,
-                                             batch_done=batch_done)
+            try:
+                normal, _, _, _ = _normal_equations(
+                    problem=self.problem, theta=thetas, X0=self.states, free=(),
+                    theta_step=None, rtol=self.rtol, batch_done=batch_done)
+            except _SegmentFitFailed as exc:
+                raise RefinementFailed(f"{exc}, at the held-out parameters") from exc
             misfit = normal.cost.sum(axis=1)
             try:
                 step = np.linalg.solve(normal.H_xx, normal.g_x[..., None])[..., 0]
@@ -527,16 +534,24 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
     with np.errstate(all="ignore"):
         for _ in range(MAX_ITERATIONS):
             theta_step = _theta_step(theta[free_list])
+            lost = False   # a step to where the motion cannot be integrated
             if evaluated is None:
-                evaluated = _Point(theta, X0, *_normal_equations(
-                    problem=problem, theta=theta, X0=X0, free=free, theta_step=theta_step,
-                    rtol=rtol, batch_done=batch_done)[:3])
-            point, evaluated = evaluated, None
-            normal, chain = point.normal, None
-            if problem.groups < len(problem.pieces):
-                normal, chain = _condensed(problem, point)
-            if best is not None and normal.total > best[0].total * (1 + 1e-12):
-                # the step made it worse: return to the best point and damp the step
+                try:
+                    evaluated = _Point(theta, X0, *_normal_equations(
+                        problem=problem, theta=theta, X0=X0, free=free, theta_step=theta_step,
+                        rtol=rtol, batch_done=batch_done)[:3])
+                except _SegmentFitFailed:
+                    if best is None:
+                        raise
+                    lost = True
+            if not lost:
+                point, evaluated = evaluated, None
+                normal, chain = point.normal, None
+                if problem.groups < len(problem.pieces):
+                    normal, chain = _condensed(problem, point)
+            if lost or (best is not None and normal.total > best[0].total * (1 + 1e-12)):
+                # the step made it worse, or went where the motion blows up: return to the
+                # best point and damp the step
                 normal, chain, point = best
                 theta, X0 = point.theta, point.X0
                 damping_factor = max(10 * damping_factor, 1e-3)

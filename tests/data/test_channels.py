@@ -129,6 +129,16 @@ def test_integration_recovers_a_known_motion_across_missing_samples():
     assert np.max(np.abs(values - x)) < 0.01
 
 
+def test_a_rate_of_fewer_than_two_cycles_loses_a_straight_line():
+    """cos t over 1.7 periods (three sign changes, one whole cycle between them): its
+    integral sin t less the least-squares line through it, as for any rate of fewer than
+    two cycles (a single cycle mean would leave the ends without a slope)."""
+    t = np.linspace(0.0, 3.4 * np.pi, 500)
+    values = measurement.integrated(np.cos(t)[:, None], t, [(0, len(t))])[:, 0]
+    line = np.polyval(np.polyfit(t, np.sin(t), 1), t)
+    assert np.max(np.abs(values - (np.sin(t) - line))) < 1e-4
+
+
 # --- fits from what was recorded --------------------------------------------------------
 
 def test_velocities_alone_are_fitted_with_no_option(clean):
@@ -193,18 +203,26 @@ def test_the_worst_errors_of_one_channel_over_seeds(clean, channel):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("channel", ["velocity", "acceleration"])
-def test_intervals_from_one_channel_cover(clean, channel, realizations=100):
-    """The issue's target is 90-98% for each parameter; NOT MET yet: from velocities alone
-    k covered 89/100 and from accelerations alone c 34/40 (the intervals about a fifth too
-    narrow for the damping). This guards what holds now, at least 80%, until the cause is
-    found; the note of the session says so."""
+def test_intervals_from_one_channel_cover(clean, channel, realizations=300):
+    """The issue's target, 95% intervals covering 90-98% of realizations, for each parameter.
+
+    Over 300 realizations rather than 100: the coverage of 100 honest intervals spreads
+    by 2.2 points (binomial), so a window of 90-98 fails by chance about one parameter in
+    ten. Measured so (issue 36): over six blocks of 100 realizations, k from velocities
+    alone covered 89, 96, 92, 94, 98 and 96; the first block (seeds 0-99, this test's
+    first) was the 89 a past session took for intervals too narrow, and the full
+    recording's own blocks ranged 91-97. Over 600 realizations the errors' root mean
+    square was 1.03, 1.02 and 0.95 stated standard errors (k, k3, c) from velocities
+    alone, 0.99, 0.99 and 1.04 from accelerations alone and 1.01, 1.01 and 1.00 from the
+    full recording (each uncertain by 0.03), their means within 0.05: the stated errors
+    are the spread, and no bias shows."""
     hits = dict.fromkeys(TRUTH, 0)
     for seed in range(realizations):
         result = hamid.fit(_alone(clean, seed, channel), model="duffing", damping="viscous")
         for p in result.parameters:
             hits[p.name] += p.ci_low <= TRUTH[p.name] <= p.ci_high
     for name, count in hits.items():
-        assert 0.80 <= count / realizations <= 0.98, (name, count)
+        assert 0.90 <= count / realizations <= 0.98, (name, count)
 
 
 # --- the command line -------------------------------------------------------------------
@@ -276,3 +294,71 @@ def test_a_two_mass_system_from_one_channel(tmp_path):
         ratios["acceleration"].append(worst(hamid.fit(recorded, model=str(path))) / both)
     for channel, values in ratios.items():
         assert np.median(values) <= 4, (channel, values)
+
+
+def _damped_chain(tmp_path: Path) -> tuple[pd.DataFrame, dict[str, float], str]:
+    """Two masses on springs with dampers between the ground and the first and between
+    the two (conftest.TWO_MASS, c1 = 0.04, c2 = 0.02, the second mass unknown): its clean
+    record, its true parameters and a model file naming them."""
+    from conftest import TWO_MASS
+
+    damping = {"dissipation": "c1*v1**2/2 + c2*(v2 - v1)**2/2", "parameters": ["c1", "c2"]}
+    truth = {**TWO_MASS["parameters"], "c1": 0.04, "c2": 0.02}
+    clean = hamid.simulate({**TWO_MASS, "damping": {**damping, "c1": 0.04, "c2": 0.02}})
+    path = tmp_path / "chain.toml"
+    path.write_text('[model]\ncoordinates = ["x1", "x2"]\nvelocities = ["v1", "v2"]\n'
+                    f'energy = "{TWO_MASS["model"]["energy"]}"\n[damping]\n'
+                    f'dissipation = "{damping["dissipation"]}"\nparameters = ["c1", "c2"]\n')
+    return clean, truth, str(path)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 24])
+def test_a_far_start_whose_fit_ends_within_the_noise_is_kept(tmp_path, seed):
+    """The damped chain's accelerations alone (in g, from its equations at the simulated
+    states, 1% noise): the linear start from them is far off (the mass 0.12 for 2), so
+    the first fit stops where its misfit is hopeless and the levels are raised. Seed 0:
+    Levenberg-Marquardt takes 30-40 iterations from there (more than the 20 once
+    allowed). Seed 1: the fit ends within the noise of the differences (1.04 times it)
+    though fitted at raised levels, and so is fitted at those of the differences. Seed
+    24: a step goes where the motion cannot be integrated, and is damped like a step
+    that made the misfit worse (the fit failed there once). Each is kept, its errors the
+    misfit-scaled ones."""
+    clean, truth, model = _damped_chain(tmp_path)
+    x1, x2, v1, v2 = (clean[name].to_numpy() for name in ("x1", "x2", "v1", "v2"))
+    pull = (truth["k2"] * (x2 - x1) + truth["k3"] * (x2 - x1) ** 3
+            + truth["c2"] * (v2 - v1))
+    accelerations = {"a1_g": -truth["k1"] * x1 - truth["c1"] * v1 + pull,
+                     "a2_g": -pull / truth["m"]}
+    rng = np.random.default_rng(1000 + seed)
+    recorded = clean[["trajectory", "t"]].assign(**{
+        name: (a + NOISE * a.std() * rng.standard_normal(len(a))) / G
+        for name, a in accelerations.items()})
+    result = hamid.fit(recorded, model=model)
+    refinement = result.method["refinement"]
+    assert refinement["applied"] and refinement["covariance"] == "misfit-scaled"
+    assert {refinement["noise"][name]["source"] for name in ("a1", "a2")} == {"differences"}
+    for p in result.parameters:
+        assert abs(p.estimate - truth[p.name]) < 4 * p.stderr, (p.name, p.estimate)
+
+
+@pytest.mark.slow
+def test_intervals_of_a_damped_two_mass_chain_from_velocities_cover(tmp_path,
+                                                                   realizations=200):
+    """The damped chain (`_damped_chain`), 1% noise, velocities alone: the 95% intervals
+    of each of the six parameters cover 90-98% of realizations (200: the coverage of 100
+    honest intervals spreads by 2.2 points).
+
+    From accelerations alone this chain is not yet a test of coverage (issue 36, left
+    open): the accelerations' zero crossings follow the fast mode, so the integration's
+    high-pass takes the slow mode's cycle means for drift and the linear start is far off;
+    4 of 100 realizations were not refined, their linear fits' intervals missing, and
+    the coverage was 90-94%, at the target's edge."""
+    clean, truth, model = _damped_chain(tmp_path)
+    hits = dict.fromkeys(truth, 0)
+    for seed in range(realizations):
+        result = hamid.fit(with_noise(clean, NOISE, seed).drop(columns=["x1", "x2"]),
+                           model=model)
+        for p in result.parameters:
+            hits[p.name] += p.ci_low <= truth[p.name] <= p.ci_high
+    for name, count in hits.items():
+        assert 0.90 <= count / realizations <= 0.98, (name, count)

@@ -178,6 +178,37 @@ def test_a_failed_trajectory_fit_keeps_the_linear_fit(clean_records, monkeypatch
     assert any(w.startswith("the trajectory refinement was not kept") for w in result.warnings)
 
 
+def test_parameters_whose_motion_blows_up_predict_no_held_out_segment(clean_records):
+    """The held-out check integrates the segments at the linear fit's parameters; where
+    that motion cannot be integrated (an inverted quartic well: from x = 1 it escapes in
+    finite time), it says so as the refinement's failure, not as an integrator's error."""
+    frame = with_noise(clean_records["duffing"], 0.01, seed=3)
+    records = Records(frame[["x", "v"]].to_numpy(), frame["t"].to_numpy(),
+                      frame["trajectory"].to_numpy() - 1, (1, 2))
+    model = hamid.load_model("duffing")
+    weight = 1 / measurement.estimate_noise(records.X, records.bounds())
+    fit = trajectory.fit(model, records, model.dissipative(), [1.0, 0.5], [0, 1], 5.7, weight)
+    with pytest.raises(trajectory.RefinementFailed, match="at the held-out parameters"):
+        fit.held_out(np.repeat([[1.0, -50.0]], fit.segments, axis=0))
+
+
+def test_a_linear_fit_that_cannot_be_integrated_leaves_the_refinement_kept(monkeypatch):
+    """With the linear fit's motion over the held-out segments not integrable (as from a
+    start far off), there is nothing to compare with: a fit within the noise is kept by
+    the noise rule, as with too few segments to hold out (the record of
+    `test_the_right_model_predicts_held_out_segments_better`, checked on held-out
+    segments otherwise)."""
+    def blows_up(fit, thetas, progress=None):
+        raise trajectory.RefinementFailed("the integration failed, at the held-out parameters")
+
+    monkeypatch.setattr(trajectory.SegmentFit, "held_out", blows_up)
+    clean = hamid.simulate({**DUFFING, "simulate": {"t_end": 120.0, "dt": 0.05}})
+    result = hamid.fit(with_noise(clean, 0.01, seed=5))
+    refinement = result.method["refinement"]
+    assert refinement["applied"] and refinement["segments"] >= joint_refinement.CHECKED_SEGMENTS
+    assert refinement["acceptance"] == {"rule": "noise"}
+
+
 @pytest.mark.parametrize("within", [trajectory.SETTLED, joint_refinement.FIRST_WITHIN])
 def test_held_out_folds_match_refits_without_them(clean_records, within):
     """The second-order refits of the held-out check against Gauss-Newton run to the end
