@@ -112,12 +112,14 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
     levels = tuple(EnergyLevel(label, float(level), _finite_or_none(error), int(size))
                    for label, level, error, size in zip(provenance.labels, fit.h, fit.h_stderr,
                                                         fit.sizes, strict=True))
+    integrated = tuple(q for q, kinds in (provenance.data.get("channels") or {}).items()
+                       if "position" in kinds["reconstructed"])
     warnings = [*provenance.notes,
                 *_warnings(parameters=parameters, stats=stats, cond=cond, df=fit.df,
                            options=options, kind=plan.kind, refinement=refinement,
                            damping=[*options.damping,
                                     *(["Rayleigh"] if model.dissipation else [])],
-                           driven=model.forcing is not None),
+                           driven=model.forcing is not None, integrated=integrated),
                 *_correlation_warnings(conditioning["strongest_correlation"],
                                        quadrature=DISCRETIZATION_NOTE in fit.description),
                 *_noise_warnings(provenance.noise_check), *forcing_warnings(forcing)]
@@ -362,23 +364,26 @@ def forcing_warnings(forcing: Mapping[str, Any] | None) -> list[str]:
 
 def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: Any,
               df: int, options: FitOptions, kind: RowKind,
-              refinement: RefinementInfo | None, damping: list[str], driven: bool
-              ) -> list[str]:
-    """Plain-words warnings about the fit; `damping` names its kinds of dissipation, and
-    `driven` says the energy's drift is against its spread, not its level."""
+              refinement: RefinementInfo | None, damping: list[str], driven: bool,
+              integrated: tuple[str, ...]) -> list[str]:
+    """Plain-words warnings about the fit; `damping` names its kinds of dissipation,
+    `driven` says the energy's drift is against its spread, not its level, and
+    `integrated` names the coordinates whose positions were integrated from other
+    channels (`_of_the_start`)."""
     level, cov = options.level, options.cov
-    notes = []
+    drifting, notes = [], []
     for d in stats["drift"]:
         change = d["relative_change"]
         if change is not None and abs(change) > _DRIFT_CHANGE and d["trend_share"] > _DRIFT_SHARE:
             words = drift_words(change, driven=driven)
-            notes.append(f"trajectory {d['trajectory']}: the energy is not conserved: a "
-                         f"straight line through it {words} over the record; the system may "
-                         "be damped or forced (try --damping viscous)" if not damping else
-                         f"trajectory {d['trajectory']}: with {', '.join(damping)} damping the "
-                         f"energy balance is still not conserved: a straight line through it "
-                         f"{words} over the record; try another kind of --damping, or the "
-                         "system is forced")
+            drifting.append((d["trajectory"],
+                             f"trajectory {d['trajectory']}: the energy is not conserved: a "
+                             f"straight line through it {words} over the record; the system "
+                             "may be damped or forced (try --damping viscous)" if not damping
+                             else f"trajectory {d['trajectory']}: with {', '.join(damping)} "
+                             "damping the energy balance is still not conserved: a straight "
+                             f"line through it {words} over the record; try another kind of "
+                             "--damping, or the system is forced"))
     if cond.status != "ok":
         combination = " ".join(f"{w:+.2f}*{n}" for n, w in
                                sorted(cond.weakest_direction.items(), key=lambda x: -abs(x[1]))
@@ -399,7 +404,28 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
     elif cov in ("classical", "hc") and autocorrelation is not None and autocorrelation > 0.5:
         notes.append(f"residuals are strongly autocorrelated (lag-1 {autocorrelation:.2f}); "
                      f"--cov {cov} understates the errors, use --cov hac")
-    return notes + _misfit(stats, refinement)
+    notes += _refinement_notes(refinement)
+    if integrated and refinement is not None and refinement["applied"]:
+        return notes + _of_the_start(drifting, stats, integrated)
+    return [note for _, note in drifting] + notes + _energy_misfit(stats)
+
+
+def _of_the_start(drifting: list[tuple[Any, str]], stats: dict[str, Any],
+                  integrated: tuple[str, ...]) -> list[str]:
+    """For a refined fit whose positions were integrated from the recorded velocities or
+    accelerations, one note for the energy rows' warnings (a drifting energy, a low R²,
+    their residuals autocorrelated): those rows are the linear start's, built on the
+    integrated positions, and show the integration's errors as much as the model's; not
+    advice to change a model that the refinement, fitting the recorded channels, fits."""
+    facts = [*(f"trajectory {label}'s energy drifts" for label, _ in drifting),
+             *_energy_misfit(stats, brief=True)]
+    if not facts:
+        return []
+    return [f"the linear start's energy rows, built on positions integrated from the "
+            f"recorded channels ({', '.join(integrated)}), fit them loosely "
+            f"({'; '.join(facts)}): the integration's errors as much as the model's; the "
+            "estimates are the trajectory refinement's, which fits the recorded channels "
+            "themselves"]
 
 
 # Self-checks of the energy residuals, once they are above rounding (exact data leave
@@ -409,19 +435,21 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
 _ROUNDING, _LOW_R_SQUARED, _HIGH_AUTOCORRELATION = 1e-6, 0.5, 0.9
 
 
-def _misfit(stats: dict[str, Any], refinement: RefinementInfo | None) -> list[str]:
-    """Warnings that the model probably does not fit the recording."""
-    notes = _refinement_notes(refinement)
+def _energy_misfit(stats: dict[str, Any], brief: bool = False) -> list[str]:
+    """Warnings that the energy rows fit poorly (`brief`: the facts alone)."""
+    notes: list[str] = []
     relative, r_squared = stats["relative_rms"], stats["r_squared"]
     autocorrelation = stats["lag1_autocorrelation"]
     if relative is None or relative < _ROUNDING:
         return notes
     if r_squared is not None and r_squared < _LOW_R_SQUARED:
-        notes.append(f"the model explains little of the energy's variation (R² "
+        notes.append(f"R² {r_squared:.2f}" if brief else
+                     f"the model explains little of the energy's variation (R² "
                      f"{r_squared:.2f} of the energy rows): a wrong model, inconsistent units "
                      "or time scale, or noise as large as the motion")
     if autocorrelation is not None and autocorrelation > _HIGH_AUTOCORRELATION:
-        notes.append(f"the energy residuals are strongly autocorrelated (lag-1 "
+        notes.append(f"residuals autocorrelated at lag 1 {autocorrelation:.2f}" if brief else
+                     f"the energy residuals are strongly autocorrelated (lag-1 "
                      f"{autocorrelation:.2f}): the model misses part of the motion (a term, "
                      "damping or forcing), or the units are inconsistent")
     return notes
