@@ -407,6 +407,11 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
     notes += _refinement_notes(refinement)
     if integrated and refinement is not None and refinement["applied"]:
         return notes + _of_the_start(drifting, stats, integrated)
+    if integrated:
+        notes.append(f"the estimates are the linear fit's, on positions integrated from the "
+                     f"recorded channels ({', '.join(integrated)}): their intervals do not "
+                     "hold the integration's errors, and may miss the truth by many standard "
+                     "errors")
     return [note for _, note in drifting] + notes + _energy_misfit(stats)
 
 
