@@ -85,6 +85,12 @@ TOLERANCE_SHARE = 1e-3
 # shrank (Gauss-Newton converges at least linearly near a minimum, quadratically when
 # the residuals are small, where the ratio overstates the next step's size)
 SETTLED = 1e-3
+# The tolerance the inputs' responses are integrated at (`SegmentFit.input_response`), when
+# the fit's is stricter: a covariance needs a few digits, and the copies share the steps
+# (their differences carry little of the integration's error). Against the fit's 1e-8 it
+# moved the covariance by 3e-5 of itself, and took 1.6 times fewer steps on a clean force,
+# 2.2 on one with 0.2% of noise (tests/benchmarks/driven_refinement.py's record)
+RESPONSE_RTOL = 1e-6
 TIME_ROUNDING = 16     # in units of the rounding of the largest time: times that close are one
 
 
@@ -304,8 +310,9 @@ class SegmentFit:
         with np.errstate(all="ignore"):
             normal, _, E, moves = _normal_equations(
                 problem=problem, theta=point.theta, X0=point.X0, free=self.free,
-                theta_step=_theta_step(point.theta[list(self.free)]), rtol=self.rtol,
-                batch_done=lambda done: None, responses=True)
+                theta_step=_theta_step(point.theta[list(self.free)]),
+                rtol=max(self.rtol, RESPONSE_RTOL), batch_done=lambda done: None,
+                responses=True)
         n = normal.H_xx.shape[1]
         S, p = len(problem.pieces), len(self.free)
         grouped, chain = normal, None
