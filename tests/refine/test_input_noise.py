@@ -44,14 +44,16 @@ def test_the_spline_gradient_is_scipys_spline_transposed(n):
         np.abs(expected))
 
 
-@pytest.mark.parametrize("dt", [0.02, 0.1])
-def test_each_segments_response_is_the_integration_on_perturbed_inputs(tmp_path, dt):
+@pytest.mark.parametrize(("dt", "accelerations"), [(0.02, False), (0.1, False), (0.02, True)])
+def test_each_segments_response_is_the_integration_on_perturbed_inputs(tmp_path, dt,
+                                                                      accelerations):
     """A linear oscillator driven by a multisine (its motion linear in the force, so a
     finite difference of any size is its derivative): what every segment's scores and end
     state move by when the recorded force is perturbed (integrated again, all copies with
     the perturbed force) is the responses' sum over the perturbed samples, to the
     integrator's tolerance (to 1e-6 of the largest; 1e-5 sampled coarsely: 16 samples per
-    period)."""
+    period); with an acceleration recorded too, whose residuals move with the force
+    itself."""
     truth = {"m": 1.5, "k": 4.0, "c_x": 0.08}
     system = {**tomllib.loads(LINEAR_MODEL), "parameters": {"m": 1.5, "k": 4.0},
               "damping": {"c_x": 0.08}, "initial": [{"x": 0.0, "v": 0.0}],
@@ -73,13 +75,21 @@ def test_each_segments_response_is_the_integration_on_perturbed_inputs(tmp_path,
     motions = []
     for tau, x, inputs in zip(problem.tau, problem.measured, problem.inputs.tau, strict=True):
         force = CubicSpline(inputs, problem.inputs.values[len(motions)])
-        motions.append(solve_ivp(
-            lambda t, y, force=force: [y[1], (force(t)[0] - truth["c_x"] * y[1]
-                                              - truth["k"] * y[0]) / truth["m"]],
-            (0, tau[-1]), x[0], t_eval=tau, rtol=1e-12, atol=1e-14).y.T)
-    problem = dataclasses.replace(problem, measured=motions)
+
+        def rates(t, y, force=force):
+            acceleration = force(t)[..., 0] - truth["c_x"] * y[1] - truth["k"] * y[0]
+            return [y[1], acceleration / truth["m"]]
+
+        motion = solve_ivp(rates, (0, tau[-1]), x[0], t_eval=tau, rtol=1e-12, atol=1e-14).y.T
+        if accelerations:
+            motion = np.column_stack([motion, rates(tau, motion.T)[1]])
+        motions.append(motion)
+    weight = problem.weight
+    if accelerations:
+        weight = np.append(weight, 1 / (0.01 * np.std(np.concatenate(motions)[:, 2])))
+    problem = dataclasses.replace(problem, measured=motions, weight=weight)
     theta = np.array(list(truth.values()))
-    arguments = {"theta": theta, "X0": np.array([x[0] for x in motions]),
+    arguments = {"theta": theta, "X0": np.array([x[0, :2] for x in motions]),
                  "free": (0, 1, 2), "rtol": trajectory.STRICT_RTOL,
                  "theta_step": trajectory._theta_step(theta), "batch_done": lambda done: None}
     moves = trajectory._normal_equations(problem=problem, responses=True, **arguments)[3]
