@@ -44,16 +44,19 @@ def test_the_spline_gradient_is_scipys_spline_transposed(n):
         np.abs(expected))
 
 
-@pytest.mark.parametrize(("dt", "accelerations"), [(0.02, False), (0.1, False), (0.02, True)])
-def test_each_segments_response_is_the_integration_on_perturbed_inputs(tmp_path, dt,
-                                                                      accelerations):
+@pytest.mark.parametrize(("dt", "accelerations", "jitter"),
+                         [(0.02, False, 0.0), (0.1, False, 0.0), (0.02, True, 0.0),
+                          (0.02, False, 0.2)])
+def test_each_segments_response_is_the_integration_on_perturbed_inputs(
+        tmp_path, dt, accelerations, jitter):
     """A linear oscillator driven by a multisine (its motion linear in the force, so a
     finite difference of any size is its derivative): what every segment's scores and end
     state move by when the recorded force is perturbed (integrated again, all copies with
     the perturbed force) is the responses' sum over the perturbed samples, to the
     integrator's tolerance (to 1e-6 of the largest; 1e-5 sampled coarsely: 16 samples per
     period); with an acceleration recorded too, whose residuals move with the force
-    itself."""
+    itself; and sampled unevenly (each time off by up to a fifth of a step), where the
+    segments are not sampled alike and each one's spline is taken to the batch's knots."""
     truth = {"m": 1.5, "k": 4.0, "c_x": 0.08}
     system = {**tomllib.loads(LINEAR_MODEL), "parameters": {"m": 1.5, "k": 4.0},
               "damping": {"c_x": 0.08}, "initial": [{"x": 0.0, "v": 0.0}],
@@ -65,7 +68,9 @@ def test_each_segments_response_is_the_integration_on_perturbed_inputs(tmp_path,
     path.write_text(LINEAR_MODEL)
     model = hamid.load_model(path)
     X, U = frame[["x", "v"]].to_numpy(), frame[["F"]].to_numpy()
-    records = Records(X, frame["t"].to_numpy(), np.zeros(len(frame), int), (1,), U=U)
+    t = frame["t"].to_numpy()
+    t = t + jitter * dt * np.random.default_rng(5).uniform(-1, 1, len(t)) * (t > 0)
+    records = Records(X, t, np.zeros(len(frame), int), (1,), U=U)
     # at the truth, each segment's samples its own motion (scipy's, through the inputs'
     # spline): no residuals, so the scores move by the motion's move alone, as
     # Gauss-Newton has it (not by the Jacobian's move times the residuals too)
