@@ -34,7 +34,7 @@ from hamid.model.dynamics import Dynamics
 from hamid.refine import dop853
 
 __all__ = ["Batch", "Blocks", "IntegrationFailed", "SampledInputs", "Tolerance", "blocks",
-           "common_times", "parallel", "run"]
+           "common_times", "parallel", "responses", "run"]
 
 Array = npt.NDArray[np.float64]
 
@@ -158,9 +158,9 @@ class Batch:
     first, by which its difference from the first is divided. `ends`, if given, are a time
     of each segment (from its start, none before its samples) whose state and derivatives
     `blocks` returns too, without a residual (multiple shooting's continuity conditions).
-    With `responses` (a driven model, with `ends` and a copy per initial-state component),
-    `blocks` returns too what each recorded input sample moves the scores and the end
-    states by (`hamid.refine.input_noise`).
+    With `keep` (a driven model, with `ends` and a copy per initial-state component),
+    `blocks` returns its integrated values too, from which `responses` gives what each
+    recorded input sample moves the scores and the end states by.
     """
 
     dynamics: Dynamics
@@ -173,7 +173,7 @@ class Batch:
     tolerance: Tolerance
     ends: Array | None = None
     inputs: SampledInputs | None = None
-    responses: bool = False
+    keep: bool = False
 
     @property
     def values(self) -> int:
@@ -230,15 +230,15 @@ class Blocks:
     residuals; `H` (B, c, c) and `g` (B, c), J'J and J'r of each segment's Jacobian by its
     c perturbed copies (empty when there are none); with the batch's `ends`, `end` (B, 2N)
     each segment's state there and `E` (B, 2N, c) its derivatives by the copies; with the
-    batch's `responses`, each segment's (m, c + 2N, n_inputs): what each of its input
-    samples changes g and `end` by, to first order (`hamid.refine.input_noise.response`)."""
+    batch's `keep`, `integrated`: the output times, the samples' and ends' indices into
+    them and the values there (len(grid), variables, B, copies), for `responses`."""
 
     cost: Array
     H: Array
     g: Array
     end: Array | None = None
     E: Array | None = None
-    responses: list[Array] | None = None
+    integrated: tuple[Array, npt.NDArray[np.intp], Array] | None = None
 
 
 def blocks(batch: Batch) -> Blocks:
@@ -294,15 +294,16 @@ def blocks(batch: Batch) -> Blocks:
     at_ends = values[where[offset:], :n_states, np.arange(B)]       # (B, 2N, copies)
     end = at_ends[..., 0]
     return Blocks(cost, H, g, end, (at_ends[..., 1:1 + c] - end[..., None]) / batch.steps,
-                  responses=_responses(batch, grid, where, values) if batch.responses
-                  else None)
+                  integrated=(grid, where, values) if batch.keep else None)
 
 
-def _responses(batch: Batch, grid: Array, where: npt.NDArray[np.intp],
-               values: Array) -> list[Array]:
-    """Each segment's change of its scores and end state by each of its input samples
-    (`Blocks.responses`), from the batch's integrated `values` (len(grid), variables, B,
-    copies) at the output times `grid` (`where`: the samples' and ends' indices into it)."""
+def responses(batch: Batch, integrated: tuple[Array, npt.NDArray[np.intp], Array]
+              ) -> list[Array]:
+    """Each segment's change of its scores and end state by each of its input samples,
+    (m, c + 2N, n_inputs), to first order (`hamid.refine.input_noise.response`), from the
+    batch's `Blocks.integrated`: the values (len(grid), variables, B, copies) at the output
+    times `grid`, `where` the samples' and ends' indices into it."""
+    grid, where, values = integrated
     from scipy.interpolate import CubicSpline
 
     from hamid.refine.input_noise import Segment, response

@@ -36,6 +36,7 @@ the last point of the fit it ties, without integrating it again.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
@@ -85,12 +86,6 @@ TOLERANCE_SHARE = 1e-3
 # shrank (Gauss-Newton converges at least linearly near a minimum, quadratically when
 # the residuals are small, where the ratio overstates the next step's size)
 SETTLED = 1e-3
-# The tolerance the inputs' responses are integrated at (`SegmentFit.input_response`), when
-# the fit's is stricter: a covariance needs a few digits, and the copies share the steps
-# (their differences carry little of the integration's error). Against the fit's 1e-8 it
-# moved the covariance by 3e-5 of itself, and took 1.6 times fewer steps on a clean force,
-# 2.2 on one with 0.2% of noise (tests/benchmarks/driven_refinement.py's record)
-RESPONSE_RTOL = 1e-6
 TIME_ROUNDING = 16     # in units of the rounding of the largest time: times that close are one
 
 
@@ -301,24 +296,18 @@ class SegmentFit:
         The fit integrates the inputs as recorded, so their noise drives the integrated
         motion: an error shared along each group of segments that the residuals' scale
         does not see. Each segment's scores and end state move by its input samples as
-        one more pass of its Jacobian's copies gives them (`hamid.refine.input_noise`);
+        the last pass of its Jacobian's copies gives them (`hamid.refine.input_noise`);
         a tie carries the end state's move into the segments after it (the gaps
         `_condensed` closes), and the states' elimination turns the scores' move into the
         parameters' (module docstring)."""
         problem, point = self.problem, self.point
-        assert problem.inputs is not None and problem.records.U is not None
-        with np.errstate(all="ignore"):
-            normal, _, E, moves = _normal_equations(
-                problem=problem, theta=point.theta, X0=point.X0, free=self.free,
-                theta_step=_theta_step(point.theta[list(self.free)]),
-                rtol=max(self.rtol, RESPONSE_RTOL), batch_done=lambda done: None,
-                responses=True)
+        assert problem.records.U is not None and point.moves is not None
+        normal, E, moves = point.normal, point.E, point.moves()
         n = normal.H_xx.shape[1]
         S, p = len(problem.pieces), len(self.free)
         grouped, chain = normal, None
         if problem.groups < S:
-            grouped, chain = _condensed(problem, _Point(point.theta, point.X0, normal,
-                                                        point.end, E))
+            grouped, chain = _condensed(problem, point)
         group = np.arange(S) if chain is None else chain.group
         P = np.repeat(np.eye(n)[None], S, axis=0) if chain is None else chain.P
         Q = np.zeros((S, n, p)) if chain is None else chain.Q
@@ -373,9 +362,9 @@ class SegmentFit:
                          f"{self.segments:,} segments")
 
         with np.errstate(all="ignore"):
-            normal, _, _, _ = _normal_equations(problem=self.problem, theta=thetas, X0=self.states,
-                                             free=(), theta_step=None, rtol=self.rtol,
-                                             batch_done=batch_done)
+            normal = _normal_equations(problem=self.problem, theta=thetas, X0=self.states,
+                                       free=(), theta_step=None, rtol=self.rtol,
+                                       batch_done=batch_done)[0]
             misfit = normal.cost.sum(axis=1)
             try:
                 step = np.linalg.solve(normal.H_xx, normal.g_x[..., None])[..., 0]
@@ -550,7 +539,7 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
             if evaluated is None:
                 evaluated = _Point(theta, X0, *_normal_equations(
                     problem=problem, theta=theta, X0=X0, free=free, theta_step=theta_step,
-                    rtol=rtol, batch_done=batch_done)[:3])
+                    rtol=rtol, batch_done=batch_done, keep=problem.inputs is not None))
             point, evaluated = evaluated, None
             normal, chain = point.normal, None
             if problem.groups < len(problem.pieces):
@@ -657,6 +646,8 @@ class _Point:
     normal: _Normal
     end: npt.NDArray[np.float64]    # (S, 2N)
     E: npt.NDArray[np.float64]      # (S, 2N, 2N + p)
+    # a driven model's: each segment's response to its input samples, on demand
+    moves: Callable[[], list[npt.NDArray[np.float64]]] | None = None
 
 
 def round_values(records: Records, n_free: int) -> int:
@@ -669,13 +660,14 @@ def round_values(records: Records, n_free: int) -> int:
 
 def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, ...],
                       theta_step: Any, rtol: float, batch_done: Callable[[int], None],
-                      derivatives: bool = True, responses: bool = False
+                      derivatives: bool = True, keep: bool = False
                       ) -> tuple[_Normal, npt.NDArray[np.float64], npt.NDArray[np.float64],
-                                 list[npt.NDArray[np.float64]]]:
+                                 Callable[[], list[npt.NDArray[np.float64]]] | None]:
     """Residuals and forward-difference Jacobians of every segment, into _Normal; each
     one's state at its end time (`_Problem.end_times`, S, 2N) and that state's derivatives
-    (S, 2N, 2N + p); with `responses` (a driven model), what each segment's input samples
-    move its scores and end state by (`integration.Blocks.responses`; otherwise none).
+    (S, 2N, 2N + p); with `keep` (a driven model), what gives each segment's response to
+    its input samples, on demand (`integration.responses`, from the integrated values the
+    batches keep: computed for the one point a covariance needs, not for every pass).
 
     `theta` holds every parameter, shared (P,) or one row per segment (S, P). The segments
     are cut into batches of about equal size, as many as keep each within MAX_BATCH
@@ -713,24 +705,33 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
                                          inputs=None if inputs is None else
                                          integration.SampledInputs(inputs.tau[lo:hi],
                                                                    inputs.values[lo:hi]),
-                                         responses=responses))
+                                         keep=keep))
     c = copies - 1
     cost, H, g = np.zeros((S, len(problem.weight))), np.zeros((S, c, c)), np.zeros((S, c))
     end, E = np.zeros((S, n_states)), np.zeros((S, n_states, c))
-    moves: list[npt.NDArray[np.float64]] = []
+    kept = []
     try:
         for lo, hi, blocks in zip(edges[:-1], edges[1:], integration.run(batches),
                                   strict=True):
             cost[lo:hi], H[lo:hi], g[lo:hi] = blocks.cost, blocks.H, blocks.g
             end[lo:hi], E[lo:hi] = blocks.end, blocks.E
-            moves += blocks.responses or []
+            kept.append(blocks.integrated)
             batch_done(int(hi))
     except integration.IntegrationFailed as exc:
         raise _SegmentFitFailed(str(exc)) from exc
     # each block its own array: numpy's sums over strided views round otherwise
     return _Normal(cost, *map(np.ascontiguousarray, (H[:, n_x:, n_x:], g[:, n_x:],
                                                      H[:, :n_x, :n_x], H[:, :n_x, n_x:],
-                                                     g[:, :n_x]))), end, E, moves
+                                                     g[:, :n_x]))), end, E, (
+        functools.partial(_responses, batches, kept) if keep else None)
+
+
+def _responses(batches: list[integration.Batch], kept: list[Any]
+               ) -> list[npt.NDArray[np.float64]]:
+    """Every segment's response to its input samples (`integration.responses`), batch
+    after batch."""
+    return [move for batch, integrated in zip(batches, kept, strict=True)
+            for move in integration.responses(batch, integrated)]
 
 
 @dataclass(frozen=True)
