@@ -303,11 +303,11 @@ def responses(batch: Batch, integrated: tuple[Array, npt.NDArray[np.intp], Array
     (m, c + 2N, n_inputs), to first order (`hamid.refine.input_noise.response`), from the
     batch's `Blocks.integrated`: the values (len(grid), variables, B, copies) at the output
     times `grid`, `where` the samples' and ends' indices into it."""
-    grid, where, values = integrated
     from scipy.interpolate import CubicSpline
 
     from hamid.refine.input_noise import Segment, response
 
+    grid, where, values = integrated
     inputs = batch.inputs
     assert inputs is not None and batch.ends is not None
     copies, B, n_states = batch.starts.shape
