@@ -34,7 +34,7 @@ from hamid.model.dynamics import Dynamics
 from hamid.refine import dop853
 
 __all__ = ["Batch", "Blocks", "IntegrationFailed", "SampledInputs", "Tolerance", "blocks",
-           "common_times", "parallel", "run"]
+           "common_times", "parallel", "responses", "run"]
 
 Array = npt.NDArray[np.float64]
 
@@ -49,6 +49,8 @@ PARALLEL_VALUES = 12_000_000
 # Segments whose Gauss-Newton blocks are formed together (`blocks`): enough that numpy's
 # calls are few, few enough that their arrays stay in cache.
 GATHERED = 32
+# Central-difference step of the rates' derivatives by an input, of its largest value
+INPUT_STEP = 1e-6
 
 
 class IntegrationFailed(Exception):
@@ -82,37 +84,56 @@ class SampledInputs:
 
     tau: Sequence[Array]
     values: Sequence[Array]
-    # each segment's perturbations of its inputs (draws, m, n_inputs), one copy each
-    draws: Sequence[Array] | None = None
 
-    @property
-    def n_draws(self) -> int:
-        return 0 if self.draws is None else len(self.draws[0])
+    def grid(self, resolution: float) -> Array:
+        """The times the batch's spline has its knots at (`common_times`)."""
+        return common_times(list(self.tau), resolution)[0]
+
+    def _placed(self, b: int, grid: Array, resolution: float) -> tuple[int, bool]:
+        """How many knots segment `b`'s samples reach, and whether they are its samples."""
+        tau = self.tau[b]
+        inside = int(np.searchsorted(grid, tau[-1], side="right"))
+        return inside, inside == len(tau) and np.allclose(tau, grid[:inside], rtol=0,
+                                                          atol=resolution)
+
+    def table(self, grid: Array, resolution: float) -> Array:
+        """Every segment's inputs at the knots `grid` (len(grid), n_inputs, B): its samples
+        where they are the knots, else its own spline there; its last value held after."""
+        from scipy.interpolate import CubicSpline
+
+        table = np.empty((len(grid), self.values[0].shape[1], len(self.tau)))
+        for b, (tau, values) in enumerate(zip(self.tau, self.values, strict=True)):
+            inside, alike = self._placed(b, grid, resolution)
+            table[:inside, :, b] = values if alike else CubicSpline(tau, values)(grid[:inside])
+            table[inside:, :, b] = table[inside - 1, :, b]
+        return table
+
+    def by_samples(self, b: int, grid: Array, resolution: float, gradient: Array) -> Array:
+        """A `gradient` (len(grid), ...) by segment `b`'s column of the `table` taken to
+        its samples (m, ...): the table's dependence on them, transposed."""
+        from hamid.refine.input_noise import spline_gradient
+
+        inside, alike = self._placed(b, grid, resolution)
+        by_table = gradient[:inside].copy()
+        by_table[inside - 1] += gradient[inside:].sum(axis=0)
+        if alike:
+            return by_table
+        shape = by_table.shape
+        return spline_gradient(self.tau[b], grid[:inside], by_table.reshape(inside, -1)
+                               ).reshape(len(self.tau[b]), *shape[1:])
 
     def path(self, copies: int, resolution: float) -> Callable[[float], Array]:
         """u(t) of every integrated state, (n_inputs, B * copies), each segment's inputs
-        repeated for its copies (the states' order in `blocks`), its last `n_draws` copies
-        each with its perturbed inputs; times closer than `resolution` are one
-        (`common_times`)."""
+        repeated for its copies (the states' order in `blocks`); times closer than
+        `resolution` are one (`common_times`)."""
         from scipy.interpolate import CubicSpline
 
-        grid, _ = common_times(list(self.tau), resolution)
-        n_inputs, n_draws = self.values[0].shape[1], self.n_draws
-        table = np.empty((len(grid), n_inputs, len(self.tau), 1 + n_draws))
-        for b, (tau, values) in enumerate(zip(self.tau, self.values, strict=True)):
-            inside = int(np.searchsorted(grid, tau[-1], side="right"))
-            alike = inside == len(tau) and np.allclose(tau, grid[:inside], rtol=0,
-                                                       atol=resolution)
-            variants = values[:, :, None] + (0 if self.draws is None else np.concatenate(
-                [np.zeros((1, *values.shape)), self.draws[b]]).transpose(1, 2, 0))
-            table[:inside, :, b] = (variants if alike
-                                    else CubicSpline(tau, variants, axis=0)(grid[:inside]))
-            table[inside:, :, b] = table[inside - 1, :, b]
+        grid = self.grid(resolution)
+        n_inputs = self.values[0].shape[1]
         # the spline's pieces, evaluated by hand: scipy's call costs more than the rest of
         # an integrator stage (tests/benchmarks/driven_refinement.py)
-        spline = CubicSpline(grid, table.reshape(len(grid), -1), axis=0)
+        spline = CubicSpline(grid, self.table(grid, resolution).reshape(len(grid), -1), axis=0)
         knots, c = spline.x, np.ascontiguousarray(spline.c.transpose(1, 0, 2))  # (pieces, 4, k)
-        pick = np.concatenate([np.zeros(copies - n_draws, np.intp), 1 + np.arange(n_draws)])
         bounds = knots.tolist()
         last = len(bounds) - 2
         piece = [0]   # the last call's: the integrator's next time is mostly in it
@@ -123,7 +144,7 @@ class SampledInputs:
                 i = piece[0] = min(max(bisect.bisect_right(bounds, t) - 1, 0), last)
             h = t - bounds[i]
             value = np.array([h * h * h, h * h, h, 1.0]) @ c[i]
-            return value.reshape(n_inputs, -1, 1 + n_draws)[:, :, pick].reshape(n_inputs, -1)
+            return np.repeat(value.reshape(n_inputs, -1, 1), copies, axis=2).reshape(n_inputs, -1)
 
         return u
 
@@ -137,8 +158,9 @@ class Batch:
     first, by which its difference from the first is divided. `ends`, if given, are a time
     of each segment (from its start, none before its samples) whose state and derivatives
     `blocks` returns too, without a residual (multiple shooting's continuity conditions).
-    The inputs' draws (`SampledInputs.draws`), if any, are the last copies, as the first
-    but for their inputs: `blocks` returns what each moves the scores and the end states by.
+    With `keep` (a driven model, with `ends` and a copy per initial-state component),
+    `blocks` returns its integrated values too, from which `responses` gives what each
+    recorded input sample moves the scores and the end states by.
     """
 
     dynamics: Dynamics
@@ -151,6 +173,7 @@ class Batch:
     tolerance: Tolerance
     ends: Array | None = None
     inputs: SampledInputs | None = None
+    keep: bool = False
 
     @property
     def values(self) -> int:
@@ -207,16 +230,15 @@ class Blocks:
     residuals; `H` (B, c, c) and `g` (B, c), J'J and J'r of each segment's Jacobian by its
     c perturbed copies (empty when there are none); with the batch's `ends`, `end` (B, 2N)
     each segment's state there and `E` (B, 2N, c) its derivatives by the copies; with the
-    inputs' draws, what each changes g and `end` by (to first order, as J is unchanged)."""
+    batch's `keep`, `integrated`: the output times, the samples' and ends' indices into
+    them and the values there (len(grid), variables, B, copies), for `responses`."""
 
     cost: Array
     H: Array
     g: Array
     end: Array | None = None
     E: Array | None = None
-    # with the inputs' draws: each draw's change of g (B, c, draws) and of `end` (B, 2N, draws)
-    g_draws: Array | None = None
-    end_draws: Array | None = None
+    integrated: tuple[Array, npt.NDArray[np.intp], Array] | None = None
 
 
 def blocks(batch: Batch) -> Blocks:
@@ -248,10 +270,8 @@ def blocks(batch: Batch) -> Blocks:
                                  rates.reshape(len(grid), n_states, B, copies)[:, n_states // 2:]],
                                 axis=1)
     values = values.reshape(len(grid), len(batch.weight), B, copies)
-    n_draws = 0 if batch.inputs is None else batch.inputs.n_draws
-    weight, steps, c = batch.weight, batch.steps, copies - 1 - n_draws
+    weight, steps, c = batch.weight, batch.steps, copies - 1
     cost, H, g = np.empty((B, len(weight))), np.empty((B, c, c)), np.empty((B, c))
-    g_draws = np.empty((B, c, n_draws))
     offsets = np.cumsum([0, *map(len, batch.tau)])
     for lo, hi in _alike(where, offsets):
         # neighbouring segments sampled alike: (m, 2N, G, copies) gathered at once
@@ -268,16 +288,73 @@ def blocks(batch: Batch) -> Blocks:
         H[lo:hi] = np.einsum("gscd,s->gcd", products, weight**2) / np.outer(steps, steps)
         scores = np.matmul(D, residual.transpose(2, 1, 0)[..., None])[..., 0]   # (G, 2N, c)
         g[lo:hi] = np.einsum("gsc,s->gc", scores, weight) / steps
-        if n_draws:   # each draw's residual less the first copy's: -(its motion less that)
-            moved = np.matmul(D, (Y[..., 1 + c:] - Y[..., :1]).transpose(2, 1, 0, 3))
-            g_draws[lo:hi] = -np.einsum("gscr,s->gcr", moved, weight**2) / steps[:, None]
     offset = offsets[-1]
     if batch.ends is None:
-        return Blocks(cost, H, g, g_draws=g_draws)
+        return Blocks(cost, H, g)
     at_ends = values[where[offset:], :n_states, np.arange(B)]       # (B, 2N, copies)
     end = at_ends[..., 0]
     return Blocks(cost, H, g, end, (at_ends[..., 1:1 + c] - end[..., None]) / batch.steps,
-                  g_draws=g_draws, end_draws=at_ends[..., 1 + c:] - end[..., None])
+                  integrated=(grid, where, values) if batch.keep else None)
+
+
+def responses(batch: Batch, integrated: tuple[Array, npt.NDArray[np.intp], Array]
+              ) -> list[Array]:
+    """Each segment's change of its scores and end state by each of its input samples,
+    (m, c + 2N, n_inputs), to first order (`hamid.refine.input_noise.response`), from the
+    batch's `Blocks.integrated`: the values (len(grid), variables, B, copies) at the output
+    times `grid`, `where` the samples' and ends' indices into it."""
+    from scipy.interpolate import CubicSpline
+
+    from hamid.refine.input_noise import Segment, response
+
+    grid, where, values = integrated
+    inputs = batch.inputs
+    assert inputs is not None and batch.ends is not None
+    copies, B, n_states = batch.starts.shape
+    n_inputs, N = inputs.values[0].shape[1], n_states // 2
+    # the rates' derivatives by the inputs at every output time, copy 0 (central differences)
+    knots = inputs.grid(batch.tolerance.resolution)
+    table = inputs.table(knots, batch.tolerance.resolution)
+    u = CubicSpline(knots, table, axis=0)(grid).transpose(1, 0, 2).reshape(n_inputs, -1)
+    states = values[:, :n_states, :, 0].transpose(1, 0, 2).reshape(n_states, -1)
+    moved = u.copy()
+    motion = batch.dynamics.at(np.tile(batch.weights[:, 0], (1, len(grid))),
+                               inputs=lambda time: moved)
+    B_all = np.zeros((len(grid), n_states, B, n_inputs))
+    for k in range(n_inputs):
+        step = INPUT_STEP * max(float(np.max(np.abs(u[k]))), 1e-300)
+        moved[k] = u[k] + step
+        up = motion.accelerations(states)
+        moved[k] = u[k] - step
+        down = motion.accelerations(states)
+        moved[k] = u[k]
+        B_all[:, N:, :, k] = ((up - down) / (2 * step)).reshape(N, len(grid), B).transpose(1, 0, 2)
+    weight, steps = batch.weight, batch.steps
+    offsets = np.cumsum([0, *map(len, batch.tau)])
+    # segments sampled alike and ending alike, taken together
+    groups: dict[tuple[bytes, int], list[int]] = {}
+    for b in range(B):
+        key = (where[offsets[b]:offsets[b + 1]].tobytes(), int(where[offsets[-1] + b]))
+        groups.setdefault(key, []).append(b)
+    out: list[Array] = [np.empty(0)] * B
+    for members in groups.values():
+        samples = where[offsets[members[0]]:offsets[members[0] + 1]]
+        last = int(where[offsets[-1] + members[0]])
+        Y = values[:last + 1, :, members]                                   # (G, var, S, copies)
+        J = ((Y[samples, :, :, 1:] - Y[samples, :, :, :1]) / steps).transpose(2, 0, 1, 3)
+        weighed = (J * (weight**2)[:, None]).swapaxes(2, 3)                 # (S, m, c, var)
+        direct = None
+        if len(weight) > n_states:   # accelerations: their residuals move with u itself
+            direct = -weighed[..., n_states:] @ B_all[samples, N:][:, :, members].transpose(
+                2, 0, 1, 3)
+        phi = (Y[:, :n_states, :, 1:1 + n_states] - Y[:, :n_states, :, :1]) / steps[:n_states]
+        moves = response(Segment(
+            times=grid[:last + 1], phi=phi.transpose(2, 0, 1, 3),
+            B=B_all[:last + 1, :, members].transpose(2, 0, 1, 3), samples=samples,
+            products=weighed @ J[..., :n_states], direct=direct), knots)
+        for b, move in zip(members, moves, strict=True):
+            out[b] = inputs.by_samples(b, knots, batch.tolerance.resolution, move)
+    return out
 
 
 def _alike(where: npt.NDArray[np.intp], offsets: npt.NDArray[np.intp]

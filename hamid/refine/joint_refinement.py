@@ -56,9 +56,6 @@ REWEIGHT_SETTLED = 0.1   # relative change of every noise level that ends them s
 HELD_OUT_LEVEL = 0.95    # refused when the refinement predicts worse beyond this bound
 LENGTHEN_LEVEL = 0.99    # segments joined while the misfit a join adds is below this F point
 LONGEST_PERIODS = 32     # dominant periods: longer segments would integrate one after another
-# Perturbations of the recorded inputs that the covariance their noise adds is drawn from
-# (`SegmentFit.input_shifts`): its relative error is about sqrt(2 / INPUT_DRAWS).
-INPUT_DRAWS = 24
 # A friction force's reversal is rounded over this share of its argument's root mean
 # square (`_smoothed`): the force's mean error is then about that share of its size
 SMOOTHING = 1e-3
@@ -382,8 +379,7 @@ def _refined(linear: LinearFit, fit: SegmentFit, within: bool,
                        f"per degree of freedom ({fit.chi2_per_dof:.3g})")
         if inputs_sigma is not None:
             covariance = covariance + _inputs_covariance(fit, inputs_sigma)
-            description += (", plus the inputs' noise carried through the integrated motion "
-                            f"({INPUT_DRAWS} draws)")
+            description += ", plus the inputs' noise carried through the integrated motion"
     else:
         covariance, df = fit.covariance("sandwich"), max(fit.segments - len(theta), 1)
         description = (f"sandwich covariance of the trajectory fit over its {fit.segments} "
@@ -398,14 +394,11 @@ def _refined(linear: LinearFit, fit: SegmentFit, within: bool,
 
 def _inputs_covariance(fit: SegmentFit, sigma: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     """The covariance that white noise of std `sigma` on the recorded inputs (one per
-    input) puts into the free parameters through the integrated motion: the second
-    moment of the fit's first-order response (`SegmentFit.input_shifts`) over
-    INPUT_DRAWS seeded draws of the noise (a fit gives one covariance)."""
-    records = fit.problem.records
-    assert records.U is not None
-    noise = sigma * np.random.default_rng(0).standard_normal((INPUT_DRAWS, *records.U.shape))
-    shifts = fit.input_shifts(noise)
-    return shifts.T @ shifts / INPUT_DRAWS
+    input) puts into the free parameters through the integrated motion, to first order:
+    sum over samples and inputs of sigma^2 a a', a the parameters' response to the
+    sample (`SegmentFit.input_response`)."""
+    response = fit.input_response()
+    return np.einsum("kmi,i,lmi->kl", response, sigma**2, response)
 
 
 def _held_out(fit: SegmentFit, theta_linear: npt.NDArray[np.float64], unknowns: Unknowns,

@@ -36,10 +36,11 @@ the last point of the fit it ties, without integrating it again.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any, Literal, NamedTuple
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -56,9 +57,7 @@ __all__ = ["RefinementFailed", "SegmentFit", "Stop", "TooUnstable", "fit", "join
 SEGMENT_PERIODS = 4.0  # dominant periods per segment, halved down to one when it fails
 MIN_SEGMENT_PERIODS = 1.0
 MIN_SEGMENT_SAMPLES = 8
-# Gauss-Newton steps at most: a fit near its minimum stops in a few; a start far off (the
-# linear fit of a damped two-mass chain's accelerations integrated twice, its mass 16x
-# too small) took Levenberg-Marquardt 30-40, and a limit costs only fits that fail
+# Gauss-Newton steps at most (far starts, a two-mass chain's from accelerations, took 30-40)
 MAX_ITERATIONS = 50
 # Segments integrated together as one vectorised system: as many as keep the integrated
 # values of a batch (copies x states x samples of a segment) within BATCH_VALUES.
@@ -290,38 +289,46 @@ class SegmentFit:
         S, p = score.shape
         return inverse @ (score.T @ score) @ inverse * S / max(S - p, 1)
 
-    def input_shifts(self, noise: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        """How much each perturbation of the recorded inputs moves the free parameters
-        (draws, p), to first order: the Gauss-Newton step it calls for from the fit's last
-        point, the states refitted. `noise` (draws, n_samples, n_inputs) is added to the
-        records' inputs.
+    def input_response(self) -> npt.NDArray[np.float64]:
+        """How much each recorded input sample moves the free parameters, to first order:
+        (p, n_samples, n_inputs), the Gauss-Newton step a change of it calls for from the
+        fit's last point, the states refitted, ties between segments followed.
 
         The fit integrates the inputs as recorded, so their noise drives the integrated
         motion: an error shared along each group of segments that the residuals' scale
-        does not see. The perturbed inputs are integrated as more copies of each segment
-        beside its Jacobian's, at little cost where the segments are many or short."""
+        does not see. Each segment's scores and end state move by its input samples as
+        the last pass of its Jacobian's copies gives them (`hamid.refine.input_noise`);
+        a tie carries the end state's move into the segments after it (the gaps
+        `_condensed` closes), and the states' elimination turns the scores' move into the
+        parameters' (module docstring)."""
         problem, point = self.problem, self.point
-        records = problem.records
-        assert problem.inputs is not None
-        perturbed = dataclasses.replace(problem, inputs=dataclasses.replace(
-            problem.inputs, draws=[noise[:, a:b] for a, b in _input_rows(records,
-                                                                         problem.pieces)]))
-        with np.errstate(all="ignore"):
-            normal, _, E, responses = _normal_equations(
-                problem=perturbed, theta=point.theta, X0=point.X0, free=self.free,
-                theta_step=_theta_step(point.theta[list(self.free)]), rtol=self.rtol,
-                batch_done=lambda done: None)
-            n_x = normal.H_xx.shape[1]
-            inverse = np.linalg.inv(_scores(self.normal)[1].sum(axis=0))
-            shifts = np.empty((len(noise), len(self.free)))
-            for r in range(len(noise)):
-                moved = dataclasses.replace(normal, g_x=responses.g[:, :n_x, r],
-                                            g_t=responses.g[:, n_x:, r])
-                if problem.groups < len(problem.pieces):   # the gaps moved by the end states
-                    moved, _ = _condensed(problem, _Point(point.theta, np.zeros_like(point.X0),
-                                                          moved, responses.end[..., r], E))
-                shifts[r] = inverse @ _scores(moved)[0].sum(axis=0)
-        return shifts
+        assert problem.records.U is not None and point.moves is not None
+        normal, E, moves = point.normal, point.E, point.moves()
+        n = normal.H_xx.shape[1]
+        S, p = len(problem.pieces), len(self.free)
+        grouped, chain = normal, None
+        if problem.groups < S:
+            grouped, chain = _condensed(problem, point)
+        group = np.arange(S) if chain is None else chain.group
+        P = np.repeat(np.eye(n)[None], S, axis=0) if chain is None else chain.P
+        Q = np.zeros((S, n, p)) if chain is None else chain.Q
+        # the group's state eliminated: (H_0t' H_00^-1)[group], each segment's share
+        eliminated = np.einsum("gak,gab->gkb", grouped.H_xt, np.linalg.inv(grouped.H_xx))[group]
+        by_score = np.concatenate([Q.transpose(0, 2, 1) - eliminated @ P.transpose(0, 2, 1),
+                                   np.repeat(np.eye(p)[None], S, axis=0)], axis=2)
+        # a gap opened at a segment's end moves the states of those tied after it
+        gap = -(Q.transpose(0, 2, 1) @ normal.H_xx + normal.H_xt.transpose(0, 2, 1)
+                - eliminated @ P.transpose(0, 2, 1) @ normal.H_xx)
+        by_end = np.zeros((S, p, n))
+        for s in range(S - 2, -1, -1):
+            if group[s + 1] == group[s]:
+                by_end[s] = gap[s + 1] + by_end[s + 1] @ E[s + 1, :, :n]
+        inverse = np.linalg.inv(_scores(self.normal)[1].sum(axis=0))
+        response = np.zeros((p, *problem.records.U.shape))
+        for s, (a, c) in enumerate(_input_rows(problem.records, problem.pieces)):
+            moved = np.concatenate([by_score[s], by_end[s]], axis=1)    # (p, c + 2N)
+            response[:, a:c] += np.einsum("kr,mri->kmi", inverse @ moved, moves[s])
+        return response
 
     def held_out_folds(self, folds: npt.NDArray[np.intp]
                        ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
@@ -358,9 +365,9 @@ class SegmentFit:
 
         with np.errstate(all="ignore"):
             try:
-                normal, _, _, _ = _normal_equations(
+                normal = _normal_equations(
                     problem=self.problem, theta=thetas, X0=self.states, free=(),
-                    theta_step=None, rtol=self.rtol, batch_done=batch_done)
+                    theta_step=None, rtol=self.rtol, batch_done=batch_done)[0]
             except _SegmentFitFailed as exc:
                 raise RefinementFailed(f"{exc}, at the held-out parameters") from exc
             misfit = normal.cost.sum(axis=1)
@@ -539,7 +546,7 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
                 try:
                     evaluated = _Point(theta, X0, *_normal_equations(
                         problem=problem, theta=theta, X0=X0, free=free, theta_step=theta_step,
-                        rtol=rtol, batch_done=batch_done)[:3])
+                        rtol=rtol, batch_done=batch_done, keep=problem.inputs is not None))
                 except _SegmentFitFailed:
                     if best is None:
                         raise
@@ -550,8 +557,7 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
                 if problem.groups < len(problem.pieces):
                     normal, chain = _condensed(problem, point)
             if lost or (best is not None and normal.total > best[0].total * (1 + 1e-12)):
-                # the step made it worse, or went where the motion blows up: return to the
-                # best point and damp the step
+                # worse, or where the motion blows up: back to the best point, damped
                 normal, chain, point = best
                 theta, X0 = point.theta, point.X0
                 damping_factor = max(10 * damping_factor, 1e-3)
@@ -652,6 +658,8 @@ class _Point:
     normal: _Normal
     end: npt.NDArray[np.float64]    # (S, 2N)
     E: npt.NDArray[np.float64]      # (S, 2N, 2N + p)
+    # a driven model's: each segment's response to its input samples, on demand
+    moves: Callable[[], list[npt.NDArray[np.float64]]] | None = None
 
 
 def round_values(records: Records, n_free: int) -> int:
@@ -664,13 +672,14 @@ def round_values(records: Records, n_free: int) -> int:
 
 def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, ...],
                       theta_step: Any, rtol: float, batch_done: Callable[[int], None],
-                      derivatives: bool = True
+                      derivatives: bool = True, keep: bool = False
                       ) -> tuple[_Normal, npt.NDArray[np.float64], npt.NDArray[np.float64],
-                                 _Responses]:
+                                 Callable[[], list[npt.NDArray[np.float64]]] | None]:
     """Residuals and forward-difference Jacobians of every segment, into _Normal; each
     one's state at its end time (`_Problem.end_times`, S, 2N) and that state's derivatives
-    (S, 2N, 2N + p); with the inputs' draws (`SampledInputs.draws`), what each moves the
-    scores and those states by (otherwise of none).
+    (S, 2N, 2N + p); with `keep` (a driven model), what gives each segment's response to
+    its input samples, on demand (`integration.responses`, from the integrated values the
+    batches keep: computed for the one point a covariance needs, not for every pass).
 
     `theta` holds every parameter, shared (P,) or one row per segment (S, P). The segments
     are cut into batches of about equal size, as many as keep each within MAX_BATCH
@@ -684,8 +693,7 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
     S, n_states, p = len(tau), X0.shape[1], len(free)
     n_x = n_states if derivatives else 0
     inputs = problem.inputs
-    n_draws = 0 if inputs is None else inputs.n_draws
-    copies = 1 + n_x + p + n_draws
+    copies = 1 + n_x + p
     rows = np.broadcast_to(theta, (S, np.shape(theta)[-1]))
     parameters = np.concatenate([np.ones((S, 1)), rows], axis=1).T     # (1 + P, S)
     x_step = problem.x_step
@@ -707,36 +715,35 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
                                          starts=starts, weights=W, steps=steps,
                                          tolerance=tolerance, ends=ends[lo:hi],
                                          inputs=None if inputs is None else
-                                         integration.SampledInputs(
-                                             inputs.tau[lo:hi], inputs.values[lo:hi],
-                                             None if inputs.draws is None
-                                             else inputs.draws[lo:hi])))
-    c = copies - 1 - n_draws
+                                         integration.SampledInputs(inputs.tau[lo:hi],
+                                                                   inputs.values[lo:hi]),
+                                         keep=keep))
+    c = copies - 1
     cost, H, g = np.zeros((S, len(problem.weight))), np.zeros((S, c, c)), np.zeros((S, c))
     end, E = np.zeros((S, n_states)), np.zeros((S, n_states, c))
-    responses = _Responses(np.zeros((S, c, n_draws)), np.zeros((S, n_states, n_draws)))
+    kept = []
     try:
         for lo, hi, blocks in zip(edges[:-1], edges[1:], integration.run(batches),
                                   strict=True):
             cost[lo:hi], H[lo:hi], g[lo:hi] = blocks.cost, blocks.H, blocks.g
             end[lo:hi], E[lo:hi] = blocks.end, blocks.E
-            if n_draws:
-                responses.g[lo:hi], responses.end[lo:hi] = blocks.g_draws, blocks.end_draws
+            kept.append(blocks.integrated)
             batch_done(int(hi))
     except integration.IntegrationFailed as exc:
         raise _SegmentFitFailed(str(exc)) from exc
     # each block its own array: numpy's sums over strided views round otherwise
     return _Normal(cost, *map(np.ascontiguousarray, (H[:, n_x:, n_x:], g[:, n_x:],
                                                      H[:, :n_x, :n_x], H[:, :n_x, n_x:],
-                                                     g[:, :n_x]))), end, E, responses
+                                                     g[:, :n_x]))), end, E, (
+        functools.partial(_responses, batches, kept) if keep else None)
 
 
-class _Responses(NamedTuple):
-    """What each draw of the inputs moves every segment's scores (S, 2N + p, draws) and
-    end state (S, 2N, draws) by."""
-
-    g: npt.NDArray[np.float64]
-    end: npt.NDArray[np.float64]
+def _responses(batches: list[integration.Batch], kept: list[Any]
+               ) -> list[npt.NDArray[np.float64]]:
+    """Every segment's response to its input samples (`integration.responses`), batch
+    after batch."""
+    return [move for batch, integrated in zip(batches, kept, strict=True)
+            for move in integration.responses(batch, integrated)]
 
 
 @dataclass(frozen=True)

@@ -415,9 +415,10 @@ def test_a_fit_stopped_sooner_is_settled_from_where_it_stopped():
 @pytest.mark.parametrize("tied", [False, True])
 def test_the_inputs_noise_moves_the_parameters_as_a_fit_on_the_noisy_inputs_does(
         tmp_path, tied):
-    """`input_shifts`, the first-order response of the parameters to a perturbation of
-    the recorded inputs, against the fit run again (to its minimum) on the perturbed
-    inputs: over segments fitted each on its own, and over segments tied into one."""
+    """`input_response`, the first-order response of the parameters to each recorded input
+    sample, applied to a perturbation of the inputs, against the fit run again (to its
+    minimum) on the perturbed inputs: over segments fitted each on its own, and over
+    segments tied into one."""
     import tomllib
 
     from hamid.data.records import Records
@@ -446,12 +447,12 @@ def test_the_inputs_noise_moves_the_parameters_as_a_fit_on_the_noisy_inputs_does
 
     fit = fitted(U)
     assert fit.segments == 4 and fit.groups == (1 if tied else 4)
-    noise = 0.01 * U.std() * np.random.default_rng(6).standard_normal((1, *U.shape))
-    moved = fitted(U + noise[0]).theta - fit.theta
+    noise = 0.01 * U.std() * np.random.default_rng(6).standard_normal(U.shape)
+    moved = fitted(U + noise).theta - fit.theta
     errors = np.sqrt(np.diag(fit.covariance("scaled")))
     # the response is of the size of the errors; first order, it misses by a few percent
     assert np.all(np.abs(moved) > 0.1 * errors), moved / errors
-    shifts = fit.input_shifts(noise)[0]
+    shifts = np.einsum("kmi,mi->k", fit.input_response(), noise)
     assert np.all(np.abs(shifts - moved) <= 0.05 * np.abs(moved) + 0.02 * errors), (
         shifts / errors, moved / errors)
 
