@@ -133,8 +133,12 @@ class SampledInputs:
         # the spline's pieces, evaluated by hand: scipy's call costs more than the rest of
         # an integrator stage (tests/benchmarks/driven_refinement.py)
         spline = CubicSpline(grid, self.table(grid, resolution).reshape(len(grid), -1), axis=0)
-        knots, c = spline.x, np.ascontiguousarray(spline.c.transpose(1, 0, 2))  # (pieces, 4, k)
-        bounds = knots.tolist()
+        # (pieces, 4, n_inputs * B * copies): each segment's coefficients repeated for its
+        # copies once here, not at every stage
+        c = np.ascontiguousarray(np.repeat(
+            spline.c.transpose(1, 0, 2).reshape(len(grid) - 1, 4, n_inputs, -1, 1), copies,
+            axis=4).reshape(len(grid) - 1, 4, -1))
+        bounds = spline.x.tolist()
         last = len(bounds) - 2
         piece = [0]   # the last call's: the integrator's next time is mostly in it
 
@@ -143,8 +147,7 @@ class SampledInputs:
             if not bounds[i] <= t < bounds[i + 1]:
                 i = piece[0] = min(max(bisect.bisect_right(bounds, t) - 1, 0), last)
             h = t - bounds[i]
-            value = np.array([h * h * h, h * h, h, 1.0]) @ c[i]
-            return np.repeat(value.reshape(n_inputs, -1, 1), copies, axis=2).reshape(n_inputs, -1)
+            return (np.array([h * h * h, h * h, h, 1.0]) @ c[i]).reshape(n_inputs, -1)
 
         return u
 
