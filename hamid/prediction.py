@@ -298,6 +298,7 @@ def predict(report: Mapping[str, Any], data: Any, reading: Mapping[str, Any] | N
     whole = Integration.of(report, recording)
     weight = start_weights(report, recording)
     names, scored = recording.compared
+    kept = [name for name, keep in zip(names, scored, strict=True) if keep]
     scales = design.trajectory_scales(records, len(model.coordinates))
     compared = records.compared
     predicted = np.empty_like(compared)
@@ -308,7 +309,7 @@ def predict(report: Mapping[str, Any], data: Any, reading: Mapping[str, Any] | N
         tau, recorded = t - t[0], compared[start:stop]
         integration = whole.over(records, start, stop)
         if from_rest:
-            x0, fitted_on = np.zeros(recorded.shape[1]), None
+            x0, fitted_on = np.zeros(len(model.variables)), None
         else:
             fitted_on = _start_samples(t, scales[j][0], label)
             x0 = fit_start(integration, tau[:fitted_on], recorded[:fitted_on], weight,
@@ -325,7 +326,7 @@ def predict(report: Mapping[str, Any], data: Any, reading: Mapping[str, Any] | N
                         "start": dict(zip(model.variables, x0.tolist(), strict=True)),
                         "start_samples": fitted_on,
                         "channels": _errors(recorded[:, scored], predicted[start:stop, scored],
-                                            names, scored)})
+                                            kept)})
     frame = pd.DataFrame({"trajectory": np.asarray(records.labels, dtype=object)[records.group],
                           "t": records.t})
     for i, name in enumerate(names):
@@ -336,8 +337,8 @@ def predict(report: Mapping[str, Any], data: Any, reading: Mapping[str, Any] | N
         "schema": SCHEMA, "hamid_version": __version__, "source": source,
         "data": _sources(data), "model": report["model"]["name"],
         "start": "rest" if from_rest else "fitted", "samples": len(records.group),
-        "channels": _errors(compared[:, scored], predicted[:, scored], names, scored),
-        "not_recorded": [name for name, kept in zip(names, scored, strict=True) if not kept],
+        "channels": _errors(compared[:, scored], predicted[:, scored], kept),
+        "not_recorded": [name for name in names if name not in kept],
         "trajectories": entries,
     }
     return Prediction(frame, document)
@@ -352,16 +353,14 @@ def _start_samples(t: Array, period: float | None, label: str) -> int:
     return max(START_SAMPLES, within)
 
 
-def _errors(recorded: Array, predicted: Array, names: Sequence[str],
-            scored: npt.NDArray[np.bool_]) -> dict[str, dict[str, float | None]]:
+def _errors(recorded: Array, predicted: Array,
+            names: Sequence[str]) -> dict[str, dict[str, float | None]]:
     """Helper: RMS error and NRMSE (RMS error over the recorded RMS about its mean) of each
-    recorded column, by the name of the channel (`names` of all, `scored` of the
-    recorded); NRMSE None for a constant recorded column."""
+    column, by name; NRMSE None for a constant recorded column."""
     rms = np.sqrt(np.mean((predicted - recorded) ** 2, axis=0))
     spread = recorded.std(axis=0)
-    kept = [name for name, keep in zip(names, scored, strict=True) if keep]
     return {name: {"rms": float(e), "nrmse": float(e / s) if s > 0 else None}
-            for name, e, s in zip(kept, rms, spread, strict=True)}
+            for name, e, s in zip(names, rms, spread, strict=True)}
 
 
 def _sources(data: Any) -> list[str]:

@@ -174,6 +174,11 @@ def test_accelerations_alone_are_scored_against_the_equations_of_motion(result, 
     assert np.abs(frame["x_predicted"] - x).max() < 0.01 * x.abs().max()
     table = _run(_report(tmp_path, result), data)
     assert "not recorded, so predicted but not scored: x, v" in table.stdout
+    # from rest too (the zero state was made as long as the compared channels: 3 for 2)
+    from_rest = result.predict(str(data), from_rest=True).to_dict()
+    assert list(from_rest["channels"]) == ["a"]
+    assert all(value == 0.0 for entry in from_rest["trajectories"]
+               for value in entry["start"].values())
 
 
 def test_derived_velocities_are_predicted_not_scored(result, unseen):
