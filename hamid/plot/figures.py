@@ -75,8 +75,8 @@ def _matplotlib() -> Any:
 
 
 def parse_panels(panels: str | int | Sequence[str | int] | None) -> tuple[str, ...] | None:
-    """Panel names from numbers (1-7) or names, a comma list or a sequence; None for the
-    default ones that apply."""
+    """Panel names from numbers (1 to the number of `PANELS`) or names, a comma list or a
+    sequence; None for the default ones that apply."""
     if panels is None:
         return None
     items = panels.split(",") if isinstance(panels, str) else \
@@ -84,7 +84,8 @@ def parse_panels(panels: str | int | Sequence[str | int] | None) -> tuple[str, .
     names = []
     for item in items:
         text = str(item).strip().lower()
-        name = PANELS[int(text) - 1] if text in {str(k) for k in range(1, 8)} else text
+        name = (PANELS[int(text) - 1] if text in {str(k) for k in range(1, len(PANELS) + 1)}
+                else text)
         if name not in PANELS:
             listed = ", ".join(f"{k} {p}" for k, p in enumerate(PANELS, 1))
             raise UsageError(f"--panels: unknown panel {str(item)!r} (choose from {listed})")
