@@ -51,7 +51,8 @@ from hamid.model.dynamics import Dynamics, Motion
 from hamid.model.models import model_from_info
 from hamid.options import TIME_UNITS, FitOptions
 from hamid.refine.integration import SampledInputs
-from hamid.refine.trajectory import NOISE_FLOOR, STEP
+from hamid.refine.joint_refinement import channel_weights
+from hamid.refine.trajectory import STEP
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -196,9 +197,8 @@ class Integration:
 
 def start_weights(report: Mapping[str, Any], recording: Recording) -> Array:
     """The weight of each compared channel (`Recording.compared`) in `fit_start`'s
-    squares, as the refinement weighs it: one over its noise level (floored at
-    `NOISE_FLOOR` of its spread), 0 for channels not recorded (reconstructed, or velocities
-    derived from the positions), which carry no information of their own."""
+    squares, as the refinement weighs it (`channel_weights`: one over its noise level,
+    0 for channels not recorded)."""
     records = recording.records
     _, recorded = recording.compared
     sigma, spread = noise_levels(report, recording), records.spread
@@ -206,8 +206,7 @@ def start_weights(report: Mapping[str, Any], recording: Recording) -> Array:
         sigma = np.concatenate([sigma, measurement.estimate_noise(records.A,
                                                                   records.bounds())])
         spread = np.concatenate([spread, records.A.std(axis=0)])
-    floor = np.maximum(sigma, NOISE_FLOOR * spread)
-    return np.where(recorded & (floor > 0), 1.0 / np.where(floor > 0, floor, 1.0), 0.0)
+    return channel_weights(sigma, spread, recorded)
 
 
 def fit_start(integration: Integration, tau: Array, recorded: Array, weight: Array, *,

@@ -45,9 +45,10 @@ from hamid.safe_text import counted
 if TYPE_CHECKING:
     from hamid.refine.trajectory import SegmentFit
 
-__all__ = ["level_errors", "refine"]
+__all__ = ["channel_weights", "level_errors", "refine"]
 
 CHI2_LIMIT = 1.5         # weighted misfit per degree of freedom that the noise explains
+NOISE_FLOOR = 1e-9       # of a channel's spread: the smallest noise level it is weighted by
 HOPELESS = 100           # times that: no use converging at those weights
 FOLDS = 5                # contiguous blocks of segments held out in turn
 CHECKED_SEGMENTS = 2 * FOLDS  # fewest segments the held-out check is made with
@@ -68,6 +69,17 @@ CLEAN_CHI2 = 1e-6        # misfit per dof below which it is the integrator's err
 FIRST_WITHIN = 0.3
 
 
+def channel_weights(levels: npt.NDArray[np.float64], spread: npt.NDArray[np.float64],
+                    used: npt.NDArray[np.bool_]) -> npt.NDArray[np.float64]:
+    """The weight of each channel in the trajectory fit's squares: one over its noise
+    level, floored at NOISE_FLOOR of its spread (a channel recorded without noise would
+    otherwise outweigh all others without bound); 0 for channels not `used` (not recorded:
+    derived or integrated, nothing of their own) and for a constant channel recorded
+    without noise, which carries nothing of the motion."""
+    level = np.maximum(levels, NOISE_FLOOR * spread)
+    return np.where(used & (level > 0), 1.0 / np.where(level > 0, level, 1.0), 0.0)
+
+
 @dataclass(frozen=True)
 class _Noise:
     """The noise level of each variable that the trajectory fit weights by.
@@ -82,13 +94,11 @@ class _Noise:
     levels: npt.NDArray[np.float64]
     given: npt.NDArray[np.bool_]
     used: npt.NDArray[np.bool_]
-    floor: npt.NDArray[np.float64]
+    spread: npt.NDArray[np.float64]
 
     @classmethod
     def of(cls, records: Records, sigma: npt.NDArray[np.float64] | None,
            fitted: npt.NDArray[np.bool_]) -> _Noise:
-        from hamid.refine.trajectory import NOISE_FLOOR
-
         X = records.compared
         differences = measurement.estimate_noise(X, records.bounds())
         user = np.zeros(len(differences))   # the user's levels (none of accelerations)
@@ -97,12 +107,11 @@ class _Noise:
         base = np.where(given, user, differences)
         spread = records.spread if records.A is None else X.std(axis=0)
         # channels not recorded (derived or integrated): nothing of their own
-        return cls(base, base, given, fitted.copy(),
-                   NOISE_FLOOR * np.maximum(spread, np.finfo(float).tiny))
+        return cls(base, base, given, fitted.copy(), spread)
 
     @property
     def weights(self) -> npt.NDArray[np.float64]:
-        return np.where(self.used, 1.0 / np.maximum(self.levels, self.floor), 0.0)
+        return channel_weights(self.levels, self.spread, self.used)
 
     def raised(self, fit: SegmentFit) -> _Noise:
         """Each level not given by the user raised from its base to the fit's root mean
@@ -121,8 +130,8 @@ class _Noise:
         """The fit's misfit per degree of freedom weighted by the base levels (the noise
         given or estimated from differences)."""
         squares = fit.problem.n_samples * np.nan_to_num(fit.residual_rms) ** 2
-        return float(np.sum(squares[self.used] / np.maximum(self.base, self.floor)[self.used]
-                            ** 2) / fit.dof)
+        return float(np.sum(squares * channel_weights(self.base, self.spread, self.used) ** 2)
+                     / fit.dof)
 
     def settled(self, other: _Noise) -> bool:
         """Whether no level of `other` is more than REWEIGHT_SETTLED away from this one."""

@@ -63,7 +63,6 @@ MAX_ITERATIONS = 50
 # values of a batch (copies x states x samples of a segment) within BATCH_VALUES.
 MAX_BATCH, BATCH_VALUES = 256, 1 << 22
 STEP = 1e-7            # relative forward-difference step of the Jacobian
-NOISE_FLOOR = 1e-9     # of a variable's spread: the smallest noise level a value is weighted by
 # Integration steps allowed per sample time (and a floor): smooth motion needs about one;
 # a motion that is stiff or blows up would otherwise crawl on for hours.
 MAX_STEPS_PER_SAMPLE, MIN_STEP_BUDGET = 50, 1000

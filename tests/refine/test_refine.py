@@ -562,3 +562,13 @@ def test_the_refined_fit_is_settled_whether_joined_or_not(monkeypatch):
     errors = np.array([p.stderr for p in at_once.parameters])
     assert np.all(np.abs(np.array(list(alone.estimates.values()))
                          - np.array(list(at_once.estimates.values()))) < 1e-6 * errors)
+
+
+def test_each_channel_is_weighted_by_its_noise_floored_at_its_spread():
+    """One over the noise level; a channel recorded without noise at 1e-9 of its spread
+    (not without bound); nothing for a constant channel without noise, nor for one not
+    recorded. `hamid predict` fits its start state with the same weights."""
+    weights = joint_refinement.channel_weights(np.array([0.1, 0.0, 0.0, 0.2]),
+                                               np.array([1.0, 2.0, 0.0, 1.0]),
+                                               np.array([True, True, True, False]))
+    np.testing.assert_allclose(weights, [10.0, 5e8, 0.0, 0.0])
