@@ -146,9 +146,10 @@ class Channels:
                             f"({self.text}, against {first.text})")
         return self
 
-    def notes(self, source: str) -> list[str]:
+    def notes(self, source: str, refined: bool) -> list[str]:
         """What the report says of the channels reconstructed and of those not fitted, one
-        note for the coordinates that record alike."""
+        note for the coordinates that record alike; what the trajectory refinement fits,
+        where one follows (`refined`: the method is auto)."""
         alike: dict[tuple[str, ...], list[str]] = {}
         for name, kinds in self.report().items():
             alike.setdefault(tuple(kinds["recorded"]), []).append(name)
@@ -159,14 +160,16 @@ class Channels:
             fitted = [k for k in recorded if k != "acceleration"]
             if "position" in recorded and rebuilt:
                 notes.append(f"{source}: no velocity column for {who}: the velocities are "
-                             "derived from the positions (as --velocity savgol), and the "
-                             "trajectory refinement fits the positions alone")
+                             "derived from the positions (as --velocity savgol)"
+                             + ", and the trajectory refinement fits the positions alone"
+                             * refined)
             elif rebuilt:
                 notes.append(f"{source}: no {' or '.join(rebuilt)} column for {who}: "
                              f"{' and '.join(_PLURALS[k] for k in rebuilt)} integrated from the "
                              f"{'velocities' if fitted else 'accelerations'} for the linear "
-                             "start (less their cycle means); the trajectory refinement fits "
-                             f"the recorded {' and '.join(_PLURALS[k] for k in recorded)}")
+                             + ("start (less their cycle means); the trajectory refinement "
+                                f"fits the recorded {' and '.join(_PLURALS[k] for k in recorded)}"
+                                if refined else "fit (less their cycle means)"))
         return notes
 
     def set_aside(self, velocities: Collection[str], names: Sequence[str]) -> Channels:

@@ -156,15 +156,21 @@ def test_velocities_alone_are_fitted_with_no_option(clean):
 def test_an_unrefined_fit_from_integrated_positions_says_its_intervals_are_short(clean):
     """--method weak does not refine: the estimates are the linear fit's on positions
     integrated from the velocities, whose intervals leave out the integration's errors;
-    the refined fit does not say so."""
+    the refined fit does not say so. The note on the channels speaks of a refinement only
+    where one follows."""
     recorded = with_noise(clean, NOISE, 0).drop(columns=["x"])
     warning = ("the estimates are the linear fit's, on positions integrated from the "
                "recorded channels (x): their intervals do not hold the integration's errors")
     weak = hamid.fit(recorded, model="duffing", damping="viscous", method="weak")
     assert weak.method["refinement"] is None
     assert any(w.startswith(warning) for w in weak.warnings), weak.warnings
+    assert ("<DataFrame>: no position column for any coordinate: positions integrated from "
+            "the velocities for the linear fit (less their cycle means)") in weak.warnings
     refined = hamid.fit(recorded, model="duffing", damping="viscous")
     assert not any(w.startswith(warning) for w in refined.warnings)
+    assert ("<DataFrame>: no position column for any coordinate: positions integrated from "
+            "the velocities for the linear start (less their cycle means); the trajectory "
+            "refinement fits the recorded velocities") in refined.warnings
 
 
 def test_accelerations_alone_in_g_are_fitted_by_the_refinement(clean):
