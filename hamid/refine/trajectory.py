@@ -50,6 +50,7 @@ from hamid.model.dissipation import Dissipation
 from hamid.model.dynamics import Dynamics
 from hamid.model.models import Model
 from hamid.refine import integration
+from hamid.refine.steps import ROUNDING, Damping, Normal, scores
 
 __all__ = ["RefinementFailed", "SegmentFit", "Stop", "TooUnstable", "fit", "join", "refine",
            "refit", "round_values", "segment_count", "settle"]
@@ -57,8 +58,9 @@ __all__ = ["RefinementFailed", "SegmentFit", "Stop", "TooUnstable", "fit", "join
 SEGMENT_PERIODS = 4.0  # dominant periods per segment, halved down to one when it fails
 MIN_SEGMENT_PERIODS = 1.0
 MIN_SEGMENT_SAMPLES = 8
-# Gauss-Newton steps at most (far starts, a two-mass chain's from accelerations, took 30-40)
-MAX_ITERATIONS = 50
+# Gauss-Newton steps at most: far starts (a damped two-mass chain's linear fit from its
+# accelerations integrated twice, the mass 0.12 for 2) took 30-64 in 100 realizations
+MAX_ITERATIONS = 100
 # Segments integrated together as one vectorised system: as many as keep the integrated
 # values of a batch (copies x states x samples of a segment) within BATCH_VALUES.
 MAX_BATCH, BATCH_VALUES = 256, 1 << 22
@@ -227,7 +229,7 @@ class SegmentFit:
     theta: npt.NDArray[np.float64]
     free: tuple[int, ...]
     states: npt.NDArray[np.float64]
-    normal: _Normal
+    normal: Normal
     shift: npt.NDArray[np.float64]
     iterations: int
     rtol: float
@@ -269,7 +271,7 @@ class SegmentFit:
         the misfit at the final parameters plus d, the state refitted, is
         misfit - 2 score.d + d.schur.d. The scores sum to zero once converged."""
         normal = self.normal
-        score, schur = _scores(normal)
+        score, schur = scores(normal)
         misfit = normal.misfit - np.einsum("sa,sab,sb->s", normal.g_x,
                                            np.linalg.inv(normal.H_xx), normal.g_x)
         # from the point the equations were made at to the final one
@@ -322,7 +324,7 @@ class SegmentFit:
         for s in range(S - 2, -1, -1):
             if group[s + 1] == group[s]:
                 by_end[s] = gap[s + 1] + by_end[s + 1] @ E[s + 1, :, :n]
-        inverse = np.linalg.inv(_scores(self.normal)[1].sum(axis=0))
+        inverse = np.linalg.inv(scores(self.normal)[1].sum(axis=0))
         response = np.zeros((p, *problem.records.U.shape))
         for s, (a, c) in enumerate(_input_rows(problem.records, problem.pieces)):
             moved = np.concatenate([by_score[s], by_end[s]], axis=1)    # (p, c + 2N)
@@ -503,13 +505,6 @@ def _theta_step(free_theta: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     return step
 
 
-def _scores(normal: _Normal) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """Each group's score (G, p) and Schur complement (G, p, p), its state eliminated."""
-    inverse = np.linalg.inv(normal.H_xx)
-    return (normal.g_t - np.einsum("sak,sab,sb->sk", normal.H_xt, inverse, normal.g_x),
-            normal.H_tt - np.einsum("sak,sab,sbl->skl", normal.H_xt, inverse, normal.H_xt))
-
-
 class _SegmentFitFailed(Exception):
     """One segment length did not give a fit; the reason is the text."""
 
@@ -527,7 +522,7 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
     free_list = list(free)
     if X0 is None:
         X0 = np.array([x[0, :problem.x_step.size] for x in problem.measured])
-    damping_factor, best, converged, off = 0.0, None, False, np.inf
+    damping, best, converged, off, predicted = Damping(), None, False, np.inf, 0.0
     last_step = None   # the last undamped step, in standard errors
     length = problem.span
     dof = max(problem.n_used - len(free) - problem.groups * X0.shape[1], 1)
@@ -555,25 +550,30 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
                 normal, chain = point.normal, None
                 if problem.groups < len(problem.pieces):
                     normal, chain = _condensed(problem, point)
-            if lost or (best is not None and normal.total > best[0].total * (1 + 1e-12)):
+            if lost or (best is not None and normal.total > best[0].total * (1 + ROUNDING)):
                 # worse, or where the motion blows up: back to the best point, damped
                 normal, chain, point = best
                 theta, X0 = point.theta, point.X0
-                damping_factor = max(10 * damping_factor, 1e-3)
+                damping = damping.failed()
             else:
-                damping_factor = damping_factor / 10 if damping_factor > 1e-6 else 0.0
+                if best is not None:
+                    damping = damping.succeeded(best[0].total - normal.total, predicted,
+                                                normal.total)
                 best = normal, chain, point
-            d_theta, d_x, schur = normal.step(damping_factor)
+            d_theta, d_x, schur, predicted = normal.step(damping.factor)
+            if damping.factor > 0 and predicted <= ROUNDING * normal.total:
+                # damped until its drop is rounding, and still no step lowered the misfit
+                raise _SegmentFitFailed("Gauss-Newton found no step that lowers the misfit")
             theta = theta.copy()
             theta[free_list] += d_theta
             X0 = X0 + (d_x if chain is None else chain.steps(d_x, d_theta))
             iterations += 1
-            if stop.beyond is not None and damping_factor == 0.0:
-                heading = normal.total - float(normal.g_t.sum(axis=0) @ d_theta
-                                               + np.einsum("sa,sa->", normal.g_x, d_x))
-                if heading > stop.beyond * dof:   # stay at the point evaluated
-                    theta, X0, d_theta = best[2].theta, best[2].X0, np.zeros_like(d_theta)
-                    break
+            # heading beyond hope (where the undamped step's quadratic model lands):
+            # stay at the point evaluated
+            if (stop.beyond is not None and damping.factor == 0.0
+                    and normal.total - predicted > stop.beyond * dof):
+                theta, X0, d_theta = best[2].theta, best[2].X0, np.zeros_like(d_theta)
+                break
             # the parameters' spread, scaled by the misfit (the noise may be misjudged)
             spread = np.sqrt(np.abs(np.diag(np.linalg.inv(schur))) * normal.total / dof)
             step = np.abs(d_theta) / np.maximum(spread, 1e-300)
@@ -581,13 +581,13 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
             # stepped to is within that ratio of this step from the minimum
             ratio = 1.0 if last_step is None else min(
                 float(np.linalg.norm(step) / max(np.linalg.norm(last_step), 1e-300)), 1.0)
-            last_step = step if damping_factor == 0.0 else None
+            last_step = step if damping.factor == 0.0 else None
             # standard errors from the minimum (beyond round-off); tied, only once the
             # misfit was evaluated with the gaps closed (a step after the first)
             off = np.inf if chain is not None and iterations == 1 else float(np.max(
                 (np.abs(d_theta) * ratio - 1e-9 * np.abs(theta[free_list]))
                 / np.maximum(spread, 1e-300)))
-            if damping_factor == 0.0:
+            if damping.factor == 0.0:
                 # a fine spread shows at the first undamped step: tighten there rather than
                 # settle at the loose tolerance first (an evaluation less)
                 relative_spread = spread / np.maximum(np.abs(theta[free_list]), 1e-300)
@@ -598,7 +598,7 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
                 if off <= stop.within:
                     converged = True
                     break
-    if best is None or (not converged and damping_factor != 0.0):
+    if best is None or (not converged and damping.factor != 0.0):
         raise _SegmentFitFailed(f"Gauss-Newton did not settle in {MAX_ITERATIONS} iterations")
     fit = SegmentFit(problem=problem, theta=theta, free=free, states=X0, normal=best[0],
                      shift=d_theta, iterations=iterations, rtol=rtol, point=best[2],
@@ -609,44 +609,6 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
 
 
 @dataclass(frozen=True)
-class _Normal:
-    """Gauss-Newton normal equations of every segment, or group of tied segments in its
-    first state, the states not yet eliminated."""
-
-    cost: npt.NDArray[np.float64]   # (S, 2N): weighted squared residuals of each variable
-    H_tt: npt.NDArray[np.float64]   # (S, p, p)
-    g_t: npt.NDArray[np.float64]    # (S, p)
-    H_xx: npt.NDArray[np.float64]   # (S, 2N, 2N)
-    H_xt: npt.NDArray[np.float64]   # (S, 2N, p)
-    g_x: npt.NDArray[np.float64]    # (S, 2N)
-    # (S,): what closing a group's gaps adds to its cost, to first order in the residuals
-    closing: npt.NDArray[np.float64] | float = 0.0
-
-    @property
-    def misfit(self) -> npt.NDArray[np.float64]:
-        """Each segment's or group's weighted misfit, its gaps closed."""
-        return self.cost.sum(axis=1) + self.closing
-
-    @property
-    def total(self) -> float:
-        return float(self.cost.sum() + np.sum(self.closing))
-
-    def step(self, damping: float) -> tuple[Any, Any, Any]:
-        """Parameter step, segment-state steps and the Schur complement (Marquardt-damped)."""
-        n = self.H_xx.shape[1]
-        H_tt = self.H_tt.sum(axis=0)
-        H_xx = self.H_xx + damping * np.einsum("sii->si", self.H_xx)[:, :, None] * np.eye(n)
-        inverse = np.linalg.inv(H_xx)
-        schur = (H_tt + damping * np.diag(np.diag(H_tt))
-                 - np.einsum("sak,sab,sbl->kl", self.H_xt, inverse, self.H_xt))
-        rhs = self.g_t.sum(axis=0) - np.einsum("sak,sab,sb->k", self.H_xt, inverse, self.g_x)
-        d_theta = np.linalg.solve(schur, rhs)
-        d_x = np.einsum("sab,sb->sa", inverse,
-                        self.g_x - np.einsum("sak,k->sa", self.H_xt, d_theta))
-        return d_theta, d_x, schur
-
-
-@dataclass(frozen=True)
 class _Point:
     """A point evaluated: every parameter and segment state, the segments' own normal
     equations there (not condensed onto groups), and each segment's state at its end time
@@ -654,7 +616,7 @@ class _Point:
 
     theta: npt.NDArray[np.float64]  # (P,)
     X0: npt.NDArray[np.float64]     # (S, 2N)
-    normal: _Normal
+    normal: Normal
     end: npt.NDArray[np.float64]    # (S, 2N)
     E: npt.NDArray[np.float64]      # (S, 2N, 2N + p)
     # a driven model's: each segment's response to its input samples, on demand
@@ -672,9 +634,9 @@ def round_values(records: Records, n_free: int) -> int:
 def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, ...],
                       theta_step: Any, rtol: float, batch_done: Callable[[int], None],
                       derivatives: bool = True, keep: bool = False
-                      ) -> tuple[_Normal, npt.NDArray[np.float64], npt.NDArray[np.float64],
+                      ) -> tuple[Normal, npt.NDArray[np.float64], npt.NDArray[np.float64],
                                  Callable[[], list[npt.NDArray[np.float64]]] | None]:
-    """Residuals and forward-difference Jacobians of every segment, into _Normal; each
+    """Residuals and forward-difference Jacobians of every segment, into Normal; each
     one's state at its end time (`_Problem.end_times`, S, 2N) and that state's derivatives
     (S, 2N, 2N + p); with `keep` (a driven model), what gives each segment's response to
     its input samples, on demand (`integration.responses`, from the integrated values the
@@ -731,7 +693,7 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
     except integration.IntegrationFailed as exc:
         raise _SegmentFitFailed(str(exc)) from exc
     # each block its own array: numpy's sums over strided views round otherwise
-    return _Normal(cost, *map(np.ascontiguousarray, (H[:, n_x:, n_x:], g[:, n_x:],
+    return Normal(cost, *map(np.ascontiguousarray, (H[:, n_x:, n_x:], g[:, n_x:],
                                                      H[:, :n_x, :n_x], H[:, :n_x, n_x:],
                                                      g[:, :n_x]))), end, E, (
         functools.partial(_responses, batches, kept) if keep else None)
@@ -761,7 +723,7 @@ class _Chain:
                 + self.Q @ d_theta + self.c)
 
 
-def _condensed(problem: _Problem, point: _Point) -> tuple[_Normal, _Chain]:
+def _condensed(problem: _Problem, point: _Point) -> tuple[Normal, _Chain]:
     """The segments' normal equations at `point` condensed onto each group's first state
     (module docstring), and the chain that gives every segment's state step."""
     normal, X0, end, E = point.normal, point.X0, point.end, point.E
@@ -794,6 +756,6 @@ def _condensed(problem: _Problem, point: _Point) -> tuple[_Normal, _Chain]:
     H_00, H_0t, H_tt, g_0, g_t, closing = (np.add.reduceat(a, problem.starts, axis=0)
                                            for a in per_segment)
     cost = np.add.reduceat(normal.cost, problem.starts, axis=0)
-    normal_equations = _Normal(cost=cost, H_tt=H_tt, g_t=g_t, H_xx=H_00, H_xt=H_0t, g_x=g_0,
+    normal_equations = Normal(cost=cost, H_tt=H_tt, g_t=g_t, H_xx=H_00, H_xt=H_0t, g_x=g_0,
                                closing=closing)
     return normal_equations, _Chain(group, P, Q, c)

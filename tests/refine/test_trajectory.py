@@ -362,6 +362,28 @@ def test_gauss_newton_stops_within_a_thousandth_of_a_standard_error():
         assert np.all(np.abs(on.theta[free] - fit.theta[free]) < trajectory.SETTLED * errors)
 
 
+def test_a_fit_no_step_of_which_lowers_the_misfit_stops_once_damped_to_rounding(
+        monkeypatch):
+    """Steps turned uphill (as a Jacobian that misjudges the misfit's slope would) fail
+    however damped: the fit gives up once the drop they foretell is rounding (11 steps
+    on, the damping grown to 2e13), rather than at MAX_ITERATIONS."""
+    from hamid.refine import steps
+
+    taken = []
+    uphill = steps.Normal.step
+
+    def step(self, damping):
+        d_theta, d_x, schur, predicted = uphill(self, damping)
+        taken.append(damping)
+        return -d_theta, -d_x, schur, predicted
+
+    monkeypatch.setattr(steps.Normal, "step", step)
+    with pytest.raises(trajectory.RefinementFailed, match="no step that lowers the misfit"):
+        _peng_fit(10.0, start=1.01)
+    assert 2 < len(taken) < trajectory.MAX_ITERATIONS / 2
+    assert taken[0] == 0.0 and all(np.diff(taken) > 0)
+
+
 def test_a_join_starts_from_the_last_point_of_the_fit_it_ties(monkeypatch):
     """Every fit integrates each segment to where its tie to the next would compare it:
     a join's first step needs no integration, and its result equals a join whose first
