@@ -27,8 +27,9 @@ __all__ = ["ROUNDING", "Damping", "Normal", "scores"]
 
 FIRST = 1e-3     # the damping of the first step taken again
 LEAST = 1e-6     # below it, the steps are undamped again
-# Of the misfit: a rise below it is rounding (the step is not worse), and so is a drop
-# foretold below it (undamped: the minimum is reached; damped: no step lowers the misfit)
+# Of the misfit: a rise below it is rounding (the step is not worse), and so is a drop a
+# damped step foretells below it (after good steps the minimum is near; after failed
+# ones, no step lowers the misfit)
 ROUNDING = 1e-12
 
 
@@ -43,12 +44,10 @@ class Damping:
         """The damping of the step taken again after one that made the misfit worse."""
         return Damping(max(self.growth * self.factor, FIRST), 2 * self.growth)
 
-    def succeeded(self, drop: float, predicted: float, misfit: float) -> Damping:
-        """The damping after a step that lowered the misfit by `drop` (to `misfit`), its
-        quadratic model having foretold `predicted`."""
-        if predicted <= ROUNDING * misfit:
-            return Damping()
-        ratio = min(max(drop / predicted, 0.0), 1.0)
+    def succeeded(self, drop: float, predicted: float) -> Damping:
+        """The damping after a step that lowered the misfit by `drop`, its quadratic model
+        having foretold `predicted`."""
+        ratio = min(max(drop / predicted, 0.0), 1.0) if predicted > 0 else 1.0
         factor = self.factor * max(1 / 3, 1 - (2 * ratio - 1) ** 3)
         return Damping(factor if factor >= LEAST else 0.0)
 

@@ -523,6 +523,7 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
     if X0 is None:
         X0 = np.array([x[0, :problem.x_step.size] for x in problem.measured])
     damping, best, converged, off, predicted = Damping(), None, False, np.inf, 0.0
+    rounded_at = None   # the point whose damped steps last foretold a drop of rounding
     last_step = None   # the last undamped step, in standard errors
     length = problem.span
     dof = max(problem.n_used - len(free) - problem.groups * X0.shape[1], 1)
@@ -550,20 +551,25 @@ def _fit_segments(problem: _Problem, theta: npt.NDArray[np.float64], free: tuple
                 normal, chain = point.normal, None
                 if problem.groups < len(problem.pieces):
                     normal, chain = _condensed(problem, point)
-            if lost or (best is not None and normal.total > best[0].total * (1 + ROUNDING)):
-                # worse, or where the motion blows up: back to the best point, damped
+            worse = lost or (best is not None
+                             and normal.total > best[0].total * (1 + ROUNDING))
+            if worse:   # or where the motion blows up: back to the best point, damped
                 normal, chain, point = best
                 theta, X0 = point.theta, point.X0
                 damping = damping.failed()
             else:
                 if best is not None:
-                    damping = damping.succeeded(best[0].total - normal.total, predicted,
-                                                normal.total)
+                    damping = damping.succeeded(best[0].total - normal.total, predicted)
                 best = normal, chain, point
             d_theta, d_x, schur, predicted = normal.step(damping.factor)
             if damping.factor > 0 and predicted <= ROUNDING * normal.total:
-                # damped until its drop is rounding, and still no step lowered the misfit
-                raise _SegmentFitFailed("Gauss-Newton found no step that lowers the misfit")
+                # no damped step lowers the misfit beyond rounding: the undamped one judges
+                # whether the minimum is reached (below); failed again from the same point,
+                # no step lowers it
+                if worse and rounded_at is point:
+                    raise _SegmentFitFailed("Gauss-Newton found no step that lowers the misfit")
+                damping, rounded_at = Damping(), point
+                d_theta, d_x, schur, predicted = normal.step(0.0)
             theta = theta.copy()
             theta[free_list] += d_theta
             X0 = X0 + (d_x if chain is None else chain.steps(d_x, d_theta))

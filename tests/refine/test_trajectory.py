@@ -365,8 +365,9 @@ def test_gauss_newton_stops_within_a_thousandth_of_a_standard_error():
 def test_a_fit_no_step_of_which_lowers_the_misfit_stops_once_damped_to_rounding(
         monkeypatch):
     """Steps turned uphill (as a Jacobian that misjudges the misfit's slope would) fail
-    however damped: the fit gives up once the drop they foretell is rounding (11 steps
-    on, the damping grown to 2e13), rather than at MAX_ITERATIONS."""
+    however damped: once the drop they foretell is rounding (the damping grown to 2e13),
+    the undamped step judges whether the minimum is reached; failed again, the fit gives
+    up there rather than at MAX_ITERATIONS."""
     from hamid.refine import steps
 
     taken = []
@@ -381,7 +382,28 @@ def test_a_fit_no_step_of_which_lowers_the_misfit_stops_once_damped_to_rounding(
     with pytest.raises(trajectory.RefinementFailed, match="no step that lowers the misfit"):
         _peng_fit(10.0, start=1.01)
     assert 2 < len(taken) < trajectory.MAX_ITERATIONS / 2
-    assert taken[0] == 0.0 and all(np.diff(taken) > 0)
+    # undamped, damped more and more, undamped again to judge the minimum, and again
+    again = taken.index(0.0, 1)
+    assert taken[0] == 0.0 and all(np.diff(taken[:again]) > 0)
+    assert taken[again + 1:] == taken[1:again]
+
+
+def test_a_fit_damped_down_to_its_minimum_is_judged_by_its_undamped_step(monkeypatch):
+    """Started damped, the damping never let fall to 0 (LEAST = 0): once a damped step
+    foretells a drop of rounding after good steps, the minimum is near, and the fit
+    settles on its undamped step where the undamped fit does."""
+    from hamid.refine import steps
+
+    undamped = _peng_fit(10.0, start=1.01)
+    monkeypatch.setattr(steps, "LEAST", 0.0)
+    first = iter([steps.Damping(1e-2)])   # the fit's start damped, then as it is
+    monkeypatch.setattr(trajectory, "Damping", lambda: next(first, steps.Damping()))
+    damped = _peng_fit(10.0, start=1.01)
+    errors = np.sqrt(np.diag(undamped.covariance("scaled")))
+    free = list(undamped.free)
+    assert np.all(np.abs(damped.theta[free] - undamped.theta[free])
+                  < 2 * trajectory.SETTLED * errors)
+    assert damped.iterations > undamped.iterations
 
 
 def test_a_join_starts_from_the_last_point_of_the_fit_it_ties(monkeypatch):
