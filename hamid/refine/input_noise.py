@@ -141,13 +141,17 @@ def response(segment: Segment, knots: Array) -> Array:
     at_knot = np.zeros((S, K + 1, c, n_states))
     at_knot[:, nearest] = segment.products
     after = np.cumsum(at_knot[:, ::-1], axis=1)[:, ::-1]    # sum over knots >= j
-    Lam = np.concatenate([-after[:, 1:last + 1], np.broadcast_to(
-        phi[:, -1:], (S, last, n_states, n_states))], axis=2)   # (S, last, c + 2N, 2N)
-    z = Lam[:, :, None] @ q_points.reshape(S, last, n_gauss, n_states, n_inputs)
-    z = z.reshape(S, last, n_gauss, -1) * (width[:, None] * GAUSS_WEIGHTS / 2)[..., None]
-    # each interval's Gauss points to its knots' values and slopes (Hermite's form)
-    at_ends = z.swapaxes(2, 3) @ HERMITE_AT_GAUSS                        # (S, last, F, 4)
-    F = z.shape[3]
+    # each interval's integral of q times each of Hermite's basis functions, whose
+    # weights are its knots' values and slopes; then times Lambda, -after for the
+    # scores, Phi(end) for the end state (q first: it has 2N rows where Lambda has c + 2N)
+    rule = (width[:, None] * GAUSS_WEIGHTS / 2)[..., None] * HERMITE_AT_GAUSS   # (last, 4, 4)
+    by_basis = (q_points.reshape(S, last, n_gauss, -1).swapaxes(2, 3) @ rule).reshape(
+        S, last, n_states, n_inputs * 4)
+    at_ends = np.empty((S, last, c + n_states, n_inputs * 4))
+    np.matmul(after[:, 1:last + 1], -by_basis, out=at_ends[:, :, :c])
+    np.matmul(phi[:, -1:], by_basis, out=at_ends[:, :, c:])
+    F = (c + n_states) * n_inputs
+    at_ends = at_ends.reshape(S, last, F, 4)
     by_value, by_slope = np.zeros((2, K, S, F))
     by_value[:last] += at_ends[..., 0].swapaxes(0, 1)
     by_value[1:last + 1] += at_ends[..., 2].swapaxes(0, 1)
