@@ -255,7 +255,6 @@ class Motion:
         self._terms, self._weights, self._applied = terms, weights, applied
         self._shared = weights.ndim == 1
         self._inputs = inputs
-        self._arguments: Array | None = None   # (q, v, u) of the last call's shape, reused
         self._folded = False
         self._inverse: Array | None = None   # (N, N) shared, or (N, N, n) per state
         stack = self._invert_constant_mass() if terms.constant_mass else None
@@ -320,16 +319,13 @@ class Motion:
 
     def _arguments_at(self, t: float, Y: Array) -> Array:
         """The stacks' arguments at time t and states Y (2N, n): Y, with the inputs u(t)
-        below for a driven model (in a buffer reused from call to call)."""
+        below for a driven model (one concatenation: cheaper than filling a buffer)."""
         if self._inputs is None:
             return Y
         u = self._inputs(t)
-        arguments = self._arguments
-        if arguments is None or arguments.shape != (len(Y) + len(u), Y.shape[1]):
-            arguments = self._arguments = np.empty((len(Y) + len(u), Y.shape[1]))
-        arguments[:len(Y)] = Y
-        arguments[len(Y):] = u if u.ndim == 2 else u[:, None]
-        return arguments
+        if u.ndim == 1:
+            u = np.broadcast_to(u[:, None], (len(u), Y.shape[1]))
+        return np.concatenate((Y, u))
 
     def accelerations(self, Y: Array, t: float = 0.0) -> Array:
         """a (N, n) at states Y (2N, n) (and time t, for a driven model's inputs)."""
