@@ -323,8 +323,8 @@ class Motion:
         if self._inputs is None:
             return Y
         u = self._inputs(t)
-        if u.ndim == 1:
-            u = np.broadcast_to(u[:, None], (len(u), Y.shape[1]))
+        if u.shape != (len(u), Y.shape[1]):   # (m,) or (m, 1): shared by every state
+            u = np.broadcast_to(u.reshape(len(u), -1), (len(u), Y.shape[1]))
         return np.concatenate((Y, u))
 
     def accelerations(self, Y: Array, t: float = 0.0) -> Array:
