@@ -167,7 +167,7 @@ class Dynamics:
                                                                     ...], tuple[str, ...]]:
         """The applied forces' parts (N functions of (q, v, u) each), each part's weight
         (index into the weights, None for 1, and its sign) and the variables (q, v, u):
-        each dissipative term's -dR_k/dv (weighed by c_k), the inputs' Q0 and each Q_k
+        each dissipative term's dR_k/dv (weighed by -c_k), the inputs' Q0 and each Q_k
         (by theta_k)."""
         variables = (*self.coordinates, *self.velocities,
                      *(self.forcing.inputs if self.forcing else ()))
