@@ -139,18 +139,6 @@ class Dissipation:
         dissipates, shape (n, K)."""
         return np.einsum("nik,ni->nk", self.force_parts(X), X[:, self.n:])
 
-    def forces_at(self, Yt: Array, coefficients: Array) -> Array:
-        """F_i = -sum_k c_k dR_k/dv_i at states Yt (2N, n), the variables on the first
-        axis: shape (N, n). `coefficients` is (K,), or (K, n) with one column per state."""
-        n = Yt.shape[1]
-        values = self._forces(Yt)
-        if values.shape[1:] != (n,):   # constant entries
-            values = np.broadcast_to(values, (len(values), n))
-        values = values.reshape(len(self), self.n, n)
-        c = np.asarray(coefficients, dtype=np.float64)
-        return -(np.einsum("kin,k->in", values, c) if c.ndim == 1
-                 else np.einsum("kin,kn->in", values, c))
-
     def force_slopes(self, X: Array, coefficients: Array) -> Array:
         """d(-F_i)/dx_c = sum_k c_k d(dR_k/dv_i)/dx_c at states X (n, 2N): (n, N, 2N)."""
         values = _evaluate(self._slopes, X).reshape(len(self), self.n, 2 * self.n, len(X))

@@ -32,7 +32,7 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid.model.dissipation import Dissipation
-from hamid.model.expressions import Func, Stack
+from hamid.model.expressions import Func, Polynomial, Stack, Symbolic
 from hamid.model.models import Model
 
 __all__ = ["Dynamics", "Motion"]
@@ -41,12 +41,47 @@ Array = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)
+class _Stacks:
+    """Functions of the same variables, maybe of different kinds (polynomials, compiled
+    expressions), each kind compiled into one stack (`Func.stack`)."""
+
+    funcs: tuple[Func, ...]
+
+    @cached_property
+    def _kinds(self) -> tuple[tuple[npt.NDArray[np.intp], tuple[Func, ...], Stack], ...]:
+        """Per kind: the functions' positions, the functions and their stack."""
+        positions: dict[type, list[int]] = {}
+        for i, f in enumerate(self.funcs):
+            positions.setdefault(type(f), []).append(i)
+        kinds = []
+        for at in positions.values():
+            funcs = tuple(self.funcs[i] for i in at)
+            kinds.append((np.array(at, dtype=np.intp), funcs, Func.stack(funcs)))
+        return tuple(kinds)
+
+    def combined(self, K: Array) -> Callable[[Array], Array]:
+        """sum_k K[g, k, j] f_k(X[:, j]) at states X (variables, n), shape (G, n): K is
+        (G, len(funcs), n), one column per state, or (G, len(funcs)), shared by every
+        state (then combined into G functions once)."""
+        if K.ndim == 3:
+            sums = [stack.combined(K[:, at]) for at, _, stack in self._kinds]
+        else:
+            sums = [Func.stack([Func.combine(funcs, [float(x) for x in row]) for row in K[:, at]])
+                    for at, funcs, _ in self._kinds]
+        if len(sums) == 1:
+            return sums[0]
+        return lambda X: sum(values(X) for values in sums)
+
+
+@dataclass(frozen=True, eq=False)
 class _Terms:
-    """The pieces of Lagrange's equations for each part L_p of L = sum_p w_p L_p.
+    """The pieces of Lagrange's equations for each part L_p of L = sum_p w_p L_p, and the
+    applied forces (dissipative and input) beside them.
 
     Per part: the forces dL_p/dq_i, then the entries (i, k) of d(dL_p/dv_i)/dq_k in
     `mixed` (those not zero in every part), and the upper triangle of the mass matrix
-    d2L_p/dv2 in `upper` order.
+    d2L_p/dv2 in `upper` order. `applied` holds the applied forces' parts, the N
+    generalized forces of each over `variables` (q, v, then the inputs u).
     """
 
     n: int
@@ -55,10 +90,13 @@ class _Terms:
     forces: tuple[tuple[Func, ...], ...]
     mass: tuple[tuple[Func, ...], ...]
     constant_mass: bool
+    applied: tuple[tuple[Func, ...], ...]
+    variables: tuple[str, ...]
 
     @classmethod
     def derive(cls, parts: Sequence[Func], coordinates: Sequence[str],
-               velocities: Sequence[str]) -> _Terms:
+               velocities: Sequence[str], applied: tuple[tuple[Func, ...], ...],
+               variables: tuple[str, ...]) -> _Terms:
         N = len(coordinates)
         dv = [[part.diff(v) for v in velocities] for part in parts]
         mixed = tuple((i, k) for i in range(N) for k in range(N)
@@ -70,21 +108,33 @@ class _Terms:
                              + [d[i].diff(coordinates[k]) for i, k in mixed])
                        for part, d in zip(parts, dv, strict=True))
         constant = all(f.is_constant_in(coordinates) for row in mass for f in row)
-        return cls(N, mixed, upper, forces, mass, constant)
+        return cls(N, mixed, upper, forces, mass, constant, applied=applied,
+                   variables=variables)
 
     @cached_property
-    def force_stack(self) -> Stack:
-        return Func.stack([f for row in self.forces for f in row])
+    def force_stack(self) -> _Stacks:
+        """The parts' forces and mixed entries, then the applied forces, over `variables`."""
+        return self._with_applied([f for row in self.forces for f in row])
 
     @cached_property
     def mass_stack(self) -> Stack:
         return Func.stack([f for row in self.mass for f in row])
 
     @cached_property
-    def full_stack(self) -> Stack:
-        """Forces, mixed and mass entries in one call, for a mass that changes with q."""
-        return Func.stack([f for forces, mass in zip(self.forces, self.mass, strict=True)
-                           for f in (*forces, *mass)])
+    def full_stack(self) -> _Stacks:
+        """Forces, mixed and mass entries, then the applied forces, in one call, for a mass
+        that changes with q."""
+        return self._with_applied([f for forces, mass in zip(self.forces, self.mass,
+                                                              strict=True)
+                                   for f in (*forces, *mass)])
+
+    @cached_property
+    def applied_stack(self) -> _Stacks:
+        return _Stacks(tuple(f for part in self.applied for f in part))
+
+    def _with_applied(self, funcs: Sequence[Func]) -> _Stacks:
+        return _Stacks(tuple(_over(f, self.variables) for f in funcs)
+                       + self.applied_stack.funcs)
 
 
 class Dynamics:
@@ -113,22 +163,35 @@ class Dynamics:
         return len(self._parts) + (len(self.dissipation) if self.dissipation else 0)
 
     @cached_property
-    def _input_parts(self) -> tuple[Stack, npt.NDArray[np.intp], tuple[int | None, ...], int]:
-        """The nonzero parts of the inputs' generalized force (Q0 and each Q_k), compiled
-        once: their stack over (q, v, u), the coordinate of each, and its parameter (None
-        for Q0's parts)."""
-        forcing = self.forcing
-        assert forcing is not None
-        parts = [(i, None, f) for i, f in enumerate(forcing.Q0) if not f.is_zero()]
-        parts += [(i, k, g) for i, row in enumerate(forcing.Q) for k, g in enumerate(row)
-                  if not g.is_zero()]
-        return (Func.stack([f for _, _, f in parts]),
-                np.array([i for i, _, _ in parts], dtype=np.intp),
-                tuple(k for _, k, _ in parts), self.n)
+    def _applied(self) -> tuple[tuple[tuple[Func, ...], ...], tuple[tuple[int | None, float],
+                                                                    ...], tuple[str, ...]]:
+        """The applied forces' parts (N functions of (q, v, u) each), each part's weight
+        (index into the weights, None for 1, and its sign) and the variables (q, v, u):
+        each dissipative term's dR_k/dv (weighed by -c_k), the inputs' Q0 and each Q_k
+        (by theta_k)."""
+        variables = (*self.coordinates, *self.velocities,
+                     *(self.forcing.inputs if self.forcing else ()))
+        parts: list[tuple[Func, ...]] = []
+        weights: list[tuple[int | None, float]] = []
+        if self.dissipation is not None:
+            P = len(self._parts)
+            for k, part in enumerate(self.dissipation.parts):
+                parts.append(tuple(_over(part.diff(v), variables) for v in self.velocities))
+                weights.append((P + k, -1.0))
+        if self.forcing is not None:
+            forcing = self.forcing
+            for k, row in [(None, forcing.Q0),
+                           *((k, tuple(Q[k] for Q in forcing.Q))
+                             for k in range(len(forcing.parameters)))]:
+                if not all(f.is_zero() for f in row):
+                    parts.append(row)
+                    weights.append((None if k is None else 1 + k, 1.0))
+        return tuple(parts), tuple(weights), variables
 
     @cached_property
     def _per_part(self) -> _Terms:
-        return _Terms.derive(self._parts, self.coordinates, self.velocities)
+        parts, _, variables = self._applied
+        return _Terms.derive(self._parts, self.coordinates, self.velocities, parts, variables)
 
     def at(self, weights: npt.ArrayLike, *, drained: bool = False,
            inputs: Callable[[float], Array] | None = None) -> Motion:
@@ -149,57 +212,16 @@ class Dynamics:
                              f"({self.n_weights}, n_states)")
         if (self.forcing is None) != (inputs is None):
             raise ValueError("a driven model's equations need its inputs, a free one's none")
-        forces = None if self.dissipation is None else _Forces(self.dissipation, w[P:])
-        driven = None if inputs is None else _InputForces(*self._input_parts, w[1:P], inputs)
+        parts, rows, variables = self._applied
+        ones = np.ones(w.shape[1:])
+        applied = np.array([ones if k is None else sign * w[k] for k, sign in rows]
+                           ).reshape(len(rows), *w.shape[1:])
         if w.ndim == 1:
             lagrangian = Func.combine(self._parts, [float(x) for x in w[:P]])
-            terms = _Terms.derive([lagrangian], self.coordinates, self.velocities)
-            return Motion(terms, None, forces, drained, driven)
-        return Motion(self._per_part, w[:P], forces, drained, driven)
-
-
-@dataclass(frozen=True)
-class _Forces:
-    """The dissipative forces at fixed coefficients (one vector, or a column per state)."""
-
-    dissipation: Dissipation
-    coefficients: Array
-
-    def __call__(self, Y: Array) -> Array:
-        """F (N, n) at the states Y (2N, n)."""
-        return self.dissipation.forces_at(Y, self.coefficients)
-
-
-class _InputForces:
-    """The generalized force of the recorded inputs, Q0 + sum_k theta_k Q_k, at the
-    parameters theta (one vector, or a column per state) and the inputs u(t)."""
-
-    def __init__(self, stack: Stack, coordinate: npt.NDArray[np.intp],
-                 parameter: tuple[int | None, ...], n: int, theta: Array,
-                 inputs: Callable[[float], Array]):
-        self.stack, self.inputs = stack, inputs
-        ones = np.ones(theta.shape[1:])
-        weight = np.array([ones if k is None else theta[k] for k in parameter])
-        weight = weight.reshape(len(weight), -1)   # (parts, 1 or n_states)
-        # each part into its coordinate's row: with weights shared by every state, folded in
-        scatter = (np.arange(n)[:, None] == coordinate[None]).astype(np.float64)
-        self.shared = weight.shape[1] == 1
-        self.scatter = scatter * weight[:, 0] if self.shared else scatter
-        self.weight = weight
-        self._arguments: Array | None = None   # (q, v, u) of the last call's shape, reused
-
-    def __call__(self, t: float, Y: Array) -> Array:
-        """Q (N, n) at time t and states Y (2N, n)."""
-        u = self.inputs(t)
-        if u.ndim == 1:
-            u = u[:, None]
-        arguments = self._arguments
-        if arguments is None or arguments.shape != (len(Y) + len(u), Y.shape[1]):
-            arguments = self._arguments = np.empty((len(Y) + len(u), Y.shape[1]))
-        arguments[:len(Y)] = Y
-        arguments[len(Y):] = u
-        values = self.stack(arguments)
-        return self.scatter @ (values if self.shared else values * self.weight)
+            terms = _Terms.derive([lagrangian], self.coordinates, self.velocities, parts,
+                                  variables)
+            return Motion(terms, np.ones(1), applied, drained, inputs)
+        return Motion(self._per_part, w[:P], applied, drained, inputs)
 
 
 class Motion:
@@ -210,67 +232,72 @@ class Motion:
     (trajectories, or copies of segments). Made by `Dynamics.at`.
 
     What keeps the calls cheap (each runs once per integrator stage):
-    - everything the equations need comes from one compiled call (`Func.stack`), the
-      parts weighed state by state inside it when the weights are per state
-      (`Stack.combined`: a polynomial's coefficients are weighed once, not its
-      values at every call);
-    - a constant mass matrix is inverted once and folded into the forces, so that the
-      call returns the accelerations themselves (unless velocity-dependent forces must be
-      added first: then its inverse is applied by a product and a sum over (N, N, n),
-      much faster than einsum over n);
+    - everything the equations need comes from one compiled call per kind of function
+      (`Func.stack`; one in all when the energy, dissipation and work are polynomials):
+      the conservative, dissipative and input forces together, over the state and the
+      inputs; the parts are weighed state by state inside it when the weights are per
+      state (`Stack.combined`: a polynomial's coefficients are weighed once, not its
+      values at every call), or combined into one function per output once when shared;
+    - a constant mass matrix is inverted once and folded into those weights, so that the
+      call returns the accelerations themselves;
     - a changing mass matrix is solved by division (N = 1), Cramer's rule (N = 2, where a
       batched LU costs far more) or LU.
     """
 
-    def __init__(self, terms: _Terms, weights: Array | None, forces: _Forces | None,
-                 drained: bool, driven: _InputForces | None = None):
+    def __init__(self, terms: _Terms, weights: Array, applied: Array, drained: bool,
+                 inputs: Callable[[float], Array] | None = None):
         self.n = terms.n
         self.rows = 2 * terms.n + bool(drained)
         self.drained = drained
         self.constant_mass = terms.constant_mass
-        self._terms, self._weights, self._forces = terms, weights, forces
-        self._driven = driven
+        # the parts' weights (parts,) shared or (parts, n) per state, and the applied
+        # forces' (applied parts,) or (applied parts, n)
+        self._terms, self._weights, self._applied = terms, weights, applied
+        self._shared = weights.ndim == 1
+        self._inputs = inputs
         self._folded = False
         self._inverse: Array | None = None   # (N, N) shared, or (N, N, n) per state
         stack = self._invert_constant_mass() if terms.constant_mass else None
         if stack is None:
-            stack = terms.full_stack if weights is None else self._weighted(terms.full_stack)
+            entries = self.n + len(terms.mixed) + len(terms.upper)
+            stack = self._weighted(terms.full_stack, self._eye(entries))
         self._values = stack
+        self._power = (self._weighted(terms.applied_stack, self._eye(self.n), parts=False)
+                       if drained and len(applied) else None)
+
+    def _eye(self, entries: int) -> Array:
+        """The identity mixing of `_weighted` (`entries` per part)."""
+        return np.eye(entries) if self._shared else np.eye(entries)[..., None]
 
     def _invert_constant_mass(self) -> Callable[[Array], Array] | None:
         """Invert a constant mass matrix once; the stack that goes with the inverse."""
-        N, terms, weights = self.n, self._terms, self._weights
-        M = self.mass_matrix(np.zeros((2 * N, 1 if weights is None else weights.shape[1])))
+        N, terms = self.n, self._terms
+        M = self.mass_matrix(np.zeros((2 * N, 1 if self._shared else self._weights.shape[1])))
         try:
             inverse = np.linalg.inv(M)
         except np.linalg.LinAlgError:
             # a singular one is no kinetic energy: left to the general path, where the
             # simulator's check names it before any step and the refinement's solve fails
             return None
-        if weights is None:
-            # (dM/dq) v vanishes, and M^-1 dL/dq are the accelerations
-            self._inverse = inverse[0]
-            self._folded = True
-            return Func.stack([Func.combine(terms.forces[0][:N], [float(x) for x in row])
-                               for row in self._inverse])
-        self._inverse = inverse.transpose(1, 2, 0).copy()
+        self._inverse = inverse[0] if self._shared else inverse.transpose(1, 2, 0).copy()
         if terms.mixed:   # added to the forces before the inverse applies
-            return self._weighted(terms.force_stack)
+            return self._weighted(terms.force_stack, self._eye(N + len(terms.mixed)))
+        # (dM/dq) v vanishes, and M^-1 (dL/dq + F) are the accelerations
         self._folded = True
         return self._weighted(terms.force_stack, self._inverse)
 
-    def _weighted(self, stack: Stack, mix: Array | None = None) -> Callable[[Array], Array]:
-        """The stack's values (F of each part, part after part) summed with each state's
-        weights, then mixed by `mix` (G, F, n) when given: a callable of the states
-        (2N, n) returning (F or G, n)."""
-        W = self._weights
-        assert W is not None
-        P, n = W.shape
-        F = stack.n_funcs // P
-        if mix is None:
-            mix = np.broadcast_to(np.eye(F)[..., None], (F, F, n))
-        K = mix[:, None] * W[None, :, None]                  # (G, P, F, n)
-        return stack.combined(K.reshape(len(mix), P * F, n))
+    def _weighted(self, stacks: _Stacks, mix: Array, *, parts: bool = True
+                  ) -> Callable[[Array], Array]:
+        """The stack's values summed with the weights, then mixed by `mix` (G, E[, n]): the
+        E entries of each part (with `parts`), part after part, then the applied forces
+        on the first N entries. A callable of the arguments (q, v[, u]) returning (G, n)."""
+        blocks = [(self._weights, mix.shape[1])] if parts else []
+        blocks.append((self._applied, self.n))
+        K = [mix[:, None, :entries] * weights[None, :, None] for weights, entries in blocks]
+        tail = np.broadcast_shapes(*(k.shape[3:] for k in K))
+        return stacks.combined(np.concatenate(
+            [np.broadcast_to(k, (*k.shape[:3], *tail)).reshape(len(mix), -1, *tail)
+             for k in K], axis=1))
 
     def _apply_inverse(self, x: Array) -> Array:
         """The constant mass matrix's inverse times x (N, n)."""
@@ -282,39 +309,41 @@ class Motion:
     def mass_matrix(self, Y: Array) -> Array:
         """M at states Y, shape (2N, ...) -> (..., N, N)."""
         stack = self._terms.mass_stack
-        values = stack(Y) if self._weights is None else self._weighted(stack)(Y)
+        if self._shared:
+            values = stack(Y)
+        else:
+            W = self._weights
+            K = np.eye(stack.n_funcs // len(W))[:, None, :, None] * W[None, :, None]
+            values = stack.combined(K.reshape(len(K), -1, W.shape[1]))(Y)
         return _assemble(values, self._terms.upper, self.n)
+
+    def _arguments_at(self, t: float, Y: Array) -> Array:
+        """The stacks' arguments at time t and states Y (2N, n): Y, with the inputs u(t)
+        below for a driven model (one concatenation: cheaper than filling a buffer)."""
+        if self._inputs is None:
+            return Y
+        u = self._inputs(t)
+        if u.shape != (len(u), Y.shape[1]):   # (m,) or (m, 1): shared by every state
+            u = np.broadcast_to(u.reshape(len(u), -1), (len(u), Y.shape[1]))
+        return np.concatenate((Y, u))
 
     def accelerations(self, Y: Array, t: float = 0.0) -> Array:
         """a (N, n) at states Y (2N, n) (and time t, for a driven model's inputs)."""
-        N = self.n
-        out = np.empty((N, Y.shape[1]))
-        dissipative = self._forces(Y[:2 * N]) if self._forces else None
-        self._accelerations(Y[:2 * N], self._with_inputs(t, Y[:2 * N], dissipative), out)
+        out = np.empty((self.n, Y.shape[1]))
+        self._accelerations(self._arguments_at(t, Y[:2 * self.n]), out)
         return out
 
-    def _with_inputs(self, t: float, Y: Array, forces: Array | None) -> Array | None:
-        """The dissipative `forces` (N, n) with the inputs' generalized force added."""
-        if self._driven is None:
-            return forces
-        driven = self._driven(t, Y)
-        return driven if forces is None else forces + driven
-
-    def _accelerations(self, Y: Array, forces: Array | None, out: Array) -> None:
-        values = self._values(Y)
+    def _accelerations(self, X: Array, out: Array) -> None:
+        """The accelerations at the arguments X (q, v[, u]) into `out` (N, n)."""
+        values = self._values(X)
         if self._folded:
-            if forces is None:
-                out[:] = values
-            else:
-                np.add(values, self._apply_inverse(forces), out=out)
+            out[:] = values
             return
         N, mixed = self.n, self._terms.mixed
         rhs = values[:N]
-        V = Y[N:]
+        V = X[N:2 * N]
         for m, (i, k) in enumerate(mixed):
             rhs[i] -= values[N + m] * V[k]
-        if forces is not None:
-            rhs += forces
         if self._inverse is not None:
             out[:] = self._apply_inverse(rhs)
             return
@@ -335,18 +364,26 @@ class Motion:
         from an array of `rows` rows, one column per state."""
         N = self.n
         Y = y.reshape(self.rows, -1)
-        V = Y[N:2 * N]
-        dissipative = self._forces(Y[:2 * N]) if self._forces else None
-        forces = self._with_inputs(t, Y[:2 * N], dissipative)
+        X = self._arguments_at(t, Y[:2 * N])
         out = np.empty_like(Y)
-        out[:N] = V
-        if self._folded and forces is None:   # the values are the accelerations: no call more
-            out[N:2 * N] = self._values(Y[:2 * N])
-        else:
-            self._accelerations(Y[:2 * N], forces, out[N:2 * N])
+        out[:N] = Y[N:2 * N]
+        self._accelerations(X, out[N:2 * N])
         if self.drained:   # the energy's balance: drained by damping, supplied by inputs
-            out[2 * N] = 0.0 if forces is None else -np.einsum("ij,ij->j", forces, V)
+            out[2 * N] = (0.0 if self._power is None
+                          else -np.einsum("ij,ij->j", self._power(X), Y[N:2 * N]))
         return out.ravel()
+
+
+def _over(f: Func, variables: tuple[str, ...]) -> Func:
+    """f as a function of `variables`, which begin with its own (the state's, then the
+    inputs), so that functions of the state and of the inputs stack together. (A method
+    of each kind in `hamid.model.expressions` would do, but that module is at its size.)"""
+    if isinstance(f, Polynomial):
+        exponents = np.zeros((len(f.exponents), len(variables)), dtype=np.int64)
+        exponents[:, :len(f.variables)] = f.exponents
+        return Polynomial(variables, exponents, f.coefficients)
+    assert isinstance(f, Symbolic) and variables[:len(f.variables)] == f.variables
+    return Symbolic(variables, f.expression)
 
 
 def _assemble(upper: Array, order: Sequence[tuple[int, int]], N: int) -> Array:

@@ -29,10 +29,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.interpolate import CubicSpline
 from scipy.linalg import solve_banded
 
-__all__ = ["Segment", "spline_gradient", "response"]
+__all__ = ["Segment", "response", "spline_at", "spline_gradient"]
 
 Array = npt.NDArray[np.float64]
 
@@ -68,15 +67,9 @@ def _through_slopes(x: Array, by_value: Array, by_slope: Array) -> Array:
     n = len(x)
     h = np.diff(x)
     grad = by_value.copy()
+    A, start, end = _slope_system(x)
     # A transposed, in solve_banded's layout: its upper band is A's lower one and back
-    diagonal = np.empty(n)
-    upper, lower = np.zeros(n), np.zeros(n)   # A[i, i + 1] at i + 1, A[i + 1, i] at i
-    diagonal[1:-1] = 2 * (h[:-1] + h[1:])
-    upper[2:], lower[:-2] = h[:-1], h[1:]
-    start, end = x[2] - x[0], x[-1] - x[-3]
-    diagonal[0], upper[1] = h[1], start
-    diagonal[-1], lower[-2] = h[-2], end
-    transposed = np.array([np.r_[0.0, lower[:-1]], diagonal, np.r_[upper[1:], 0.0]])
+    transposed = np.array([np.r_[0.0, A[2, :-1]], A[1], np.r_[A[0, 1:], 0.0]])
     lam = solve_banded((1, 1), transposed, by_slope, check_finite=False)
     # C' lam: the right-hand side's dependence on the secants (y[i + 1] - y[i]) / h[i]
     by_secant = np.zeros((n - 1, by_value.shape[1]))
@@ -92,12 +85,59 @@ def _through_slopes(x: Array, by_value: Array, by_slope: Array) -> Array:
     return grad
 
 
+def _slope_system(x: Array) -> tuple[Array, float, float]:
+    """scipy's system A s = C y for the slopes s at the knots x (n >= 4) of the not-a-knot
+    spline through values y there: A in solve_banded's layout (A[i - 1, i] in row 0, the
+    diagonal in row 1, A[i + 1, i] in row 2), and the spans x[2] - x[0] and x[-1] - x[-3]
+    of its first and last rows."""
+    h = np.diff(x)
+    A = np.zeros((3, len(x)))
+    A[1, 1:-1] = 2 * (h[:-1] + h[1:])
+    A[0, 2:], A[2, :-2] = h[:-1], h[1:]
+    start, end = x[2] - x[0], x[-1] - x[-3]
+    A[1, 0], A[0, 1] = h[1], start
+    A[1, -1], A[2, -2] = h[-2], end
+    return A, start, end
+
+
+def spline_at(x: Array, y: Array, points: Array) -> Array:
+    """The not-a-knot cubic spline through the values y (n, F) at the knots x (n >= 4), at
+    `points`: (P, F), scipy's CubicSpline to rounding (its slopes, in Hermite's form), at
+    a quarter of its cost on 15 x 2 columns of 1251 knots (no checks, no power basis)."""
+    A, start, end = _slope_system(x)
+    h = np.diff(x)[:, None]
+    secant = np.diff(y, axis=0) / h
+    b = np.empty_like(y)
+    b[1:-1] = 3 * (h[1:] * secant[:-1] + h[:-1] * secant[1:])
+    b[0] = ((h[0] + 2 * start) * h[1] * secant[0] + h[0] ** 2 * secant[1]) / start
+    b[-1] = (h[-1] ** 2 * secant[-2] + (2 * end + h[-1]) * h[-2] * secant[-1]) / end
+    slopes = solve_banded((1, 1), A, b, check_finite=False)
+    # each piece's values and slopes (times its width) at its ends: Hermite's weights
+    pieces = np.stack([y[:-1], h * slopes[:-1], y[1:], h * slopes[1:]], axis=1)
+    k = np.clip(np.searchsorted(x, points, side="right") - 1, 0, len(x) - 2)
+    basis = np.array(_hermite((points - x[k]) / h[k, 0])).T      # (P, 4)
+    return np.matmul(basis[:, None], pieces[k])[:, 0]
+
+
 def _summed(index: npt.NDArray[np.intp], values: Array, n: int) -> Array:
     """The rows of `values` summed by `index` into n rows (np.add.at, faster)."""
     order = np.argsort(index, kind="stable")
     unique, first = np.unique(index[order], return_index=True)
     out = np.zeros((n, values.shape[1]))
     out[unique] = np.add.reduceat(values[order], first, axis=0)
+    return out
+
+
+def _solved(A: Array, B: Array) -> Array:
+    """A^-1 B for matrices on the last two axes; 2 x 2 ones (one degree of freedom) by
+    Cramer's rule: 0.3 against 2.3 ms for 15 x 1251 of them by numpy's solve."""
+    if A.shape[-1] != 2:
+        return np.linalg.solve(A, B)
+    a, b, c, d = (A[..., i, j, None] for i in (0, 1) for j in (0, 1))
+    det = a * d - b * c
+    out = np.empty(np.broadcast_shapes(A.shape[:-1], B.shape[:-2] + (2,)) + B.shape[-1:])
+    out[..., 0, :] = (d * B[..., 0, :] - b * B[..., 1, :]) / det
+    out[..., 1, :] = (a * B[..., 1, :] - c * B[..., 0, :]) / det
     return out
 
 
@@ -131,23 +171,28 @@ def response(segment: Segment, knots: Array) -> Array:
     times, phi = segment.times, segment.phi
     S, _, n_states, n_inputs = segment.B.shape
     c, K, n_gauss = segment.products.shape[2], len(knots), len(GAUSS_NODES)
-    q = np.linalg.solve(phi, segment.B)                     # (S, G, 2N, n_inputs)
+    q = _solved(phi, segment.B)                             # (S, G, 2N, n_inputs)
     last = int(np.argmin(np.abs(knots - times[-1])))        # the end's knot
     left, width = knots[:last], np.diff(knots[:last + 1])
     points = (left[:, None] + width[:, None] * (1 + GAUSS_NODES) / 2).ravel()
-    q_points = CubicSpline(times, q, axis=1)(points)       # (S, P, 2N, n_inputs)
+    q_points = spline_at(times, q.swapaxes(0, 1).reshape(len(times), -1), points).reshape(
+        len(points), S, n_states, n_inputs).swapaxes(0, 1)   # (S, P, 2N, n_inputs)
     # Lambda on each knot interval: the samples after it, each at its own knot
     nearest = np.searchsorted(knots, times[segment.samples] - 0.5 * np.min(width))
     at_knot = np.zeros((S, K + 1, c, n_states))
     at_knot[:, nearest] = segment.products
     after = np.cumsum(at_knot[:, ::-1], axis=1)[:, ::-1]    # sum over knots >= j
-    Lam = np.concatenate([-after[:, 1:last + 1], np.broadcast_to(
-        phi[:, -1:], (S, last, n_states, n_states))], axis=2)   # (S, last, c + 2N, 2N)
-    z = Lam[:, :, None] @ q_points.reshape(S, last, n_gauss, n_states, n_inputs)
-    z = z.reshape(S, last, n_gauss, -1) * (width[:, None] * GAUSS_WEIGHTS / 2)[..., None]
-    # each interval's Gauss points to its knots' values and slopes (Hermite's form)
-    at_ends = z.swapaxes(2, 3) @ HERMITE_AT_GAUSS                        # (S, last, F, 4)
-    F = z.shape[3]
+    # each interval's integral of q times each of Hermite's basis functions, whose
+    # weights are its knots' values and slopes; then times Lambda, -after for the
+    # scores, Phi(end) for the end state (q first: it has 2N rows where Lambda has c + 2N)
+    rule = (width[:, None] * GAUSS_WEIGHTS / 2)[..., None] * HERMITE_AT_GAUSS   # (last, 4, 4)
+    by_basis = (q_points.reshape(S, last, n_gauss, -1).swapaxes(2, 3) @ rule).reshape(
+        S, last, n_states, n_inputs * 4)
+    at_ends = np.empty((S, last, c + n_states, n_inputs * 4))
+    np.matmul(after[:, 1:last + 1], -by_basis, out=at_ends[:, :, :c])
+    np.matmul(phi[:, -1:], by_basis, out=at_ends[:, :, c:])
+    F = (c + n_states) * n_inputs
+    at_ends = at_ends.reshape(S, last, F, 4)
     by_value, by_slope = np.zeros((2, K, S, F))
     by_value[:last] += at_ends[..., 0].swapaxes(0, 1)
     by_value[1:last + 1] += at_ends[..., 2].swapaxes(0, 1)

@@ -682,8 +682,7 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
                                          starts=starts, weights=W, steps=steps,
                                          tolerance=tolerance, ends=ends[lo:hi],
                                          inputs=None if inputs is None else
-                                         integration.SampledInputs(inputs.tau[lo:hi],
-                                                                   inputs.values[lo:hi]),
+                                         inputs.part(lo, hi),
                                          keep=keep))
     c = copies - 1
     cost, H, g = np.zeros((S, len(problem.weight))), np.zeros((S, c, c)), np.zeros((S, c))

@@ -119,7 +119,7 @@ def test_forces_and_power_by_hand():
                           parameters=("k1", "k2", "m"), shorthand=("mu_a",))
     states = np.array([[0.1, 0.2, 1.0, -0.5], [0.3, 0.1, -2.0, 1.0]])
     c = np.array([1.0, 2.0, 0.5, 3.0])
-    forces = d.forces_at(states.T, c)
+    forces = -(d.force_parts(states) @ c).T   # F_i = -sum_k c_k dR_k/dv_i, (N, n)
     for j, (_, _, wa, wb) in enumerate(states):
         rel = wb - wa
         expected_a = -(c[0] * wa - c[1] * rel - c[2] * np.sign(rel) + c[3] * np.sign(wa))
@@ -202,11 +202,13 @@ def test_the_rounded_friction_law_and_its_error():
     Y = np.array([[0.3, 0.3, 0.3, 0.3], [0.0, 0.005, -0.02, 3.0]])
     c, mu, w = 0.2, 0.5, 0.01
     v = Y[1]
-    assert rounded.forces_at(Y, np.array([c, mu]))[0] == pytest.approx(
+    def force(d, coefficients):   # F_0 = -sum_k c_k dR_k/dv_0 at each state
+        return -(d.force_parts(Y.T) @ np.array(coefficients))[:, 0]
+
+    assert force(rounded, [c, mu]) == pytest.approx(
         -c * v - mu * v / np.sqrt(v**2 + w**2), rel=1e-12, abs=1e-15)
     # within the width the force is off by at most mu; far beyond it by mu w^2 / (2 v^2)
-    error = rounded.forces_at(Y, np.array([0.0, mu]))[0] - exact.forces_at(Y, np.array(
-        [0.0, mu]))[0]
+    error = force(rounded, [0.0, mu]) - force(exact, [0.0, mu])
     assert np.all(np.abs(error[1:]) <= mu)
     assert abs(error[3]) == pytest.approx(mu * w**2 / (2 * 3.0**2), rel=1e-3)
     cubic = Dissipation.build(["x"], ["v"], function="d*abs(v)**3/3", parameters=["d"])
