@@ -29,9 +29,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from scipy.interpolate import CubicSpline
 from scipy.linalg import solve_banded
 
-__all__ = ["Segment", "response", "spline_at", "spline_gradient"]
+__all__ = ["Segment", "spline_gradient", "response"]
 
 Array = npt.NDArray[np.float64]
 
@@ -67,9 +68,15 @@ def _through_slopes(x: Array, by_value: Array, by_slope: Array) -> Array:
     n = len(x)
     h = np.diff(x)
     grad = by_value.copy()
-    A, start, end = _slope_system(x)
     # A transposed, in solve_banded's layout: its upper band is A's lower one and back
-    transposed = np.array([np.r_[0.0, A[2, :-1]], A[1], np.r_[A[0, 1:], 0.0]])
+    diagonal = np.empty(n)
+    upper, lower = np.zeros(n), np.zeros(n)   # A[i, i + 1] at i + 1, A[i + 1, i] at i
+    diagonal[1:-1] = 2 * (h[:-1] + h[1:])
+    upper[2:], lower[:-2] = h[:-1], h[1:]
+    start, end = x[2] - x[0], x[-1] - x[-3]
+    diagonal[0], upper[1] = h[1], start
+    diagonal[-1], lower[-2] = h[-2], end
+    transposed = np.array([np.r_[0.0, lower[:-1]], diagonal, np.r_[upper[1:], 0.0]])
     lam = solve_banded((1, 1), transposed, by_slope, check_finite=False)
     # C' lam: the right-hand side's dependence on the secants (y[i + 1] - y[i]) / h[i]
     by_secant = np.zeros((n - 1, by_value.shape[1]))
@@ -83,40 +90,6 @@ def _through_slopes(x: Array, by_value: Array, by_slope: Array) -> Array:
     grad[:-1] -= by_secant
     grad[1:] += by_secant
     return grad
-
-
-def _slope_system(x: Array) -> tuple[Array, float, float]:
-    """scipy's system A s = C y for the slopes s at the knots x (n >= 4) of the not-a-knot
-    spline through values y there: A in solve_banded's layout (A[i - 1, i] in row 0, the
-    diagonal in row 1, A[i + 1, i] in row 2), and the spans x[2] - x[0] and x[-1] - x[-3]
-    of its first and last rows."""
-    h = np.diff(x)
-    A = np.zeros((3, len(x)))
-    A[1, 1:-1] = 2 * (h[:-1] + h[1:])
-    A[0, 2:], A[2, :-2] = h[:-1], h[1:]
-    start, end = x[2] - x[0], x[-1] - x[-3]
-    A[1, 0], A[0, 1] = h[1], start
-    A[1, -1], A[2, -2] = h[-2], end
-    return A, start, end
-
-
-def spline_at(x: Array, y: Array, points: Array) -> Array:
-    """The not-a-knot cubic spline through the values y (n, F) at the knots x (n >= 4), at
-    `points`: (P, F), scipy's CubicSpline to rounding (its slopes, in Hermite's form), at
-    a quarter of its cost on 15 x 2 columns of 1251 knots (no checks, no power basis)."""
-    A, start, end = _slope_system(x)
-    h = np.diff(x)[:, None]
-    secant = np.diff(y, axis=0) / h
-    b = np.empty_like(y)
-    b[1:-1] = 3 * (h[1:] * secant[:-1] + h[:-1] * secant[1:])
-    b[0] = ((h[0] + 2 * start) * h[1] * secant[0] + h[0] ** 2 * secant[1]) / start
-    b[-1] = (h[-1] ** 2 * secant[-2] + (2 * end + h[-1]) * h[-2] * secant[-1]) / end
-    slopes = solve_banded((1, 1), A, b, check_finite=False)
-    # each piece's values and slopes (times its width) at its ends: Hermite's weights
-    pieces = np.stack([y[:-1], h * slopes[:-1], y[1:], h * slopes[1:]], axis=1)
-    k = np.clip(np.searchsorted(x, points, side="right") - 1, 0, len(x) - 2)
-    basis = np.array(_hermite((points - x[k]) / h[k, 0])).T      # (P, 4)
-    return np.matmul(basis[:, None], pieces[k])[:, 0]
 
 
 def _summed(index: npt.NDArray[np.intp], values: Array, n: int) -> Array:
@@ -175,8 +148,7 @@ def response(segment: Segment, knots: Array) -> Array:
     last = int(np.argmin(np.abs(knots - times[-1])))        # the end's knot
     left, width = knots[:last], np.diff(knots[:last + 1])
     points = (left[:, None] + width[:, None] * (1 + GAUSS_NODES) / 2).ravel()
-    q_points = spline_at(times, q.swapaxes(0, 1).reshape(len(times), -1), points).reshape(
-        len(points), S, n_states, n_inputs).swapaxes(0, 1)   # (S, P, 2N, n_inputs)
+    q_points = CubicSpline(times, q, axis=1)(points)       # (S, P, 2N, n_inputs)
     # Lambda on each knot interval: the samples after it, each at its own knot
     nearest = np.searchsorted(knots, times[segment.samples] - 0.5 * np.min(width))
     at_knot = np.zeros((S, K + 1, c, n_states))

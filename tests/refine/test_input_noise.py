@@ -15,7 +15,7 @@ from scipy.interpolate import CubicSpline
 import hamid
 from hamid.data.records import Records
 from hamid.refine import trajectory
-from hamid.refine.input_noise import spline_at, spline_gradient
+from hamid.refine.input_noise import spline_gradient
 
 LINEAR_MODEL = """
 [model]
@@ -41,19 +41,6 @@ def test_the_spline_gradient_is_scipys_spline_transposed(n):
     z = rng.standard_normal((60, 3))
     expected = CubicSpline(x, np.eye(n))(points).T @ z
     assert np.max(np.abs(spline_gradient(x, points, z) - expected)) < 1e-12 * np.max(
-        np.abs(expected))
-
-
-@pytest.mark.parametrize("n", [4, 5, 9, 40])
-def test_the_spline_at_points_is_scipys(n):
-    """The not-a-knot spline through several columns at points inside and outside the
-    knots, unevenly spaced: scipy's CubicSpline to rounding."""
-    rng = np.random.default_rng(n)
-    x = np.cumsum(rng.uniform(0.5, 1.5, n))
-    y = rng.standard_normal((n, 3))
-    points = rng.uniform(x[0] - 0.2, x[-1] + 0.2, 60)
-    expected = CubicSpline(x, y)(points)
-    assert np.max(np.abs(spline_at(x, y, points) - expected)) < 1e-12 * np.max(
         np.abs(expected))
 
 
