@@ -59,7 +59,7 @@ SEGMENT_PERIODS = 4.0  # dominant periods per segment, halved down to one when i
 MIN_SEGMENT_PERIODS = 1.0
 MIN_SEGMENT_SAMPLES = 8
 # Gauss-Newton steps at most: far starts (a damped two-mass chain's linear fit from its
-# accelerations integrated twice, the mass 0.12 for 2) took 30-64 in 100 realizations
+# accelerations integrated twice, the mass 0.12 for 2) took 8-71 in 400 realizations
 MAX_ITERATIONS = 100
 # Segments integrated together as one vectorised system: as many as keep the integrated
 # values of a batch (copies x states x samples of a segment) within BATCH_VALUES.
