@@ -12,7 +12,8 @@ Nielsen and O. Tingleff, *Methods for non-linear least squares problems*, 2nd ed
 one raises it. Cutting it by ten after every good step instead (the rule before) made
 a fit far from its minimum fail every other step: from the linear start of a damped
 two-mass chain's accelerations integrated twice, steps damped at 0.01 dropped the misfit
-as foretold and the next ones, at 0.001, raised it, for 50 iterations.
+as foretold and the next ones, at 0.001, raised it, for 50 iterations. Damped until the
+drop it foretells is rounding (ROUNDING), a step hands over to the undamped one.
 """
 
 from __future__ import annotations
@@ -28,8 +29,8 @@ __all__ = ["ROUNDING", "Damping", "Normal", "scores"]
 FIRST = 1e-3     # the damping of the first step taken again
 LEAST = 1e-6     # below it, the steps are undamped again
 # Of the misfit: a rise below it is rounding (the step is not worse), and so is a drop a
-# damped step foretells below it (after good steps the minimum is near; after failed
-# ones, no step lowers the misfit)
+# damped step foretells below it: the undamped step then judges whether the minimum is
+# reached, and when it fails again from the same point, no step lowers the misfit
 ROUNDING = 1e-12
 
 
