@@ -407,23 +407,31 @@ def _warnings(parameters: list[ParameterEstimate], stats: dict[str, Any], cond: 
     notes += _refinement_notes(refinement)
     if integrated and refinement is not None and refinement["applied"]:
         return notes + _of_the_start(drifting, stats, integrated)
-    if integrated:
-        notes.append(f"the estimates are the linear fit's, on positions integrated from the "
-                     f"recorded channels ({', '.join(integrated)}): their intervals do not "
-                     "hold the integration's errors, and may miss the truth by many standard "
-                     "errors")
+    if integrated:   # the energy rows' misfit said with the integration's errors
+        facts = _loose(drifting, stats)
+        return notes + [
+            f"the estimates are the linear fit's, on positions integrated from the recorded "
+            f"channels ({', '.join(integrated)}): their intervals do not hold the "
+            "integration's errors, and may miss the truth by many standard errors"
+            + (f"; its energy rows fit them loosely ({'; '.join(facts)}), which shows the "
+               "integration's errors as much as the model's" if facts else "")]
     return [note for _, note in drifting] + notes + _energy_misfit(stats)
+
+
+def _loose(drifting: list[tuple[Any, str]], stats: dict[str, Any]) -> list[str]:
+    """The energy rows' warnings as facts (a drifting energy, a low R², their residuals
+    autocorrelated), for rows built on integrated positions: they show the integration's
+    errors as much as the model's, so they are not advice to change the model."""
+    return [*(f"trajectory {label}'s energy drifts" for label, _ in drifting),
+            *_energy_misfit(stats, brief=True)]
 
 
 def _of_the_start(drifting: list[tuple[Any, str]], stats: dict[str, Any],
                   integrated: tuple[str, ...]) -> list[str]:
     """For a refined fit whose positions were integrated from the recorded velocities or
-    accelerations, one note for the energy rows' warnings (a drifting energy, a low R²,
-    their residuals autocorrelated): those rows are the linear start's, built on the
-    integrated positions, and show the integration's errors as much as the model's; not
-    advice to change a model that the refinement, fitting the recorded channels, fits."""
-    facts = [*(f"trajectory {label}'s energy drifts" for label, _ in drifting),
-             *_energy_misfit(stats, brief=True)]
+    accelerations, one note for the energy rows' warnings (`_loose`): those rows are the
+    linear start's, and the estimates the refinement's, which fits the recorded channels."""
+    facts = _loose(drifting, stats)
     if not facts:
         return []
     return [f"the linear start's energy rows, built on positions integrated from the "

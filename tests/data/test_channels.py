@@ -173,6 +173,18 @@ def test_an_unrefined_fit_from_integrated_positions_says_its_intervals_are_short
             "refinement fits the recorded velocities") in refined.warnings
 
 
+def test_an_unrefined_fit_says_its_loose_energy_rows_with_the_integration(clean_records):
+    """Clean peng-quadratic velocities, positions integrated, --method weak: its energy
+    rows' residuals are autocorrelated (the integration's errors, smooth), said in the note
+    on the integrated positions, not as advice that the model misses a term."""
+    recorded = clean_records["peng-quadratic"].drop(columns=["u1", "u2"])
+    weak = hamid.fit(recorded, model="peng-quadratic", method="weak")
+    (note,) = [w for w in weak.warnings if w.startswith("the estimates are the linear fit's")]
+    assert "; its energy rows fit them loosely (residuals autocorrelated at lag 1" in note
+    assert "the integration's errors as much as the model's" in note
+    assert not any("the model misses part of the motion" in w for w in weak.warnings)
+
+
 def test_accelerations_alone_in_g_are_fitted_by_the_refinement(clean):
     result = hamid.fit(_in_g(clean, 0), model="duffing", damping="viscous")
     assert result.data["channels"] == {"x": {"recorded": ["acceleration"],
