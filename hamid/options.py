@@ -285,6 +285,17 @@ class FitOptions:
         """Whether rows are weighted by the measurement noise (--noise)."""
         return self.noise not in (None, "none")
 
+    @property
+    def linear_asked(self) -> str | None:
+        """Why these options ask for the linear fit's own estimate where an automatic fit
+        would be refined by trajectories (its covariance, its bias correction), or None."""
+        if self.cov != "hac":
+            return (f"the trajectory fit has a covariance of its own, and --cov {self.cov} "
+                    "asks for that of the linear fit")
+        if self.bias_correct:
+            return "--bias-correct asks for the linear fit"
+        return None
+
     def chunking(self, data: Any, model_obstacle: str = "") -> int | None:
         """The rows per chunk when `data` is read in chunks, or None to read it whole.
 

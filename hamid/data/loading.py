@@ -161,7 +161,8 @@ def load(data: Any, model: str | os.PathLike[str] | Model | None,
                                                set_aside=options.velocity == "savgol")
         channels = Channels.of(m, mapping).same_as(channels, source, sources[0])
         if not parts and options.velocity != "savgol":   # said of the first file
-            notes.extend(channels.notes(source, refined=options.method == "auto"))
+            notes.extend(channels.notes(source, refined=options.method == "auto"
+                                        and options.linear_asked is None))
         time, trajectory = _special_columns(names, mapping, options, source, notes)
         if not parts:   # said of the first file
             notes.extend(column_roles.left_out_pairs(

@@ -149,7 +149,8 @@ class Channels:
     def notes(self, source: str, refined: bool) -> list[str]:
         """What the report says of the channels reconstructed and of those not fitted, one
         note for the coordinates that record alike; what the trajectory refinement fits,
-        where one follows (`refined`: the method is auto)."""
+        where one follows (`refined`: the method is auto, and no option asks for the linear
+        fit's estimate)."""
         alike: dict[tuple[str, ...], list[str]] = {}
         for name, kinds in self.report().items():
             alike.setdefault(tuple(kinds["recorded"]), []).append(name)

@@ -152,11 +152,8 @@ def refinement_obstacle(options: FitOptions, records_bytes: int | None = None) -
     `records_bytes` is the size of the records that a fit read in chunks would hold in
     memory for the refinement (None for a fit in memory).
     """
-    if options.cov != "hac":
-        return (f"the trajectory fit has a covariance of its own, and --cov {options.cov} "
-                "asks for that of the linear fit")
-    if options.bias_correct:
-        return "--bias-correct asks for the linear fit"
+    if options.linear_asked is not None:
+        return options.linear_asked
     if records_bytes is not None and options.chunk_rows is not None:
         return CHUNKED_NOT_REFINED
     if records_bytes is not None and records_bytes > REFINEMENT_BYTES:

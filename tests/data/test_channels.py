@@ -157,7 +157,7 @@ def test_an_unrefined_fit_from_integrated_positions_says_its_intervals_are_short
     """--method weak does not refine: the estimates are the linear fit's on positions
     integrated from the velocities, whose intervals leave out the integration's errors;
     the refined fit does not say so. The note on the channels speaks of a refinement only
-    where one follows."""
+    where one follows (not under --method weak, nor --cov classical)."""
     recorded = with_noise(clean, NOISE, 0).drop(columns=["x"])
     warning = ("the estimates are the linear fit's, on positions integrated from the "
                "recorded channels (x): their intervals do not hold the integration's errors")
@@ -166,6 +166,10 @@ def test_an_unrefined_fit_from_integrated_positions_says_its_intervals_are_short
     assert any(w.startswith(warning) for w in weak.warnings), weak.warnings
     assert ("<DataFrame>: no position column for any coordinate: positions integrated from "
             "the velocities for the linear fit (less their cycle means)") in weak.warnings
+    classical = hamid.fit(recorded, model="duffing", damping="viscous", cov="classical")
+    assert classical.method["refinement"]["applied"] is False   # the linear fit's asked for
+    assert ("<DataFrame>: no position column for any coordinate: positions integrated from "
+            "the velocities for the linear fit (less their cycle means)") in classical.warnings
     refined = hamid.fit(recorded, model="duffing", damping="viscous")
     assert not any(w.startswith(warning) for w in refined.warnings)
     assert ("<DataFrame>: no position column for any coordinate: positions integrated from "
