@@ -201,12 +201,11 @@ def start_weights(report: Mapping[str, Any], recording: Recording) -> Array:
     0 for channels not recorded)."""
     records = recording.records
     _, recorded = recording.compared
-    sigma, spread = noise_levels(report, recording), records.spread
+    sigma = noise_levels(report, recording)
     if records.A is not None:
         sigma = np.concatenate([sigma, measurement.estimate_noise(records.A,
                                                                   records.bounds())])
-        spread = np.concatenate([spread, records.A.std(axis=0)])
-    return channel_weights(sigma, spread, recorded)
+    return channel_weights(sigma, records.compared_spread, recorded)
 
 
 def fit_start(integration: Integration, tau: Array, recorded: Array, weight: Array, *,

@@ -73,6 +73,12 @@ class Records:
         trajectory refinement compares with the integrated motion."""
         return self.X if self.A is None else np.hstack([self.X, self.A])
 
+    @property
+    def compared_spread(self) -> npt.NDArray[np.float64]:
+        """Each compared channel's standard deviation (`spread`, then the accelerations')."""
+        return self.spread if self.A is None else np.concatenate([self.spread,
+                                                                  self.A.std(axis=0)])
+
     def bounds(self) -> list[tuple[int, int]]:
         """(start, stop) row range of each trajectory."""
         return [(start, stop) for _, start, stop in runs(self.group)]

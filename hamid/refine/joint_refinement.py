@@ -105,9 +105,8 @@ class _Noise:
         user[:0 if sigma is None else len(sigma)] = 0.0 if sigma is None else sigma
         given = user > 0
         base = np.where(given, user, differences)
-        spread = records.spread if records.A is None else X.std(axis=0)
         # channels not recorded (derived or integrated): nothing of their own
-        return cls(base, base, given, fitted.copy(), spread)
+        return cls(base, base, given, fitted.copy(), records.compared_spread)
 
     @property
     def weights(self) -> npt.NDArray[np.float64]:
