@@ -3,19 +3,20 @@
 Fits a damped Duffing oscillator with a free mass (m = 1.5, k = 4, k3 = 2, c = 0.08, 1%
 noise on the motion, dt = 0.01) twice, as a user would: driven by a multisine force
 (`[forcing]`, the force recorded) and as free decays of as many samples (the mass fixed,
-which free motion needs). Each fit runs in turns `--repeat` times; prints the median time
-per sample of the refinement (the fit's time less that of the same fit with
-``method="joint"``, which stops before refining) and the ratio driven / free, the issue's
-target being at most 1.3; and the driven one less the covariance of the inputs' noise
-(`joint_refinement._inputs_covariance`), which a free fit has no counterpart of, also with
-the mass fixed as in the free fit (as many parameters).
+which free motion needs). Each fit runs in turns `--repeat` times in this process (one
+job: the record is too short for worker processes); prints the median CPU time per sample
+of the refinement (`joint_refinement.refine`, timed by itself: the CPU time of this
+process, which other work on the machine disturbs far less than wall time) and the ratio
+driven / free, the issue's target being at most 1.3; and the driven one less the
+covariance of the inputs' noise (`joint_refinement._inputs_covariance`), which a free fit
+has no counterpart of, also with the mass fixed as in the free fit (as many parameters).
 
 With `--terms`, each fit is also made once in this process (jobs=1) with its integrations
 counted: passes over the segments, right-hand side calls (integrator stages) and states
 integrated per sample, and the CPU time per state and stage of the refinement, which
 compares the fits on equal terms (as many copies, passes and steps).
 
-    python tests/benchmarks/driven_refinement.py [--seconds 200] [--repeat 3] [--terms]
+    python tests/benchmarks/driven_refinement.py [--seconds 200] [--repeat 5] [--terms]
 """
 
 from __future__ import annotations
@@ -55,22 +56,22 @@ def records(seconds: float) -> tuple:
     return tuple(frames)
 
 
-INPUTS_NOISE: list[float] = []   # seconds in the covariance of the inputs' noise, per fit
-INPUTS_NOISE_CPU: list[float] = []   # and the CPU seconds of this process
+SECONDS: dict[str, list[float]] = {"refine": [], "inputs noise": []}   # CPU, per call
 
 
-def _timed(function):
+def _timed(function, key):
     def timed(*args, **kwargs):
-        start, cpu = time.perf_counter(), time.process_time()
+        cpu = time.process_time()
         try:
             return function(*args, **kwargs)
         finally:
-            INPUTS_NOISE.append(time.perf_counter() - start)
-            INPUTS_NOISE_CPU.append(time.process_time() - cpu)
+            SECONDS[key].append(time.process_time() - cpu)
     return timed
 
 
-joint_refinement._inputs_covariance = _timed(joint_refinement._inputs_covariance)
+joint_refinement.refine = _timed(joint_refinement.refine, "refine")
+joint_refinement._inputs_covariance = _timed(joint_refinement._inputs_covariance,
+                                             "inputs noise")
 
 COUNTS = {"passes": 0, "stages": 0, "state_stages": 0}   # of the integrations, per fit
 _integrate = dop853.integrate
@@ -85,26 +86,21 @@ def _counted(fun, y0, *args, **kwargs):
     return _integrate(counted, y0, *args, **kwargs)
 
 
-dop853.integrate = _counted
-
 
 def refinement_seconds(frame, model, **options) -> tuple[float, float]:
-    """The fit's time less that of the linear fit alone, and the part of it spent on the
-    covariance of the inputs' noise."""
-    INPUTS_NOISE.clear()
-    start = time.perf_counter()
-    result = hamid.fit(frame, model, damping="viscous", **options)
-    whole = time.perf_counter() - start
+    """The CPU seconds of the fit's refinement, and of the covariance of the inputs'
+    noise within it."""
+    for times in SECONDS.values():
+        times.clear()
+    result = hamid.fit(frame, model, damping="viscous", jobs=1, **options)
     assert result.method["refinement"]["applied"], result.warnings
-    start = time.perf_counter()
-    hamid.fit(frame, model, damping="viscous", method="joint", **options)
-    return whole - (time.perf_counter() - start), sum(INPUTS_NOISE)
+    return sum(SECONDS["refine"]), sum(SECONDS["inputs noise"])
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=200.0)
-    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--terms", action="store_true",
                         help="count each fit's integrations, and compare on equal terms")
     args = parser.parse_args()
@@ -113,6 +109,7 @@ def main() -> None:
         driven_model, free_model = Path(folder) / "driven.toml", Path(folder) / "free.toml"
         driven_model.write_text(DUFFING_MODEL)
         free_model.write_text(FREE_MODEL)
+        refinement_seconds(driven, driven_model)   # sympy's derivatives, compiled once
         times: dict[str, list[float]] = {"driven": [], "driven less the inputs' noise": [],
                                          "driven, m fixed, less noise": [], "free": []}
         for _ in range(args.repeat):
@@ -129,7 +126,7 @@ def main() -> None:
                                  / len(free))
     median = {key: statistics.median(value) for key, value in times.items()}
     for key, value in median.items():
-        print(f"{key:31s} refinement {1e6 * value:8.2f} us per sample, "
+        print(f"{key:31s} refinement {1e6 * value:8.2f} us CPU per sample, "
               f"{value / median['free']:.2f} x free")
     if args.terms:
         terms(driven, free)
@@ -139,6 +136,7 @@ def terms(driven, free) -> None:
     """Each fit's integrations per sample, and its refinement's CPU time per value
     integrated and stage (the equal terms: as many copies, passes and steps), made once
     in this process."""
+    dop853.integrate = _counted
     with tempfile.TemporaryDirectory() as folder:
         driven_model, free_model = Path(folder) / "driven.toml", Path(folder) / "free.toml"
         driven_model.write_text(DUFFING_MODEL)
@@ -148,15 +146,9 @@ def terms(driven, free) -> None:
                 ("driven", driven, driven_model, {}),
                 ("driven, m fixed", driven, driven_model, {"m": DUFFING_TRUTH["m"]}),
                 ("free", free, free_model, {"m": DUFFING_TRUTH["m"]})):
-            start = time.process_time()
-            hamid.fit(frame, model, damping="viscous", method="joint", fix=fix, jobs=1)
-            linear = time.process_time() - start
             COUNTS.update(passes=0, stages=0, state_stages=0)
-            INPUTS_NOISE_CPU.clear()
-            start = time.process_time()
-            hamid.fit(frame, model, damping="viscous", fix=fix, jobs=1)
-            seconds = time.process_time() - start - linear
-            lines[name] = (dict(COUNTS), seconds, sum(INPUTS_NOISE_CPU), len(frame))
+            seconds, noise = refinement_seconds(frame, model, fix=fix)
+            lines[name] = (dict(COUNTS), seconds, noise, len(frame))
     free_cost = lines["free"][1] / lines["free"][0]["state_stages"]
     for name, (counts, seconds, noise, n) in lines.items():
         cost = seconds / counts["state_stages"]
