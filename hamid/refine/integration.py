@@ -161,19 +161,18 @@ class SampledInputs:
         c = np.ascontiguousarray(np.repeat(
             spline.c.transpose(1, 0, 2).reshape(pieces, 4, n_inputs, -1, 1), copies,
             axis=4).reshape(pieces, 4, -1))
+        pieces_c = list(c)   # views made once, not at every stage
         bounds = spline.x.tolist()
-        last = len(bounds) - 2
-        piece = [0]   # the last call's: the integrator's next time is mostly in it
         powers = np.ones(4)   # h^3, h^2, h, 1: filled in place, cheaper than a new array
 
         def u(t: float) -> Array:
-            i = piece[0]
-            if not bounds[i] <= t < bounds[i + 1]:
-                i = piece[0] = min(max(bisect.bisect_right(bounds, t) - 1, 0), last)
+            # the piece of t, the first or last beyond the knots: searched at every call,
+            # since an integrator step spans tens of samples and its stages jump between
+            i = bisect.bisect_right(bounds, t, 1, pieces) - 1
             h = t - bounds[i]
             powers[0], powers[1], powers[2] = h * h * h, h * h, h
             # np.dot: a quarter cheaper than @ on a vector and a matrix this small
-            return np.dot(powers, c[i]).reshape(n_inputs, -1)
+            return np.dot(powers, pieces_c[i]).reshape(n_inputs, -1)
 
         return u
 
@@ -345,8 +344,9 @@ def responses(batch: Batch, integrated: tuple[Array, npt.NDArray[np.intp], Array
     u = spline(grid).reshape(len(grid), n_inputs, B).transpose(1, 0, 2).reshape(n_inputs, -1)
     states = values[:, :n_states, :, 0].transpose(1, 0, 2).reshape(n_states, -1)
     moved = u.copy()
-    motion = batch.dynamics.at(np.tile(batch.weights[:, 0], (1, len(grid))),
-                               inputs=lambda time: moved)
+    weights = batch.weights[:, 0]   # copy 0 of each segment, usually one set for all
+    motion = batch.dynamics.at(weights[:, 0] if np.all(weights == weights[:, :1])
+                               else np.tile(weights, (1, len(grid))), inputs=lambda time: moved)
     B_all = np.zeros((len(grid), n_states, B, n_inputs))
     for k in range(n_inputs):
         step = INPUT_STEP * max(float(np.max(np.abs(u[k]))), 1e-300)
