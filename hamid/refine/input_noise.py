@@ -137,42 +137,44 @@ class Segment:
     direct: Array | None = None
 
 
-def response(segment: Segment, knots: Array) -> Array:
-    """The change of each segment's scores and end state (c + 2N) by each value of the
-    inputs' spline at its `knots` (which hold the segments' sample times and end),
-    (S, len(knots), c + 2N, n_inputs), to first order (module docstring)."""
+def response(segment: Segment, knots: Array, outputs: Array) -> Array:
+    """The change of chosen combinations of each segment's scores and end state by each
+    value of the inputs' spline at its `knots` (which hold the segments' sample times and
+    end), (S, len(knots), r, n_inputs), to first order (module docstring); `outputs`
+    (S, r, c + 2N) are the combinations (the refinement wants the parameters' move, r of
+    them where the scores and end state are c + 2N: combined first, the rest is smaller)."""
     times, phi = segment.times, segment.phi
     S, _, n_states, n_inputs = segment.B.shape
     c, K, n_gauss = segment.products.shape[2], len(knots), len(GAUSS_NODES)
+    r = outputs.shape[1]
+    by_scores, by_end = outputs[..., :c], outputs[..., c:]
     q = _solved(phi, segment.B)                             # (S, G, 2N, n_inputs)
     last = int(np.argmin(np.abs(knots - times[-1])))        # the end's knot
     left, width = knots[:last], np.diff(knots[:last + 1])
     points = (left[:, None] + width[:, None] * (1 + GAUSS_NODES) / 2).ravel()
     # not-a-knot, as CubicSpline makes it; its B-spline form builds three times faster
     q_points = make_interp_spline(times, q, k=3, axis=1)(points)   # (S, P, 2N, n_inputs)
-    # Lambda on each knot interval: the samples after it, each at its own knot
+    # Lambda on each knot interval, combined: the samples after it, each at its own knot
     nearest = np.searchsorted(knots, times[segment.samples] - 0.5 * np.min(width))
-    at_knot = np.zeros((S, K + 1, c, n_states))
-    at_knot[:, nearest] = segment.products
+    at_knot = np.zeros((S, K + 1, r, n_states))
+    at_knot[:, nearest] = by_scores[:, None] @ segment.products
     after = np.cumsum(at_knot[:, ::-1], axis=1)[:, ::-1]    # sum over knots >= j
-    # each interval's integral of q times each of Hermite's basis functions, whose
-    # weights are its knots' values and slopes; then times Lambda, -after for the
-    # scores, Phi(end) for the end state (q first: it has 2N rows where Lambda has c + 2N)
+    # what q moves the outputs by on each interval: -Lambda for the scores, Phi(end) for
+    # the end state; times each interval's integral of q and each of Hermite's basis
+    # functions, whose weights are its knots' values and slopes
+    by_q = (by_end @ phi[:, -1])[:, None] - after[:, 1:last + 1]     # (S, last, r, 2N)
     rule = (width[:, None] * GAUSS_WEIGHTS / 2)[..., None] * HERMITE_AT_GAUSS   # (last, 4, 4)
     by_basis = (q_points.reshape(S, last, n_gauss, -1).swapaxes(2, 3) @ rule).reshape(
         S, last, n_states, n_inputs * 4)
-    at_ends = np.empty((S, last, c + n_states, n_inputs * 4))
-    np.matmul(after[:, 1:last + 1], -by_basis, out=at_ends[:, :, :c])
-    np.matmul(phi[:, -1:], by_basis, out=at_ends[:, :, c:])
-    F = (c + n_states) * n_inputs
-    at_ends = at_ends.reshape(S, last, F, 4)
+    F = r * n_inputs
+    at_ends = (by_q @ by_basis).reshape(S, last, F, 4)
     by_value, by_slope = np.zeros((2, K, S, F))
     by_value[:last] += at_ends[..., 0].swapaxes(0, 1)
     by_value[1:last + 1] += at_ends[..., 2].swapaxes(0, 1)
     by_slope[:last] += width[:, None, None] * at_ends[..., 1].swapaxes(0, 1)
     by_slope[1:last + 1] += width[:, None, None] * at_ends[..., 3].swapaxes(0, 1)
     if segment.direct is not None:   # the acceleration residuals at the samples themselves
-        by_value[nearest, :, :c * n_inputs] += segment.direct.reshape(
+        by_value[nearest] += (by_scores[:, None] @ segment.direct).reshape(
             S, len(nearest), -1).swapaxes(0, 1)
     return _through_slopes(knots, by_value.reshape(K, -1), by_slope.reshape(K, -1)).reshape(
-        K, S, c + n_states, n_inputs).swapaxes(0, 1)
+        K, S, r, n_inputs).swapaxes(0, 1)

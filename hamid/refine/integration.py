@@ -325,12 +325,13 @@ def blocks(batch: Batch) -> Blocks:
                   integrated=(grid, where, values) if batch.keep else None)
 
 
-def responses(batch: Batch, integrated: tuple[Array, npt.NDArray[np.intp], Array]
-              ) -> list[Array]:
-    """Each segment's change of its scores and end state by each of its input samples,
-    (m, c + 2N, n_inputs), to first order (`hamid.refine.input_noise.response`), from the
-    batch's `Blocks.integrated`: the values (len(grid), variables, B, copies) at the output
-    times `grid`, `where` the samples' and ends' indices into it."""
+def responses(batch: Batch, integrated: tuple[Array, npt.NDArray[np.intp], Array],
+              outputs: Array) -> list[Array]:
+    """Each segment's change of combinations `outputs` (B, r, c + 2N) of its scores and
+    end state by each of its input samples, (m, r, n_inputs), to first order
+    (`hamid.refine.input_noise.response`), from the batch's `Blocks.integrated`: the values
+    (len(grid), variables, B, copies) at the output times `grid`, `where` the samples' and
+    ends' indices into it."""
     from hamid.refine.input_noise import Segment, response
 
     grid, where, values = integrated
@@ -378,7 +379,7 @@ def responses(batch: Batch, integrated: tuple[Array, npt.NDArray[np.intp], Array
         moves = response(Segment(
             times=grid[:last + 1], phi=phi.transpose(2, 0, 1, 3),
             B=B_all[:last + 1, :, members].transpose(2, 0, 1, 3), samples=samples,
-            products=weighed @ J[..., :n_states], direct=direct), knots)
+            products=weighed @ J[..., :n_states], direct=direct), knots, outputs[members])
         for b, move in zip(members, moves, strict=True):
             out[b] = inputs.by_samples(b, knots, batch.tolerance.resolution, move)
     return out

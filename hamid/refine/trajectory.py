@@ -304,7 +304,7 @@ class SegmentFit:
         parameters' (module docstring)."""
         problem, point = self.problem, self.point
         assert problem.records.U is not None and point.moves is not None
-        normal, E, moves = point.normal, point.E, point.moves()
+        normal, E = point.normal, point.E
         n = normal.H_xx.shape[1]
         S, p = len(problem.pieces), len(self.free)
         grouped, chain = normal, None
@@ -325,10 +325,11 @@ class SegmentFit:
             if group[s + 1] == group[s]:
                 by_end[s] = gap[s + 1] + by_end[s + 1] @ E[s + 1, :, :n]
         inverse = np.linalg.inv(scores(self.normal)[1].sum(axis=0))
+        # each segment's scores and end state (c + 2N) to the parameters' move (p)
+        moves = point.moves(inverse @ np.concatenate([by_score, by_end], axis=2))
         response = np.zeros((p, *problem.records.U.shape))
         for s, (a, c) in enumerate(_input_rows(problem.records, problem.pieces)):
-            moved = np.concatenate([by_score[s], by_end[s]], axis=1)    # (p, c + 2N)
-            response[:, a:c] += np.einsum("kr,mri->kmi", inverse @ moved, moves[s])
+            response[:, a:c] += moves[s].transpose(1, 0, 2)
         return response
 
     def held_out_folds(self, folds: npt.NDArray[np.intp]
@@ -625,8 +626,9 @@ class _Point:
     normal: Normal
     end: npt.NDArray[np.float64]    # (S, 2N)
     E: npt.NDArray[np.float64]      # (S, 2N, 2N + p)
-    # a driven model's: each segment's response to its input samples, on demand
-    moves: Callable[[], list[npt.NDArray[np.float64]]] | None = None
+    # a driven model's: each segment's response to its input samples of given
+    # combinations of its scores and end state, on demand (`_responses`)
+    moves: Callable[[npt.NDArray[np.float64]], list[npt.NDArray[np.float64]]] | None = None
 
 
 def round_values(records: Records, n_free: int) -> int:
@@ -641,12 +643,14 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
                       theta_step: Any, rtol: float, batch_done: Callable[[int], None],
                       derivatives: bool = True, keep: bool = False
                       ) -> tuple[Normal, npt.NDArray[np.float64], npt.NDArray[np.float64],
-                                 Callable[[], list[npt.NDArray[np.float64]]] | None]:
+                                 Callable[[npt.NDArray[np.float64]],
+                                          list[npt.NDArray[np.float64]]] | None]:
     """Residuals and forward-difference Jacobians of every segment, into Normal; each
     one's state at its end time (`_Problem.end_times`, S, 2N) and that state's derivatives
     (S, 2N, 2N + p); with `keep` (a driven model), what gives each segment's response to
-    its input samples, on demand (`integration.responses`, from the integrated values the
-    batches keep: computed for the one point a covariance needs, not for every pass).
+    its input samples of chosen combinations of its scores and end state, on demand
+    (`_responses`, from the integrated values the batches keep: computed for the one point
+    a covariance needs, not for every pass).
 
     `theta` holds every parameter, shared (P,) or one row per segment (S, P). The segments
     are cut into batches of about equal size, as many as keep each within MAX_BATCH
@@ -704,12 +708,15 @@ def _normal_equations(problem: _Problem, theta: Any, X0: Any, free: tuple[int, .
         functools.partial(_responses, batches, kept) if keep else None)
 
 
-def _responses(batches: list[integration.Batch], kept: list[Any]
-               ) -> list[npt.NDArray[np.float64]]:
-    """Every segment's response to its input samples (`integration.responses`), batch
-    after batch."""
-    return [move for batch, integrated in zip(batches, kept, strict=True)
-            for move in integration.responses(batch, integrated)]
+def _responses(batches: list[integration.Batch], kept: list[Any],
+               outputs: npt.NDArray[np.float64]) -> list[npt.NDArray[np.float64]]:
+    """Every segment's response to its input samples (`integration.responses`), of the
+    combinations `outputs` (S, r, c + 2N) of its scores and end state, batch after
+    batch."""
+    edges = np.cumsum([0, *(len(batch.tau) for batch in batches)])
+    return [move for batch, integrated, lo, hi in zip(batches, kept, edges[:-1], edges[1:],
+                                                      strict=True)
+            for move in integration.responses(batch, integrated, outputs[lo:hi])]
 
 
 @dataclass(frozen=True)

@@ -97,7 +97,10 @@ def test_each_segments_response_is_the_integration_on_perturbed_inputs(
     arguments = {"theta": theta, "X0": np.array([x[0, :2] for x in motions]),
                  "free": (0, 1, 2), "rtol": trajectory.STRICT_RTOL,
                  "theta_step": trajectory._theta_step(theta), "batch_done": lambda done: None}
-    moves = trajectory._normal_equations(problem=problem, keep=True, **arguments)[3]()
+    responses = trajectory._normal_equations(problem=problem, keep=True, **arguments)[3]
+    # every score (2 states, 3 parameters) and the end state (2) by themselves
+    S, outputs = len(problem.pieces), 2 + 3 + 2
+    moves = responses(np.repeat(np.eye(outputs)[None], S, axis=0))
     noise = 0.05 * U.std() * np.random.default_rng(6).standard_normal(U.shape)
     moved = []
     for sign in (1, -1):   # central: the Jacobian's own move times the motion's cancels
