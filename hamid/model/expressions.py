@@ -54,6 +54,12 @@ class Func:
     def is_zero(self) -> bool:
         raise NotImplementedError
 
+    def over(self, variables: tuple[str, ...]) -> Func:
+        """The same function of more variables, which begin with its own (the state's,
+        then the inputs), so that functions of the state and of the inputs stack together
+        (`Func.stack` takes functions of the same variables)."""
+        raise NotImplementedError
+
     def is_constant_in(self, names: Sequence[str]) -> bool:
         """Whether the function does not change with any of the named variables."""
         return all(self.diff(name).is_zero() for name in names)
@@ -142,6 +148,12 @@ class Polynomial(Func):
 
     def is_zero(self) -> bool:
         return not np.any(self.coefficients)
+
+    def over(self, variables: tuple[str, ...]) -> Polynomial:
+        assert variables[:len(self.variables)] == self.variables
+        exponents = np.zeros((len(self.exponents), len(variables)), dtype=np.int64)
+        exponents[:, :len(self.variables)] = self.exponents
+        return Polynomial(variables, exponents, self.coefficients)
 
     @classmethod
     def _combine(cls, funcs: Sequence[Func], weights: Sequence[float]) -> Polynomial:
@@ -348,6 +360,10 @@ class Symbolic(Func):
         defined = np.isfinite(total) & np.isfinite(scale)
         return bool(defined.any()) and bool(np.all(total[defined]
                                                    <= _ZERO_TOLERANCE * scale[defined]))
+
+    def over(self, variables: tuple[str, ...]) -> Symbolic:
+        assert variables[:len(self.variables)] == self.variables
+        return Symbolic(variables, self.expression)
 
     @classmethod
     def _combine(cls, funcs: Sequence[Func], weights: Sequence[float]) -> Symbolic:

@@ -3,6 +3,8 @@ numpy by hand: values, derivatives, velocity degrees, combinations and stacks.""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import sympy
@@ -231,3 +233,46 @@ def test_a_stack_combined_state_by_state_sums_the_functions_with_each_states_wei
     expected = np.array([[sum(K[g, k, j] * float(f(states[j])) for k, f in enumerate(funcs))
                           for j in range(len(states))] for g in range(2)])
     np.testing.assert_allclose(combined, expected, rtol=1e-13, atol=1e-13)
+
+
+# --- widened to more variables ----------------------------------------------------------
+
+# x = 0.7, v = -1.3 beside inputs (u1, u2) of several values, which must not matter
+_WIDE = np.array([[0.7, -1.3, 0.0, 0.0], [0.7, -1.3, 2.5, -4.0], [0.7, -1.3, -1e3, 7.0]])
+
+
+@pytest.mark.parametrize("kind", ["polynomial", "symbolic"])
+def test_a_function_over_more_variables_is_the_same_function_of_its_own(kind):
+    """`over` appends variables the function does not depend on: its value and its
+    derivatives in x and v are those of the original, written out by hand at (0.7, -1.3),
+    whatever the added inputs, and its derivatives in those are zero."""
+    x, v = 0.7, -1.3
+    if kind == "polynomial":   # 1.5 x**2 v - 2 v**2 + 0.5 x + 3
+        f = Polynomial(("x", "v"), np.array([[2, 1], [0, 2], [1, 0], [0, 0]]),
+                       np.array([1.5, -2.0, 0.5, 3.0]))
+        value, by_x, by_v = -0.9555 - 3.38 + 0.35 + 3.0, 3 * x * v + 0.5, 1.5 * x**2 - 4 * v
+    else:                      # v**2 cos(x)/2 + v sin(x)
+        V = sympy.Symbol("v", real=True)
+        f = Symbolic(("x", "v"), V**2 * sympy.cos(X) / 2 + V * sympy.sin(X))
+        value = v**2 * math.cos(x) / 2 + v * math.sin(x)
+        by_x = -(v**2) * math.sin(x) / 2 + v * math.cos(x)
+        by_v = v * math.cos(x) + math.sin(x)
+    wide = f.over(("x", "v", "u1", "u2"))
+    assert type(wide) is type(f) and wide.variables == ("x", "v", "u1", "u2")
+    for widened, own, want in [(wide, f, value), (wide.diff("x"), f.diff("x"), by_x),
+                               (wide.diff("v"), f.diff("v"), by_v)]:
+        np.testing.assert_allclose(widened(_WIDE), [want] * 3, rtol=1e-13)
+        np.testing.assert_allclose(own(_WIDE[:, :2]), [want] * 3, rtol=1e-13)
+    for u in ("u1", "u2"):
+        assert wide.diff(u).is_zero()
+        np.testing.assert_allclose(wide.diff(u)(_WIDE), np.zeros(3), atol=1e-15)
+
+
+def test_a_widened_function_stacks_with_a_function_of_the_inputs():
+    """The reason for `over`: a function of the state and one of the state and inputs,
+    evaluated together (x v**2 widened, and x u beside it, at the rows of _WIDE)."""
+    f = Polynomial(("x", "v"), np.array([[1, 2]]), np.array([1.0])).over(("x", "v", "u1", "u2"))
+    g = Polynomial(("x", "v", "u1", "u2"), np.array([[1, 0, 1, 0]]), np.array([1.0]))
+    got = Func.stack([f, g])(_WIDE.T)
+    np.testing.assert_allclose(got[0], [0.7 * 1.69] * 3, rtol=1e-13)
+    np.testing.assert_allclose(got[1], [0.0, 0.7 * 2.5, -700.0], rtol=1e-13, atol=1e-15)
