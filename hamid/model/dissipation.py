@@ -11,8 +11,7 @@ coordinate i is F_i = -dR/dv_i, and the power dissipated is -F.v = sum_i v_i dR/
 
 and ``--damping viscous|coulomb|quadratic`` is shorthand for one term per coordinate:
 c_q v**2/2, mu_q abs(v) and d_q abs(v)**3/3, whose forces are -c v, -mu sign(v) and
--d |v| v. Both go through the safe expression parser (`hamid.model.expressions`) as one function,
-so
+-d |v| v. Both go through the safe expression parser (`hamid.model.parsing`) as one function, so
 the energy balance, the weak-form rows, the refinement and the simulator see one kind of
 dissipation, however it was written.
 """
@@ -28,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid.errors import ModelError
-from hamid.model import expressions
+from hamid.model import expressions, parsing
 
 __all__ = ["SHORTHAND", "Dissipation", "shorthand_names"]
 
@@ -86,10 +85,10 @@ class Dissipation:
         names = (*parameters, *shorthand)
         if not terms:
             return cls(coordinates, velocities)
-        tree = expressions.parse(" + ".join(terms), [*coordinates, *velocities, *names],
-                          where=f"{where}: dissipation")
-        _, parts = expressions.split_linear(tree, coordinates + velocities, names,
-                                     where=f"{where}: dissipation", what="dissipation")
+        tree = parsing.parse(" + ".join(terms), [*coordinates, *velocities, *names],
+                      where=f"{where}: dissipation")
+        _, parts = parsing.split_linear(tree, coordinates + velocities, names,
+                                 where=f"{where}: dissipation", what="dissipation")
         return cls(coordinates, velocities, names, parts, function, tuple(parameters))
 
     def with_kinds(self, kinds: Sequence[str]) -> Dissipation:

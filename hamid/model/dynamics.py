@@ -32,7 +32,7 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid.model.dissipation import Dissipation
-from hamid.model.expressions import Func, Polynomial, Stack, Symbolic
+from hamid.model.expressions import Func, Stack
 from hamid.model.models import Model
 
 __all__ = ["Dynamics", "Motion"]
@@ -133,7 +133,7 @@ class _Terms:
         return _Stacks(tuple(f for part in self.applied for f in part))
 
     def _with_applied(self, funcs: Sequence[Func]) -> _Stacks:
-        return _Stacks(tuple(_over(f, self.variables) for f in funcs)
+        return _Stacks(tuple(f.over(self.variables) for f in funcs)
                        + self.applied_stack.funcs)
 
 
@@ -176,7 +176,7 @@ class Dynamics:
         if self.dissipation is not None:
             P = len(self._parts)
             for k, part in enumerate(self.dissipation.parts):
-                parts.append(tuple(_over(part.diff(v), variables) for v in self.velocities))
+                parts.append(tuple(part.diff(v).over(variables) for v in self.velocities))
                 weights.append((P + k, -1.0))
         if self.forcing is not None:
             forcing = self.forcing
@@ -379,18 +379,6 @@ class Motion:
             out[2 * N] = (0.0 if self._power is None
                           else -np.einsum("ij,ij->j", self._power(X), Y[N:2 * N]))
         return out.ravel()
-
-
-def _over(f: Func, variables: tuple[str, ...]) -> Func:
-    """f as a function of `variables`, which begin with its own (the state's, then the
-    inputs), so that functions of the state and of the inputs stack together. (A method
-    of each kind in `hamid.model.expressions` would do, but that module is at its size.)"""
-    if isinstance(f, Polynomial):
-        exponents = np.zeros((len(f.exponents), len(variables)), dtype=np.int64)
-        exponents[:, :len(f.variables)] = f.exponents
-        return Polynomial(variables, exponents, f.coefficients)
-    assert isinstance(f, Symbolic) and variables[:len(f.variables)] == f.variables
-    return Symbolic(variables, f.expression)
 
 
 def _assemble(upper: Array, order: Sequence[tuple[int, int]], N: int) -> Array:

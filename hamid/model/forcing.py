@@ -18,7 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid.errors import ModelError
-from hamid.model import expressions
+from hamid.model import parsing
 from hamid.model.expressions import Func
 from hamid.model.toml_values import check_keys, table
 
@@ -95,9 +95,9 @@ def parse_forcing(value: Any, *, coordinates: Sequence[str], velocities: Sequenc
     if not isinstance(work, str):
         raise ModelError(f"{where}: 'work' must be an expression of the coordinates and "
                          "inputs, e.g. work = \"F*x\"")
-    tree = expressions.parse(work, None, where=f"{where}: work")
+    tree = parsing.parse(work, None, where=f"{where}: work")
     allowed = [*coordinates, *inputs, *parameters, *gains]
-    for symbol in expressions.symbols_in_order(tree):
+    for symbol in parsing.symbols_in_order(tree):
         if symbol not in allowed:
             lowered = {name.lower(): name for name in allowed}
             close = [lowered[m] for m in difflib.get_close_matches(symbol.lower(), lowered,
@@ -109,8 +109,8 @@ def parse_forcing(value: Any, *, coordinates: Sequence[str], velocities: Sequenc
             raise ModelError(f"{where}: work: unknown symbol {symbol!r}{hint}; it may use "
                              f"{', '.join(allowed)}{velocity}")
     every = (*parameters, *gains)
-    W0, W = expressions.split_linear(tree, (*coordinates, *velocities, *inputs), every,
-                                     where=f"{where}: work", what="work", required=gains)
+    W0, W = parsing.split_linear(tree, (*coordinates, *velocities, *inputs), every,
+                                 where=f"{where}: work", what="work", required=gains)
     Q0 = tuple(W0.diff(q) for q in coordinates)
     Q = tuple(tuple(w.diff(q) for w in W) for q in coordinates)
     if all(f.is_zero() for f in Q0) and all(g.is_zero() for row in Q for g in row):
@@ -124,8 +124,8 @@ def _taken_by(name: str, *, coordinates: Sequence[str], velocities: Sequence[str
     """What already owns `name` in the model or the parser ('' if nothing does)."""
     for owner, names in (("a coordinate", coordinates), ("a velocity", velocities),
                          ("a parameter of the model", parameters),
-                         ("a function", expressions.FUNCTIONS),
-                         ("a constant", expressions.CONSTANTS)):
+                         ("a function", parsing.FUNCTIONS),
+                         ("a constant", parsing.CONSTANTS)):
         if name in names:
             return f"it is {owner}"
     return "" if name.isidentifier() else "it is not a name (letters, digits, _)"

@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid.errors import ModelError, UsageError
-from hamid.model import expressions
+from hamid.model import expressions, parsing
 from hamid.model.dissipation import Dissipation, shorthand_names
 from hamid.model.forcing import Forcing, parse_forcing
 from hamid.model.names import acceleration_name
@@ -225,8 +225,8 @@ class Model:
         fractional powers); none for a polynomial."""
         if self.is_polynomial:
             return ()
-        tree = expressions.parse(self.energy, None)
-        return tuple(expressions.kinks(expressions.to_sympy(tree), self.variables))
+        tree = parsing.parse(self.energy, None)
+        return tuple(expressions.kinks(parsing.to_sympy(tree), self.variables))
 
     @property
     def is_natural(self) -> bool:
@@ -271,8 +271,8 @@ def _check_names(coordinates: Sequence[str], velocities: Sequence[str],
     names = [*coordinates, *velocities, *(parameters or ())]
     for name in names:
         if (not isinstance(name, str) or not name.isidentifier() or not name.isascii()
-                or keyword.iskeyword(name) or name in expressions.FUNCTIONS
-                or name in expressions.CONSTANTS):
+                or keyword.iskeyword(name) or name in parsing.FUNCTIONS
+                or name in parsing.CONSTANTS):
             raise ModelError(f"{where}: {name!r} cannot be used as a name")
     for name, count in _counts(names).items():
         if count > 1:
@@ -293,15 +293,15 @@ def model_from_expression(name: str, energy: str, coordinates: Sequence[str],
     coordinates, velocities = tuple(coordinates), tuple(velocities)
     _check_names(coordinates, velocities, parameters, where)
     allowed = None if parameters is None else [*coordinates, *velocities, *parameters]
-    tree = expressions.parse(energy, allowed, where=f"{where}: energy")
+    tree = parsing.parse(energy, allowed, where=f"{where}: energy")
     if parameters is None:
-        parameters = [s for s in expressions.symbols_in_order(tree)
+        parameters = [s for s in parsing.symbols_in_order(tree)
                       if s not in coordinates and s not in velocities]
         _check_names(coordinates, velocities, parameters, where)
     if not parameters:
         raise ModelError(f"{where}: the energy has no parameters to fit")
-    E0, phi = expressions.split_linear(tree, coordinates + velocities, tuple(parameters),
-                                where=f"{where}: energy")
+    E0, phi = parsing.split_linear(tree, coordinates + velocities, tuple(parameters),
+                            where=f"{where}: energy")
     return Model(name=name, energy=energy, coordinates=coordinates, velocities=velocities,
                  parameters=tuple(parameters), E0=E0, phi=phi, description=description)
 
@@ -525,8 +525,8 @@ def damping_table(model: Model, value: Any, *,
             raise ModelError(f"{where}: 'dissipation' must be a string")
         names = entries.get("parameters")
         if names is None:
-            names = [s for s in expressions.symbols_in_order(expressions.parse(function, None,
-                                                                 where=f"{where}: dissipation"))
+            names = [s for s in parsing.symbols_in_order(parsing.parse(function, None,
+                                                             where=f"{where}: dissipation"))
                      if s not in model.variables]
         if not (isinstance(names, list) and names and all(isinstance(n, str) for n in names)):
             raise ModelError(f"{where}: 'parameters' must be a list of names")

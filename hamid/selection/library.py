@@ -184,7 +184,7 @@ def _squeezed(text: str) -> str:
 
 
 def _text(f: expressions.Func) -> str:
-    """A function as an expression that `hamid.model.expressions` parses back to the same
+    """A function as an expression that `hamid.model.parsing` parses back to the same
     function."""
     if isinstance(f, expressions.Polynomial):
         text = ""

@@ -4,8 +4,8 @@ Each failure is checked as a user sees it, through the command line: the exit st
 data, model or numerical error, 2 for a usage error), one short message on standard error
 that names the culprit (file, column, row, TOML key, term, parameter, option), nothing on
 standard output and no traceback. Cases already covered by tests/cli/test_cli.py,
-tests/data/test_readers.py, tests/model/test_expressions.py and tests/test_simulation.py are
-not repeated here.
+tests/data/test_readers.py, tests/model/test_parsing.py and tests/test_simulation.py are not
+repeated here.
 
 Most tests run the click group in-process with `CliRunner`; signals and native-library
 output need a real process.
@@ -43,7 +43,7 @@ from sympy.parsing.sympy_parser import parse_expr, standard_transformations
 
 from hamid.cli.app import cli
 from hamid.errors import ModelError
-from hamid.model.expressions import FUNCTIONS, MAX_LENGTH, parse, to_sympy
+from hamid.model.parsing import FUNCTIONS, MAX_LENGTH, parse, to_sympy
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ROOT / "sample_data"
@@ -989,7 +989,7 @@ def _equal(a, b):
 def test_random_token_strings_parse_like_the_reference_or_are_rejected(text):
     """Text is either rejected, running nothing, or means what Python and sympy say it means.
 
-    tests/model/test_expressions.py checks expressions built from the grammar and grammar
+    tests/model/test_parsing.py checks expressions built from the grammar and grammar
     expressions with forbidden tokens inserted; here the strings are arbitrary runs of tokens.
     """
     calls = []

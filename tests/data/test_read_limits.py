@@ -27,7 +27,7 @@ from hamid.cli.app import cli
 from hamid.data import documents, input_size
 from hamid.data import readers as hio
 from hamid.errors import DataError, ModelError
-from hamid.model import expressions
+from hamid.model import parsing
 
 ROOT = Path(__file__).parents[2]
 DUFFING = ROOT / "sample_data" / "duffing.csv"
@@ -271,14 +271,14 @@ def test_nesting_is_bounded_where_sympy_can_take_it(hamid_cli, tmp_path):
     """sin( nested 180 deep (fit) or 150 (a report given to plot) was a RecursionError in
     sympy, under the parser's 500 levels. Just under MAX_NESTING the fit, its trajectory
     refinement and the plot run; just over, one line."""
-    most = expressions.MAX_NESTING - 4   # the sum, the product, the bracket and x around the sines
-    expressions.parse(_energy(most), None)
-    with pytest.raises(ModelError, match=f"nested {expressions.MAX_NESTING + 1} levels deep in "
+    most = parsing.MAX_NESTING - 4   # the sum, the product, the bracket and x around the sines
+    parsing.parse(_energy(most), None)
+    with pytest.raises(ModelError, match=f"nested {parsing.MAX_NESTING + 1} levels deep in "
                                          f"functions, powers and brackets \\(at most "
-                                         f"{expressions.MAX_NESTING}\\)"):
-        expressions.parse(_energy(most + 1), None)
+                                         f"{parsing.MAX_NESTING}\\)"):
+        parsing.parse(_energy(most + 1), None)
     # a long sum nests in one level, as sympy adds: 400 terms are fine
-    expressions.parse(" + ".join(f"cos({i}*x)" for i in range(1, 401)), None)
+    parsing.parse(" + ".join(f"cos({i}*x)" for i in range(1, 401)), None)
 
     _model_file(tmp_path / "under.toml", _energy(most))
     done = _run(hamid_cli, "fit", DUFFING, "--model", "under.toml", "-o", "r.json",
@@ -291,7 +291,7 @@ def test_nesting_is_bounded_where_sympy_can_take_it(hamid_cli, tmp_path):
     assert len(panels) == 6 and all(panel.stat().st_size > 0 for panel in panels)
     _model_file(tmp_path / "over.toml", _energy(most + 1))
     one_line_error(_run(hamid_cli, "fit", DUFFING, "--model", "over.toml", cwd=tmp_path), 1,
-              f"nested {expressions.MAX_NESTING + 1} levels deep")
+              f"nested {parsing.MAX_NESTING + 1} levels deep")
 
 
 def test_a_comment_sign_in_an_energy_is_refused(hamid_cli, tmp_path):
