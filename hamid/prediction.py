@@ -34,7 +34,7 @@ import dataclasses
 import io
 import json
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from typing import TYPE_CHECKING, Any
@@ -47,7 +47,7 @@ from hamid.data import input_size, loading, measurement
 from hamid.data.records import Recording, Records
 from hamid.errors import DataError, ModelError, UsageError
 from hamid.linear import design
-from hamid.model.dynamics import Dynamics, Motion
+from hamid.model.dynamics import Dynamics, Inputs, Motion
 from hamid.model.models import model_from_info
 from hamid.options import TIME_UNITS, FitOptions
 from hamid.refine.integration import SampledInputs
@@ -129,7 +129,7 @@ class Integration:
     dynamics: Dynamics
     weights: Array
     scale: Array
-    inputs: Callable[[float], Array] | None = None
+    inputs: Inputs | None = None
 
     @classmethod
     def of(cls, report: Mapping[str, Any], recording: Recording) -> Integration:

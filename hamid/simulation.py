@@ -71,9 +71,11 @@ class System:
     max_samples: int
     signals: tuple[signals.Signal, ...] = ()   # of the model's inputs, in order
 
-    def inputs(self, t: float) -> npt.NDArray[np.float64]:
-        """u(t) of a driven system's inputs."""
-        return np.array([signal(t) for signal in self.signals], dtype=np.float64)
+    def inputs(self, t: float, out: npt.NDArray[np.float64]) -> None:
+        """u(t) of a driven system's inputs into `out` (m, n_states), shared by every
+        state (`hamid.model.dynamics.Inputs`)."""
+        for row, signal in zip(out, self.signals, strict=True):
+            row[:] = signal(t)
 
 
 def simulate(system: str | os.PathLike[str] | Mapping[str, Any], *, seed: int | None = None,

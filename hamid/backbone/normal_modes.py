@@ -119,10 +119,8 @@ class _Branch:
 
     def __init__(self, model: Model, theta: Array, linear: _Linear, scale: float):
         self.model, self.theta, self.linear, self.scale = model, theta, linear, scale
-        zeros = np.zeros(len(model.inputs))
-
-        def at_rest(t: float) -> Array:   # a driven model's free motion: its inputs at zero
-            return zeros
+        def at_rest(t: float, out: Array) -> None:   # a driven model's free motion
+            out[:] = 0.0
 
         self.motion: Motion = Dynamics(model).at(
             np.concatenate([[1.0], theta]), inputs=None if model.forcing is None else at_rest)

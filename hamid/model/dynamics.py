@@ -35,9 +35,13 @@ from hamid.model.dissipation import Dissipation
 from hamid.model.expressions import Func, Stack
 from hamid.model.models import Model
 
-__all__ = ["Dynamics", "Motion"]
+__all__ = ["Dynamics", "Inputs", "Motion"]
 
 Array = npt.NDArray[np.float64]
+# A driven model's inputs at time t, written into the second argument: u(t) of every
+# state, (m, n_states), C-contiguous (written, not returned: a driven integrator stage
+# then makes no array for them)
+Inputs = Callable[[float, Array], None]
 
 
 @dataclass(frozen=True, eq=False)
@@ -194,7 +198,7 @@ class Dynamics:
         return _Terms.derive(self._parts, self.coordinates, self.velocities, parts, variables)
 
     def at(self, weights: npt.ArrayLike, *, drained: bool = False,
-           inputs: Callable[[float], Array] | None = None) -> Motion:
+           inputs: Inputs | None = None) -> Motion:
         """The equations at weights (1, theta, dissipation coefficients).
 
         `weights` has shape (n_weights,), shared by every state, or (n_weights, n_states),
@@ -202,8 +206,8 @@ class Dynamics:
         With `drained`, the states carry one more row: the energy the damping has drained
         (less the work the inputs supplied) since the start, whose rate is the power -F.v
         (F the dissipative and input forces). A driven model (`Model.forcing`)
-        needs its `inputs` as a function of time, u(t) of shape (m,) or (m, n_states);
-        their generalized force joins the dissipative forces.
+        needs its `inputs`: `Inputs`, which write u(t) of every state; their generalized
+        force joins the dissipative forces.
         """
         w = np.asarray(weights, dtype=np.float64)
         P = len(self._parts)
@@ -245,7 +249,7 @@ class Motion:
     """
 
     def __init__(self, terms: _Terms, weights: Array, applied: Array, drained: bool,
-                 inputs: Callable[[float], Array] | None = None):
+                 inputs: Inputs | None = None):
         self.n = terms.n
         self.rows = 2 * terms.n + bool(drained)
         self.drained = drained
@@ -255,7 +259,8 @@ class Motion:
         self._terms, self._weights, self._applied = terms, weights, applied
         self._shared = weights.ndim == 1
         self._inputs = inputs
-        self._arguments = np.empty((0, 0))   # (q, v, u) of the last call's shape, reused
+        # (q, v, u) of the last call's number of states, reused, and its rows u
+        self._arguments = self._input_rows = np.empty((0, 0))
         self._folded = False
         self._inverse: Array | None = None   # (N, N) shared, or (N, N, n) per state
         stack = self._invert_constant_mass() if terms.constant_mass else None
@@ -325,13 +330,12 @@ class Motion:
         the call that made them)."""
         if self._inputs is None:
             return Y
-        u = self._inputs(t)
         X = self._arguments
-        if X.shape != (len(Y) + len(u), Y.shape[1]):
-            X = self._arguments = np.empty((len(Y) + len(u), Y.shape[1]))
+        if X.shape[1] != Y.shape[1]:
+            X = self._arguments = np.empty((len(self._terms.variables), Y.shape[1]))
+            self._input_rows = X[len(Y):]
         X[:len(Y)] = Y
-        # u (m,) or (m, 1) is shared by every state
-        X[len(Y):] = u if u.ndim == 2 else u[:, None]
+        self._inputs(t, self._input_rows)
         return X
 
     def accelerations(self, Y: Array, t: float = 0.0) -> Array:

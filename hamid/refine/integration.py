@@ -22,7 +22,7 @@ import dataclasses
 import functools
 import io
 import pickle
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -30,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from hamid.executor import Pool, Workers, started
-from hamid.model.dynamics import Dynamics
+from hamid.model.dynamics import Dynamics, Inputs
 from hamid.refine import dop853
 
 __all__ = ["Batch", "Blocks", "IntegrationFailed", "SampledInputs", "Tolerance", "blocks",
@@ -147,32 +147,36 @@ class SampledInputs:
         return spline_gradient(self.tau[b], grid[:inside], by_table.reshape(inside, -1)
                                ).reshape(len(self.tau[b]), *shape[1:])
 
-    def path(self, copies: int, resolution: float) -> Callable[[float], Array]:
+    def path(self, copies: int, resolution: float) -> Inputs:
         """u(t) of every integrated state, (n_inputs, B * copies), each segment's inputs
-        repeated for its copies (the states' order in `blocks`); times closer than
+        repeated for its copies (the states' order in `blocks`), as `Dynamics.at` takes
+        them, or of one segment shared by any number of states; times closer than
         `resolution` are one (`common_times`)."""
         n_inputs = self.values[0].shape[1]
         # the spline's pieces, evaluated by hand: scipy's call costs more than the rest of
         # an integrator stage (tests/benchmarks/driven_refinement.py)
         spline = self.spline(resolution)
         pieces = len(spline.x) - 1
-        # (pieces, 4, n_inputs * B * copies): each segment's coefficients repeated for its
-        # copies once here, not at every stage
+        # each piece's (4, n_inputs * B * copies) coefficients, each segment's repeated for
+        # its copies once here, not at every stage
         c = np.ascontiguousarray(np.repeat(
             spline.c.transpose(1, 0, 2).reshape(pieces, 4, n_inputs, -1, 1), copies,
             axis=4).reshape(pieces, 4, -1))
-        pieces_c = list(c)   # views made once, not at every stage
+        by_piece, size = list(c), c.shape[2]   # views made once, not at every stage
         bounds = spline.x.tolist()
         powers = np.ones(4)   # h^3, h^2, h, 1: filled in place, cheaper than a new array
 
-        def u(t: float) -> Array:
+        def u(t: float, out: Array) -> None:
             # the piece of t, the first or last beyond the knots: searched at every call,
             # since an integrator step spans tens of samples and its stages jump between
             i = bisect.bisect_right(bounds, t, 1, pieces) - 1
             h = t - bounds[i]
             powers[0], powers[1], powers[2] = h * h * h, h * h, h
             # np.dot: a quarter cheaper than @ on a vector and a matrix this small
-            return np.dot(powers, pieces_c[i]).reshape(n_inputs, -1)
+            if out.size == size:
+                np.dot(powers, by_piece[i], out=out.reshape(-1))
+            else:   # one segment's inputs, shared by every state (a prediction's starts)
+                out[:] = np.dot(powers, by_piece[i]).reshape(n_inputs, -1)
 
         return u
 
@@ -345,9 +349,13 @@ def responses(batch: Batch, integrated: tuple[Array, npt.NDArray[np.intp], Array
     u = spline(grid).reshape(len(grid), n_inputs, B).transpose(1, 0, 2).reshape(n_inputs, -1)
     states = values[:, :n_states, :, 0].transpose(1, 0, 2).reshape(n_states, -1)
     moved = u.copy()
+
+    def moved_inputs(time: float, out: Array) -> None:
+        out[:] = moved
+
     weights = batch.weights[:, 0]   # copy 0 of each segment, usually one set for all
     motion = batch.dynamics.at(weights[:, 0] if np.all(weights == weights[:, :1])
-                               else np.tile(weights, (1, len(grid))), inputs=lambda time: moved)
+                               else np.tile(weights, (1, len(grid))), inputs=moved_inputs)
     B_all = np.zeros((len(grid), n_states, B, n_inputs))
     for k in range(n_inputs):
         step = INPUT_STEP * max(float(np.max(np.abs(u[k]))), 1e-300)

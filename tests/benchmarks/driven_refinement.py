@@ -6,8 +6,10 @@ noise on the motion, dt = 0.01) twice, as a user would: driven by a multisine fo
 which free motion needs). Each fit runs in turns `--repeat` times in this process (one
 job: the record is too short for worker processes); prints the median CPU time per sample
 of the refinement (`joint_refinement.refine`, timed by itself: the CPU time of this
-process, which other work on the machine disturbs far less than wall time) and the ratio
-driven / free, the issue's target being at most 1.3; and the driven one less the
+process, which other work on the machine disturbs less than wall time) and the median
+and quartiles of each round's ratio driven / free (the fits of a round run back to back,
+so that the machine's drifts cancel), the issue's target being at most 1.3; and the
+driven one less the
 covariance of the inputs' noise (`joint_refinement._inputs_covariance`), which a free fit
 has no counterpart of, also with the mass fixed as in the free fit (as many parameters).
 
@@ -124,10 +126,12 @@ def main() -> None:
             times["free"].append(refinement_seconds(free, free_model,
                                                     fix={"m": DUFFING_TRUTH["m"]})[0]
                                  / len(free))
-    median = {key: statistics.median(value) for key, value in times.items()}
-    for key, value in median.items():
-        print(f"{key:31s} refinement {1e6 * value:8.2f} us CPU per sample, "
-              f"{value / median['free']:.2f} x free")
+    for key, value in times.items():
+        ratios = [a / b for a, b in zip(value, times["free"], strict=True)]
+        quartiles = statistics.quantiles(ratios, n=4) if len(ratios) > 1 else ratios * 3
+        print(f"{key:31s} refinement {1e6 * statistics.median(value):8.2f} us CPU per "
+              f"sample, {statistics.median(ratios):.2f} x free (quartiles "
+              f"{quartiles[0]:.2f}-{quartiles[2]:.2f})")
     if args.terms:
         terms(driven, free)
 
