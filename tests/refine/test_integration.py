@@ -157,6 +157,26 @@ def test_a_batch_pickles_once_its_equations_are_compiled():
     assert here.cost.shape == (2, 2) and np.all(here.cost > 0)
 
 
+def test_sampled_inputs_travel_without_their_splines_and_make_them_again():
+    """The inputs' spline is made once and kept (a refinement's passes reuse it), but
+    not pickled to a worker, whose copy makes its own: the same values between the
+    samples as scipy's not-a-knot spline of the samples, and the path u(t) writes them
+    for each segment's copies."""
+    from scipy.interpolate import CubicSpline
+
+    tau = np.linspace(0.0, 1.0, 11)
+    values = [np.sin(3 * tau)[:, None], np.cos(2 * tau)[:, None]]
+    inputs = integration.SampledInputs([tau, tau], values).part(0, 2)
+    assert inputs.spline(1e-9) is inputs.spline(1e-9)
+    copy = pickle.loads(pickle.dumps(inputs))
+    assert copy._splines == {} and copy._parts == {}
+    u = copy.path(3, 1e-9)
+    out = np.empty((1, 6))
+    u(0.37, out)
+    expected = [CubicSpline(tau, v[:, 0])(0.37) for v in values]
+    np.testing.assert_allclose(out, [np.repeat(expected, 3)], rtol=1e-13)
+
+
 def test_symbolic_energies_and_damping_reach_the_workers(monkeypatch, spied_pools):
     """A pendulum's cos energy with viscous damping, in two processes: the results as in
     this one."""
