@@ -245,7 +245,9 @@ class Motion:
     - a constant mass matrix is inverted once and folded into those weights, so that the
       call returns the accelerations themselves;
     - a changing mass matrix is solved by division (N = 1), Cramer's rule (N = 2, where a
-      batched LU costs far more) or LU.
+      batched LU costs far more) or LU;
+    - a driven model's arguments (q, v, u) are one buffer kept between calls, into which
+      the states are copied and the inputs write themselves (`Inputs`).
     """
 
     def __init__(self, terms: _Terms, weights: Array, applied: Array, drained: bool,
