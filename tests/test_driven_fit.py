@@ -88,6 +88,33 @@ def test_a_two_mass_chain_forced_on_its_second_mass_is_recovered(chain_model):
         assert result.estimates[name] == pytest.approx(value, rel=1e-5), name
 
 
+def test_a_chain_driven_on_both_masses_is_recovered_and_predicted(tmp_path):
+    """Two inputs, a force on each mass from its own multisine: the refinement integrates
+    both (each segment's copies through one spline of all their columns), and the fit
+    predicts a recording of the two signals swapped, which it never saw."""
+    path = tmp_path / "chain2.toml"
+    path.write_text(CHAIN_MODEL.replace('inputs = ["F"]', 'inputs = ["F1", "F2"]')
+                    .replace('work = "F*x2"', 'work = "F1*x1 + F2*x2"'))
+    signals = [{"kind": "multisine", "amplitude": amplitude, "band": [0.05, 1.2],
+                "seed": seed} for amplitude, seed in ((0.6, 7), (1.0, 5))]
+
+    def recording(first: dict, second: dict) -> dict:
+        system = chain_system()
+        system["forcing"] = {"inputs": ["F1", "F2"], "work": "F1*x1 + F2*x2",
+                             "signals": {"F1": first, "F2": second}}
+        return hamid.simulate(system)
+
+    result = hamid.fit(recording(*signals), path)
+    assert result.method["refinement"]["applied"]
+    for name, value in CHAIN_TRUTH.items():
+        assert result.estimates[name] == pytest.approx(value, rel=1e-5), name
+    unseen = recording(*signals[::-1])
+    predicted = result.predict(unseen)
+    for channel in ("x1", "x2"):
+        amplitude = unseen[channel].abs().max()
+        assert predicted.channels.loc[channel, "rms"] < 1e-5 * amplitude, channel
+
+
 def test_a_driven_duffing_with_coulomb_friction_is_recovered_through_its_reversals(
         duffing_model):
     """A machine's friction, crossed at every reversal of the drive: the refinement
