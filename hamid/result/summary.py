@@ -122,7 +122,8 @@ def fit_result(model: Model, unknowns: Unknowns, fit: LinearFit, residuals: Resi
                            driven=model.forcing is not None, integrated=integrated),
                 *_correlation_warnings(conditioning["strongest_correlation"],
                                        quadrature=DISCRETIZATION_NOTE in fit.description),
-                *_noise_warnings(provenance.noise_check), *forcing_warnings(forcing)]
+                *_noise_warnings(provenance.noise_check, _not_fitting(refinement)),
+                *forcing_warnings(forcing)]
     return FitResult(
         hamid_version=__version__,
         model=model.info(),
@@ -500,8 +501,17 @@ def _refinement_notes(refinement: RefinementInfo | None) -> list[str]:
 _NOISY, _BIASED = 0.5, 1 / 3
 
 
-def _noise_warnings(check: NoiseCheck | None) -> list[str]:
-    """Warnings that the measurement noise makes the linear fit untrustworthy."""
+def _not_fitting(refinement: RefinementInfo | None) -> bool:
+    """Whether the trajectory refinement was refused because the integrated model does
+    not describe the recording (`_refinement_notes`): then a correction that assumes the
+    model is not the next step."""
+    return (refinement is not None and not refinement["applied"]
+            and refinement["reason"].startswith("the integrated model"))
+
+
+def _noise_warnings(check: NoiseCheck | None, not_fitting: bool) -> list[str]:
+    """Warnings that the measurement noise makes the linear fit untrustworthy; with
+    `not_fitting` (`_not_fitting`), the fix for its bias waits for a model that fits."""
     if check is None:
         return []
     notes = []
@@ -520,6 +530,8 @@ def _noise_warnings(check: NoiseCheck | None) -> list[str]:
                                sorted(biased.items(), key=lambda kv: -abs(kv[1])))
             notes.append(f"the measurement noise biases these least-squares estimates by more "
                          f"than a third of their standard errors ({listed} standard errors), "
-                         "so their bounds hold the truth less often than they say; rerun "
-                         "with --noise auto --bias-correct")
+                         "so their bounds hold the truth less often than they say; "
+                         + ("once the model fits the recording (the trajectory refinement "
+                            "found it does not), rerun with --noise auto --bias-correct"
+                            if not_fitting else "rerun with --noise auto --bias-correct"))
     return notes

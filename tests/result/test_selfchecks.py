@@ -76,3 +76,19 @@ def test_an_unbiased_fit_gives_no_bias_warning(method, relative):
     by well under a third of their errors (tests/linear/test_bias.py measures it)."""
     result = hamid.fit(_noisy(relative, 40.0), method=method)
     assert not _has(result.warnings, "biases")
+
+
+def test_a_model_that_does_not_fit_defers_the_noise_bias_fix():
+    """The shaker's sweep fitted without its damping: the trajectory refinement finds the
+    model does not fit the recording, so the noise-bias warning defers --bias-correct
+    (which assumes the model) until it does; with the damping, the warning is gone."""
+    model = ROOT / "sample_data" / "shaker.toml"
+    data = hamid.simulate(model)
+    undamped = hamid.fit(data, model)
+    assert not undamped.method["refinement"]["applied"]
+    assert _has(undamped.warnings, "energy is not conserved", "--damping viscous")
+    [bias] = [w for w in undamped.warnings if "biases these least-squares" in w]
+    assert "once the model fits the recording" in bias and "--bias-correct" in bias
+    damped = hamid.fit(data, model, damping="viscous")
+    assert damped.method["refinement"]["applied"]
+    assert not _has(damped.warnings, "biases")
