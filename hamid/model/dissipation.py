@@ -86,9 +86,9 @@ class Dissipation:
         if not terms:
             return cls(coordinates, velocities)
         tree = parsing.parse(" + ".join(terms), [*coordinates, *velocities, *names],
-                      where=f"{where}: dissipation")
+                             where=f"{where}: dissipation")
         _, parts = parsing.split_linear(tree, coordinates + velocities, names,
-                                 where=f"{where}: dissipation", what="dissipation")
+                                        where=f"{where}: dissipation", what="dissipation")
         return cls(coordinates, velocities, names, parts, function, tuple(parameters))
 
     def with_kinds(self, kinds: Sequence[str]) -> Dissipation:

@@ -301,7 +301,7 @@ def model_from_expression(name: str, energy: str, coordinates: Sequence[str],
     if not parameters:
         raise ModelError(f"{where}: the energy has no parameters to fit")
     E0, phi = parsing.split_linear(tree, coordinates + velocities, tuple(parameters),
-                            where=f"{where}: energy")
+                                   where=f"{where}: energy")
     return Model(name=name, energy=energy, coordinates=coordinates, velocities=velocities,
                  parameters=tuple(parameters), E0=E0, phi=phi, description=description)
 
@@ -525,8 +525,8 @@ def damping_table(model: Model, value: Any, *,
             raise ModelError(f"{where}: 'dissipation' must be a string")
         names = entries.get("parameters")
         if names is None:
-            names = [s for s in parsing.symbols_in_order(parsing.parse(function, None,
-                                                             where=f"{where}: dissipation"))
+            names = [s for s in parsing.symbols_in_order(parsing.parse(
+                         function, None, where=f"{where}: dissipation"))
                      if s not in model.variables]
         if not (isinstance(names, list) and names and all(isinstance(n, str) for n in names)):
             raise ModelError(f"{where}: 'parameters' must be a list of names")
