@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import ast
+import builtins
 import os
 import select
 import sys
 from pathlib import Path
+from unittest import mock
 
 
 class Readiness:
@@ -196,3 +199,26 @@ def velocity_findings(frame, coordinates: tuple[str, ...], velocities: tuple[str
                       groups, tuple(np.unique(groups)))
     period = design.median_period(design.trajectory_scales(records, len(coordinates)))
     return velocity_check(records, coordinates, velocities, {}, period)
+
+
+# The syntax-tree nodes a parsed expression may hold: numbers, names, calls, + - * / **
+SAFE_NODES = (ast.BinOp, ast.UnaryOp, ast.Call, ast.Name, ast.Constant, ast.Load, ast.Add,
+              ast.Sub, ast.Mult, ast.Div, ast.Pow, ast.USub, ast.UAdd)
+
+
+def parsed_running_nothing(text: str, names: list[str]) -> ast.expr | None:
+    """hamid's parse of `text` (None when it is refused), asserting that parsing ran
+    nothing: no shell command, eval or exec."""
+    from hamid.errors import ModelError
+    from hamid.model.parsing import parse
+
+    calls: list[tuple] = []
+    with mock.patch.object(os, "system", lambda *a: calls.append(a) or 0), \
+            mock.patch.object(builtins, "eval", lambda *a, **k: calls.append(a)), \
+            mock.patch.object(builtins, "exec", lambda *a, **k: calls.append(a)):
+        try:
+            tree = parse(text, names)
+        except ModelError:
+            tree = None
+    assert calls == [], text
+    return tree
